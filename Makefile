@@ -1,0 +1,31 @@
+# The two commands of the README: `make repro` and `make test`. Both create .venv when missing
+# and (re)install the project into it when pyproject.toml or setup.py changed.
+
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+# MuJoCo renders headless through EGL (Mesa's software EGL works with no GPU); set MUJOCO_GL=osmesa
+# to use OSMesa instead.
+export MUJOCO_GL ?= egl
+PYTEST_ARGS ?=
+
+.PHONY: install repro test clean-venv
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml setup.py
+	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 11))' \
+		|| { echo "error: $(PYTHON) is older than 3.11; set PYTHON=python3.11 or newer" >&2; exit 2; }
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[dev]'
+	touch $(STAMP)
+
+repro: install
+	$(BIN)/dvc repro
+
+test: install
+	$(BIN)/pytest $(PYTEST_ARGS)
+
+clean-venv:
+	rm -rf $(VENV)

@@ -1,0 +1,268 @@
+"""The parameters of every stage: one pydantic model per section of ``params.yaml``.
+
+``params.yaml`` is the single source of every number in the pipeline. :class:`Params` describes the
+whole file (extra keys are refused everywhere); each stage validates all of it before doing any
+work, so a typo fails fast with the key path named. Defaults live here and only here; the
+committed ``params.yaml`` spells out the paper's configuration in full.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+__all__ = [
+    "ALGOS",
+    "CollectConfig",
+    "DecoderConfig",
+    "EdeTD3Config",
+    "EmbeddingConfig",
+    "FamilyConfig",
+    "ParamsError",
+    "Params",
+    "ReportConfig",
+    "RunsConfig",
+    "TD3Config",
+    "load_params",
+]
+
+ALGOS = ("td3", "ede-td3")
+
+PositiveInt = Annotated[int, Field(gt=0)]
+Seed = Annotated[int, Field(ge=0, description="seed of every random number generator of a stage")]
+
+
+def _registered(task: str) -> str:
+    if task not in _registered_task_ids():
+        raise ValueError("a registered gymnasium task id (see `ede-pipeline envs`)")
+    return task
+
+
+TaskId = Annotated[str, AfterValidator(_registered)]
+HiddenSizes = Annotated[
+    list[PositiveInt], Field(min_length=1, description="hidden layer widths of an MLP")
+]
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class FamilyConfig(_Section):
+    """Tasks that share one robot: the embedding is learned on ``source`` and used on all."""
+
+    source: TaskId = Field(description="gymnasium id of the task the random-policy data comes from")
+    targets: list[TaskId] = Field(default_factory=list, description="other tasks of the family")
+
+    @property
+    def tasks(self) -> list[str]:
+        return [self.source, *self.targets]
+
+
+class CollectConfig(_Section):
+    """Stage 1: uniform random actions on a family's source task."""
+
+    steps: PositiveInt = Field(100_000, description="environment steps to record")
+    num_envs: PositiveInt | None = Field(
+        None, description="parallel sub-environments; null means the number of cores"
+    )
+    seed: Seed = 0
+
+
+class EmbeddingConfig(_Section):
+    """Stage 2: the encoder E and predictor P (Section 2.2, Equation for L(θ_E, θ_P))."""
+
+    k: PositiveInt = Field(4, description="actions per embedded sequence")
+    dim: PositiveInt | None = Field(None, description="embedding size; null means the action size")
+    beta: float = Field(1e-4, ge=0, description="weight of KL(E || N(0, I))")
+    hidden: HiddenSizes = Field(default_factory=lambda: [400, 400])
+    lr: float = Field(1e-4, gt=0)
+    batch_size: PositiveInt = 128
+    epochs: PositiveInt = 100
+    holdout: float = Field(0.1, gt=0, lt=1, description="fraction of episodes never trained on")
+    seed: Seed = 0
+
+
+class DecoderConfig(_Section):
+    """Stage 3: the decoder D, the minimum-norm one-sided inverse of E (Section 2.3)."""
+
+    lam: float = Field(1e-4, ge=0, description="weight λ of ||D(z)||²")
+    z_source: Literal["prior", "marginal"] = Field(
+        "marginal",
+        description="where training z are drawn: N(0, I) as the paper writes, or E's whitened "
+        "marginal on the rollouts as the authors' code does",
+    )
+    hidden: HiddenSizes = Field(default_factory=lambda: [400, 400])
+    lr: float = Field(1e-4, gt=0)
+    batch_size: PositiveInt = 128
+    epochs: PositiveInt = 100
+    seed: Seed = 0
+
+
+class TD3Config(_Section):
+    """TD3 as in its authors' reference code at the paper's time (Fujimoto et al., 2018)."""
+
+    hidden: HiddenSizes = Field(default_factory=lambda: [400, 300])
+    batch_size: PositiveInt = 100
+    lr: float = Field(1e-3, gt=0, description="Adam learning rate of actor and critics")
+    discount: float = Field(0.99, gt=0, le=1)
+    tau: float = Field(0.005, gt=0, le=1, description="Polyak rate of the target networks")
+    policy_noise: float = Field(0.2, ge=0, description="target smoothing noise, × action scale")
+    noise_clip: float = Field(0.5, ge=0, description="clip of the target noise, × action scale")
+    policy_delay: PositiveInt = Field(2, description="critic updates per actor update")
+    exploration_noise: float = Field(0.1, ge=0, description="behaviour noise, × action scale")
+    start_steps: int = Field(10_000, ge=0, description="uniform random steps before the policy")
+    buffer_size: PositiveInt = 1_000_000
+    eval_every: PositiveInt = 5_000
+    eval_episodes: PositiveInt = 10
+    checkpoint_every: PositiveInt = 50_000
+    precision: Literal["fp32", "bf16"] = Field(
+        "fp32", description="matmul precision of updates (bf16 autocast keeps fp32 weights)"
+    )
+    device: Literal["cpu", "cuda", "auto"] = "cpu"
+
+
+class EdeTD3Config(_Section):
+    """What EDE-TD3 adds to TD3 (Section 3); every TD3 number is shared."""
+
+    bound_scale: float = Field(
+        1.0, gt=0, description="the actor's |z| bound, × the largest whitened |z| the decoder saw"
+    )
+
+
+class RunsConfig(_Section):
+    """Stage 4: which runs make up the experiment."""
+
+    tasks: list[TaskId] = Field(min_length=1)
+    algos: list[Literal["td3", "ede-td3"]] = Field(default_factory=lambda: list(ALGOS))
+    seeds: list[Seed] = Field(min_length=1)
+    budgets: dict[str, PositiveInt] = Field(description="environment steps per task")
+
+    @model_validator(mode="after")
+    def _every_task_has_a_budget(self) -> RunsConfig:
+        missing = [task for task in self.tasks if task not in self.budgets]
+        if missing:
+            raise ValueError(f"runs.budgets: no budget for {', '.join(missing)}")
+        if len(set(self.seeds)) != len(self.seeds):
+            raise ValueError(f"runs.seeds: {self.seeds} repeats a seed; expected distinct seeds")
+        return self
+
+
+class ReportConfig(_Section):
+    """Stage 5: statistics of the report."""
+
+    confidence: float = Field(0.95, gt=0, lt=1)
+    bootstrap_samples: PositiveInt = 2_000
+    thresholds: dict[str, float] = Field(
+        default_factory=dict, description="return that counts as solved, per task"
+    )
+    seed: Seed = 0
+
+
+class Params(_Section):
+    """The whole of ``params.yaml``."""
+
+    families: dict[str, FamilyConfig] = Field(min_length=1)
+    collect: CollectConfig = CollectConfig()
+    embedding: EmbeddingConfig = EmbeddingConfig()
+    decoder: DecoderConfig = DecoderConfig()
+    td3: TD3Config = TD3Config()
+    ede_td3: EdeTD3Config = EdeTD3Config()
+    runs: RunsConfig
+    report: ReportConfig = ReportConfig()
+
+    @model_validator(mode="after")
+    def _tasks_are_placed(self) -> Params:
+        problems = []
+        placed = {task for family in self.families.values() for task in family.tasks}
+        for task in self.runs.tasks:
+            if task not in placed:
+                problems.append(f"runs.tasks: {task!r} is in no family; add it to `families`")
+        for task in self.report.thresholds:
+            if task not in self.runs.tasks:
+                problems.append(f"report.thresholds.{task}: not a task of runs.tasks")
+        for a, b in itertools.combinations(self.families, 2):
+            shared = set(self.families[a].tasks) & set(self.families[b].tasks)
+            if shared:
+                problems.append(f"families: {', '.join(sorted(shared))} in both {a} and {b}")
+        if problems:
+            raise ValueError("\n".join(problems))
+        return self
+
+    def family_of(self, task: str) -> str:
+        """The name of the family that holds ``task``."""
+        for name, family in self.families.items():
+            if task in family.tasks:
+                return name
+        raise KeyError(task)
+
+
+@functools.cache
+def _registered_task_ids() -> frozenset[str]:
+    import gymnasium
+
+    import ede_envs
+
+    ede_envs.register_envs()
+    return frozenset(gymnasium.registry)
+
+
+class ParamsError(ValueError):
+    """A params file that cannot be used; ``problems`` holds one line per problem."""
+
+    def __init__(self, path: Path, problems: list[str]) -> None:
+        self.path = path
+        self.problems = problems
+        super().__init__("\n".join(f"{path}: {problem}" for problem in problems))
+
+
+def load_params(path: str | Path) -> Params:
+    """Read and validate a params file.
+
+    Raises:
+        ParamsError: naming each bad key, its value and what is expected.
+    """
+    path = Path(path)
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ParamsError(path, ["no such file"]) from None
+    except (OSError, yaml.YAMLError) as error:
+        raise ParamsError(path, [f"not readable YAML ({_first_line(error)})"]) from None
+    if not isinstance(raw, dict):
+        raise ParamsError(path, [f"expected a mapping of sections, found {type(raw).__name__}"])
+    try:
+        return Params.model_validate(raw)
+    except ValidationError as error:
+        problems = [line for e in error.errors() for line in _describe(e).splitlines()]
+        raise ParamsError(path, problems) from None
+
+
+def _describe(error: Any) -> str:
+    where = ".".join(str(part) for part in error["loc"]) or "(top level)"
+    message = error["msg"].removeprefix("Value error, ")
+    if error["type"] == "extra_forbidden":
+        return f"{where}: unknown key"
+    if error["type"] == "missing":
+        return f"{where}: missing; this key is required"
+    if error["type"] == "value_error" and isinstance(error.get("input"), dict):
+        return message  # cross-key checks name their own keys, one line per problem
+    if message.startswith("Input should be "):
+        message = "expected " + message.removeprefix("Input should be ")
+    elif message.startswith("a registered"):
+        message = "expected " + message
+    return f"{where}: got {_short(error.get('input'))}; {message}"
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _first_line(error: BaseException) -> str:
+    return str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__

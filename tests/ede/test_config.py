@@ -1,0 +1,102 @@
+"""The params model: the committed file, the paper's values, and what a bad file is told."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from ede.config import Params, ParamsError, load_params
+from tests.conftest import REPO
+
+
+def test_committed_params_hold_the_papers_configuration() -> None:
+    params = load_params(REPO / "params.yaml")
+    assert params.embedding.k == 4
+    assert params.embedding.beta == params.decoder.lam == 1e-4
+    assert params.embedding.dim is None  # the action size, as in the paper
+    assert params.collect.steps == 100_000
+    assert params.runs.seeds == list(range(8))
+    assert params.runs.budgets == {
+        "ede/ReacherVertical-v0": 50_000,
+        "ede/ReacherTurn-v0": 1_000_000,
+        "ede/ReacherPush-v0": 2_000_000,
+        "Pusher-v5": 2_000_000,
+        "ede/Striker-v0": 4_000_000,
+    }
+    td3 = params.td3
+    assert (td3.hidden, td3.batch_size, td3.lr, td3.discount, td3.tau) == (
+        [400, 300], 100, 1e-3, 0.99, 0.005
+    )
+    assert (td3.policy_noise, td3.noise_clip, td3.policy_delay, td3.exploration_noise) == (
+        0.2, 0.5, 2, 0.1
+    )
+    assert params.families["sevendof"].source == "Pusher-v5"
+    assert params.family_of("ede/Striker-v0") == "sevendof"
+
+
+def test_committed_params_spell_out_every_default() -> None:
+    """The file, not the code, shows the numbers: no section may lean on a hidden default."""
+    params = load_params(REPO / "params.yaml")
+    for name in Params.model_fields:
+        section = getattr(params, name)
+        if hasattr(section, "model_fields_set"):
+            assert section.model_fields_set == set(type(section).model_fields), name
+
+
+def test_defaults_in_the_model_match_the_committed_file() -> None:
+    params = load_params(REPO / "params.yaml")
+    for name in ("collect", "embedding", "decoder", "td3", "ede_td3", "report"):
+        section = getattr(params, name)
+        assert section == type(section)(), f"{name}: params.yaml and ede/config.py disagree"
+
+
+@pytest.mark.parametrize(
+    ("edit", "key"),
+    [
+        (lambda p: p.update(surprise=1), "surprise: unknown key"),
+        (lambda p: p["td3"].update(batch_size="many"), "td3.batch_size: got 'many'"),
+        (lambda p: p["runs"]["budgets"].update({"Pusher-v5": -5}), "runs.budgets.Pusher-v5: got -5"),
+        (lambda p: p["embedding"].update(k=0), "embedding.k: got 0"),
+        (lambda p: p["runs"]["tasks"].append("ede/Nope-v0"), "runs.tasks.5: got 'ede/Nope-v0'"),
+        (lambda p: p["families"]["reacher"].pop("source"), "families.reacher.source: missing"),
+        (lambda p: p["td3"].update(discount=1.5), "td3.discount: got 1.5"),
+        (lambda p: p["runs"]["budgets"].pop("ede/Striker-v0"), "no budget for ede/Striker-v0"),
+        (lambda p: p["families"].pop("sevendof"), "runs.tasks: 'Pusher-v5' is in no family"),
+        (lambda p: p["runs"].update(seeds=[0, 0]), "runs.seeds: [0, 0] repeats a seed"),
+        (lambda p: p["decoder"].update(z_source="posterior"), "decoder.z_source: got 'posterior'"),
+    ],
+)
+def test_a_bad_file_names_the_key_and_value(write_params, edit, key: str) -> None:
+    path = write_params(edit)
+    with pytest.raises(ParamsError) as caught:
+        load_params(path)
+    assert any(key in problem for problem in caught.value.problems), caught.value.problems
+    assert all(str(path) in line for line in str(caught.value).splitlines())
+
+
+def test_every_problem_is_reported_not_just_the_first(write_params) -> None:
+    def two_problems(p: dict) -> None:
+        p["embedding"]["k"] = -1
+        p["td3"]["tau"] = 0
+
+    with pytest.raises(ParamsError) as caught:
+        load_params(write_params(two_problems))
+    assert len(caught.value.problems) == 2
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [("runs: [unclosed", "not readable YAML"), ("- a list\n", "expected a mapping")],
+)
+def test_unparseable_files_are_one_clear_problem(tmp_path: Path, text: str, expected: str) -> None:
+    path = tmp_path / "params.yaml"
+    path.write_text(text)
+    with pytest.raises(ParamsError) as caught:
+        load_params(path)
+    assert len(caught.value.problems) == 1 and expected in caught.value.problems[0]
+
+
+def test_a_missing_file_is_named(tmp_path: Path) -> None:
+    with pytest.raises(ParamsError, match="no such file"):
+        load_params(tmp_path / "absent.yaml")

@@ -1,0 +1,129 @@
+"""Invariants that every task of every family must satisfy, parametrised over all of them."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import gymnasium
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import ede_envs
+from ede.envs import make
+
+ALL_TASKS = [task for family in ede_envs.FAMILIES.values() for task in family.tasks]
+OUR_TASKS = [task for task in ALL_TASKS if task.startswith("ede/")]
+
+
+def rollout(task: str, seed: int, steps: int = 30) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+    """Observations and rewards of ``steps`` seeded random actions after ``reset(seed=seed)``."""
+    env = make(task)
+    actions = np.random.default_rng(1234).uniform(
+        env.action_space.low, env.action_space.high, size=(steps, *env.action_space.shape)
+    )
+    obs, _ = env.reset(seed=seed)
+    observations, rewards, infos = [obs], [], []
+    for action in actions:
+        obs, reward, terminated, truncated, info = env.step(action.astype(np.float32))
+        observations.append(obs)
+        rewards.append(reward)
+        infos.append(info)
+        assert not terminated
+    env.close()
+    return np.array(observations), np.array(rewards), infos
+
+
+def test_every_shipped_task_is_in_exactly_one_family() -> None:
+    assert len(ALL_TASKS) == len(set(ALL_TASKS)) == 7
+    assert set(OUR_TASKS) == {t for t in ede_envs.TASKS if t.startswith("ede/")}
+    assert ede_envs.FAMILIES["sevendof"].source == "Pusher-v5"
+    for task in ALL_TASKS:
+        assert task in ede_envs.FAMILIES[ede_envs.family_of(task).name].tasks
+
+
+@pytest.mark.parametrize("task", OUR_TASKS)
+def test_gymnasium_env_checker_passes(task: str) -> None:
+    env = make(task)
+    check_env(env.unwrapped, skip_render_check=True)
+    env.close()
+
+
+@pytest.mark.parametrize("task", ALL_TASKS)
+def test_same_seed_same_trajectory_other_seed_differs(task: str) -> None:
+    obs_a, rew_a, _ = rollout(task, seed=3)
+    obs_b, rew_b, _ = rollout(task, seed=3)
+    obs_c, _, _ = rollout(task, seed=4)
+    np.testing.assert_array_equal(obs_a, obs_b)
+    np.testing.assert_array_equal(rew_a, rew_b)
+    assert not np.array_equal(obs_a[0], obs_c[0]), "the initial state ignores the seed"
+
+
+@pytest.mark.parametrize("task", ALL_TASKS)
+def test_observation_moves_and_is_finite(task: str) -> None:
+    observations, rewards, _ = rollout(task, seed=0)
+    assert np.all(np.isfinite(observations)) and np.all(np.isfinite(rewards))
+    assert np.ptp(observations, axis=0).max() > 1e-3, "random actions change nothing"
+
+
+@pytest.mark.parametrize("task", OUR_TASKS)
+def test_weighted_reward_terms_in_info_sum_to_the_reward(task: str) -> None:
+    _, rewards, infos = rollout(task, seed=1)
+    terms = sorted(key for key in infos[0] if key.startswith("reward_"))
+    assert terms, "info names no reward term"
+    summed = np.array([sum(info[key] for key in terms) for info in infos])
+    np.testing.assert_allclose(summed, rewards, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("task", ALL_TASKS)
+def test_episode_is_truncated_at_its_registered_length(task: str) -> None:
+    env = make(task)
+    env.reset(seed=0)
+    length = ede_envs.TASKS[task].max_episode_steps
+    assert env.spec is not None and env.spec.max_episode_steps == length
+    for step in range(1, length + 1):
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        assert not terminated
+        assert truncated == (step == length)
+    env.close()
+
+
+@pytest.mark.parametrize("family", list(ede_envs.FAMILIES.values()), ids=lambda f: f.name)
+def test_a_family_shares_one_action_space(family: ede_envs.Family) -> None:
+    spaces = []
+    for task in family.tasks:
+        env = make(task)
+        spaces.append(env.action_space)
+        env.close()
+    assert all(space == spaces[0] for space in spaces), spaces
+
+
+@pytest.mark.parametrize("task", OUR_TASKS)
+def test_renders_headless_to_a_picture(task: str) -> None:
+    env = make(task, render_mode="rgb_array", width=96, height=72)
+    env.reset(seed=0)
+    frame = env.render()
+    env.close()
+    assert frame.shape == (72, 96, 3) and frame.dtype == np.uint8
+    assert frame.std() > 5, "the frame is blank"
+
+
+def test_tasks_are_registered_in_a_fresh_interpreter_without_importing_us() -> None:
+    code = (
+        "import sys, gymnasium\n"
+        "env = gymnasium.make('ede/ReacherTurn-v0')\n"
+        "print(type(env.unwrapped).__module__)\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=os.environ, check=False
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "ede_envs.reacher_turn"
+
+
+def test_registration_is_idempotent() -> None:
+    ede_envs.register_envs()
+    ede_envs.register_envs()
+    assert sum(task.startswith("ede/") for task in gymnasium.registry) == len(OUR_TASKS)

@@ -1,0 +1,50 @@
+"""The ``ede-pipeline`` commands that every stage shares: validate and envs."""
+
+from __future__ import annotations
+
+from click.testing import CliRunner
+
+import ede_envs
+from ede_pipeline.cli import main
+from tests.conftest import REPO
+
+
+def test_validate_accepts_the_committed_params() -> None:
+    result = CliRunner().invoke(main, ["validate", "--params", str(REPO / "params.yaml")])
+    assert result.exit_code == 0, result.output
+    assert "80 runs" in result.output  # 5 tasks x 2 algorithms x 8 seeds
+
+
+def test_validate_refuses_a_bad_file_with_one_line_per_problem_and_exit_2(write_params) -> None:
+    def bad(p: dict) -> None:
+        p["embedding"]["k"] = 0
+        p["collect"]["stepz"] = 10
+
+    path = write_params(bad)
+    result = CliRunner().invoke(main, ["validate", "--params", str(path)])
+    assert result.exit_code == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 2, lines
+    assert any("embedding.k: got 0" in line for line in lines)
+    assert any("collect.stepz: unknown key" in line for line in lines)
+    assert "Traceback" not in result.output and result.stdout == ""
+
+
+def test_validate_names_a_missing_file(tmp_path) -> None:
+    result = CliRunner().invoke(main, ["validate", "--params", str(tmp_path / "nope.yaml")])
+    assert result.exit_code == 2
+    assert "nope.yaml: no such file" in result.stderr
+
+
+def test_envs_lists_every_task_with_its_family_and_shapes() -> None:
+    result = CliRunner().invoke(main, ["envs"])
+    assert result.exit_code == 0, result.output
+    lines = result.output.strip().splitlines()
+    assert lines[0].split()[:3] == ["task", "family", "role"]
+    rows = {line.split()[0]: line.split() for line in lines[1:]}
+    assert set(rows) == set(ede_envs.TASKS)
+    assert rows["Pusher-v5"][1:3] == ["sevendof", "source"]
+    assert rows["Pusher-v5"][3] == "(23,)" and rows["Pusher-v5"][4] == "Box[-2, 2]^7"
+    assert rows["ede/Striker-v0"][4] == rows["Pusher-v5"][4]
+    assert rows["ede/ReacherTurn-v0"][4] == "Box[-1, 1]^2"
+    assert all(row[-1] == "100" for row in rows.values())
