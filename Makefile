@@ -9,6 +9,8 @@ STAMP := $(VENV)/.installed
 # to use OSMesa instead.
 export MUJOCO_GL ?= egl
 PYTEST_ARGS ?=
+# Stages call `ede-pipeline` and `dvc` by name.
+export PATH := $(abspath $(BIN)):$(PATH)
 
 .PHONY: install repro test clean-venv
 

@@ -40,7 +40,7 @@ def describe_tasks() -> list[TaskInfo]:
                 space = env.action_space
                 assert isinstance(space, gymnasium.spaces.Box)
                 low, high = np.unique(space.low), np.unique(space.high)
-                bounds = f"[{low[0]:g}, {high[0]:g}]" if low.size == high.size == 1 else "mixed"
+                bounds = f"[{low[0]:g},{high[0]:g}]" if low.size == high.size == 1 else "mixed"
                 infos.append(
                     TaskInfo(
                         id=task_id,

@@ -6,51 +6,11 @@ stderr and exit code 2, before anything is written.
 
 from __future__ import annotations
 
-import functools
-from collections.abc import Callable
-from pathlib import Path
-from typing import Any
-
 import click
 
-from ede.config import Params, ParamsError, load_params
-
-DEFAULT_PARAMS = Path("params.yaml")
-
-
-class BadInput(click.ClickException):
-    """Input the user must fix: printed as ``Error: <message>``, exit code 2, no traceback."""
-
-    exit_code = 2
-
-    def show(self, file: Any = None) -> None:
-        for line in self.format_message().splitlines():
-            click.echo(f"Error: {line}", err=True)
-
-
-def params_option(command: Callable[..., Any]) -> Callable[..., Any]:
-    """Add ``--params FILE`` to a command and hand it the validated :class:`Params`."""
-
-    @click.option(
-        "--params",
-        "params_path",
-        type=click.Path(dir_okay=False, path_type=Path),
-        default=DEFAULT_PARAMS,
-        show_default=True,
-        help="The parameters file.",
-    )
-    @functools.wraps(command)
-    def wrapper(params_path: Path, **kwargs: Any) -> Any:
-        return command(params=read_params(params_path), **kwargs)
-
-    return wrapper
-
-
-def read_params(path: Path) -> Params:
-    try:
-        return load_params(path)
-    except ParamsError as error:
-        raise BadInput(str(error)) from None
+from ede.config import Params
+from ede_pipeline import collect
+from ede_pipeline.common import params_option
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -81,3 +41,7 @@ def envs() -> None:
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     for row in rows:
         click.echo("  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip())
+
+
+main.add_command(collect.collect)
+main.add_command(collect.inspect_rollouts)

@@ -44,7 +44,7 @@ def test_envs_lists_every_task_with_its_family_and_shapes() -> None:
     rows = {line.split()[0]: line.split() for line in lines[1:]}
     assert set(rows) == set(ede_envs.TASKS)
     assert rows["Pusher-v5"][1:3] == ["sevendof", "source"]
-    assert rows["Pusher-v5"][3] == "(23,)" and rows["Pusher-v5"][4] == "Box[-2, 2]^7"
+    assert rows["Pusher-v5"][3] == "(23,)" and rows["Pusher-v5"][4] == "Box[-2,2]^7"
     assert rows["ede/Striker-v0"][4] == rows["Pusher-v5"][4]
-    assert rows["ede/ReacherTurn-v0"][4] == "Box[-1, 1]^2"
+    assert rows["ede/ReacherTurn-v0"][4] == "Box[-1,1]^2"
     assert all(row[-1] == "100" for row in rows.values())

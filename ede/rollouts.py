@@ -1,0 +1,365 @@
+"""Random-policy rollouts: collecting them into a Zarr v3 store, and reading k-step windows back.
+
+A store is a Zarr group of arrays over steps (rows), one row per environment step taken:
+
+========== ============ ==========================================================
+array      shape        meaning
+========== ============ ==========================================================
+``obs``     (N, O)       the observation the action was chosen from
+``state``   (N, S)       the physics state at that moment: qpos then qvel
+``action``  (N, A)       the uniform random action taken
+``reward``  (N,)         the reward it earned
+``episode`` (N,)         global episode index; episodes are contiguous and in order
+``t``       (N,)         step within the episode, 0, 1, ...
+========== ============ ==========================================================
+
+Rows are whole episodes. The state *after* an episode's last action is not a row, so a k-step
+window ``(state[t], action[t:t+k], state[t+k])`` needs ``t + k`` inside the same episode.
+
+Chunking: a reader loads every array into memory at once and then samples windows at random, so
+arrays are cut only along steps, in chunks of :data:`CHUNK_STEPS` rows spanning all columns, and
+compressed with Blosc/zstd with byte shuffling (float columns compress about 2x). Large chunks keep
+the store to a few dozen files and make the whole read one sequential pass.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+import numpy as np
+import zarr
+from zarr.codecs import BloscCodec
+
+import ede_envs
+
+__all__ = [
+    "ARRAYS",
+    "CHUNK_STEPS",
+    "COLLECTOR_VERSION",
+    "Rollouts",
+    "RolloutsError",
+    "Whitening",
+    "collect",
+    "physics_state",
+    "write_store",
+]
+
+COLLECTOR_VERSION = 1
+CHUNK_STEPS = 16_384
+ARRAYS = ("obs", "state", "action", "reward", "episode", "t")
+REQUIRED_ATTRS = ("env_id", "family", "seed", "num_envs", "steps", "spaces", "params", "fingerprint")
+_STD_FLOOR = 1e-6  # columns that never move (e.g. a velocity held at zero) are left unscaled
+
+
+class RolloutsError(ValueError):
+    """A store that cannot be used; the message names the path and what is wrong."""
+
+
+def physics_state(env: gymnasium.Env) -> np.ndarray:
+    """The MuJoCo state of ``env``: qpos then qvel, as one float64 vector."""
+    data = env.unwrapped.data  # type: ignore[attr-defined]
+    return np.concatenate([data.qpos, data.qvel]).astype(np.float64)
+
+
+# --------------------------------------------------------------------------------------------
+# Collection
+
+
+@dataclass(frozen=True)
+class _SubEnvJob:
+    env_id: str
+    index: int  # which sub-environment of the whole collection
+    seed: int
+    quota: int  # steps this sub-environment records, rounded up to whole episodes
+
+
+def _quotas(steps: int, num_envs: int) -> list[int]:
+    base, extra = divmod(steps, num_envs)
+    return [base + (i < extra) for i in range(num_envs)]
+
+
+def _run_sub_envs(
+    jobs: list[_SubEnvJob], progress: Any = None
+) -> list[list[dict[str, np.ndarray]]]:
+    """Step a group of sub-environments in lock step (one gymnasium ``SyncVectorEnv``).
+
+    Each sub-environment has its own seed and its own action generator, so its episodes do not
+    depend on how sub-environments are grouped into worker processes.
+
+    Returns:
+        Per job, its episodes in order, each a dict of the row arrays.
+    """
+    ede_envs.register_envs()
+    env_id = jobs[0].env_id
+    vec = gymnasium.vector.SyncVectorEnv(
+        [lambda: gymnasium.make(env_id) for _ in jobs],
+        autoreset_mode=gymnasium.vector.AutoresetMode.NEXT_STEP,
+    )
+    space = vec.single_action_space
+    assert isinstance(space, gymnasium.spaces.Box)
+    low, high = space.low.astype(np.float64), space.high.astype(np.float64)
+    rngs = [np.random.default_rng([job.seed, job.index, 1]) for job in jobs]
+    obs, _ = vec.reset(seed=[job.seed + job.index for job in jobs])
+
+    episodes: list[list[dict[str, np.ndarray]]] = [[] for _ in jobs]
+    current: list[dict[str, list[Any]]] = [_empty_episode() for _ in jobs]
+    recorded = [0] * len(jobs)
+    resetting = np.zeros(len(jobs), dtype=bool)
+    while any(recorded[j] < job.quota for j, job in enumerate(jobs)):
+        states = [physics_state(env) for env in vec.envs]
+        # A resetting sub-env ignores its action: draw none, so its generator stays in step with
+        # a plain reset-and-step loop over the same env.
+        actions = np.stack(
+            [low * 0 if resetting[j] else rng.uniform(low, high) for j, rng in enumerate(rngs)]
+        ).astype(space.dtype)
+        next_obs, rewards, terminated, truncated, _ = vec.step(actions)
+        for j, job in enumerate(jobs):
+            if resetting[j] or recorded[j] >= job.quota:
+                continue  # this call reset the sub-env (its action was ignored), or it is done
+            episode = current[j]
+            episode["obs"].append(obs[j])
+            episode["state"].append(states[j])
+            episode["action"].append(actions[j])
+            episode["reward"].append(rewards[j])
+            if terminated[j] or truncated[j]:
+                episodes[j].append({key: np.asarray(rows) for key, rows in episode.items()})
+                recorded[j] += len(episode["reward"])
+                current[j] = _empty_episode()
+                if progress is not None:
+                    progress(len(episode["reward"]))
+        resetting = terminated | truncated
+        obs = next_obs
+    vec.close()
+    return episodes
+
+
+def _empty_episode() -> dict[str, list[Any]]:
+    return {"obs": [], "state": [], "action": [], "reward": []}
+
+
+def _run_in_worker(jobs: list[_SubEnvJob]) -> list[list[dict[str, np.ndarray]]]:
+    return _run_sub_envs(jobs)
+
+
+def collect(
+    env_id: str,
+    steps: int,
+    num_envs: int,
+    seed: int,
+    workers: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> dict[str, np.ndarray]:
+    """Step ``env_id`` with uniform random actions for at least ``steps`` steps.
+
+    ``num_envs`` sub-environments (sub-environment ``i`` reset with seed ``seed + i``) each record
+    an equal share of the steps, in whole episodes; they run in ``workers`` processes (default: one
+    per core, at most ``num_envs``), each process stepping its group with gymnasium's
+    ``SyncVectorEnv``, so no step waits on inter-process traffic. The result depends only on
+    ``env_id``, ``steps``, ``num_envs`` and ``seed``, never on ``workers``.
+
+    Returns:
+        The row arrays of :data:`ARRAYS`, episodes ordered by sub-environment, then by time.
+    """
+    if steps <= 0 or num_envs <= 0:
+        raise ValueError(f"steps and num_envs must be positive, got {steps} and {num_envs}")
+    jobs = [
+        _SubEnvJob(env_id, i, seed, quota) for i, quota in enumerate(_quotas(steps, num_envs))
+    ]
+    workers = max(1, min(workers or os.cpu_count() or 1, num_envs))
+    groups = [jobs[w::workers] for w in range(workers)]
+    if workers == 1:
+        per_job = _run_sub_envs(jobs, progress)
+    else:
+        per_job = [[] for _ in jobs]
+        with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+            for group, result in zip(groups, pool.map(_run_in_worker, groups)):
+                for job, episodes in zip(group, result):
+                    per_job[job.index] = episodes
+                    if progress is not None:
+                        progress(sum(len(e["reward"]) for e in episodes))
+    return _concatenate([episode for episodes in per_job for episode in episodes])
+
+
+def _concatenate(episodes: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    lengths = np.array([len(e["reward"]) for e in episodes])
+    arrays = {key: np.concatenate([e[key] for e in episodes]) for key in episodes[0]}
+    arrays["episode"] = np.repeat(np.arange(len(episodes), dtype=np.int64), lengths)
+    arrays["t"] = np.concatenate([np.arange(n, dtype=np.int32) for n in lengths])
+    arrays["reward"] = arrays["reward"].astype(np.float64)
+    return {key: arrays[key] for key in ARRAYS}
+
+
+def fingerprint(arrays: dict[str, np.ndarray]) -> str:
+    """A SHA-256 over every array's name, dtype, shape and bytes."""
+    digest = hashlib.sha256()
+    for key in ARRAYS:
+        array = np.ascontiguousarray(arrays[key])
+        digest.update(f"{key}:{array.dtype.str}:{array.shape};".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
+
+
+def write_store(path: str | Path, arrays: dict[str, np.ndarray], attrs: dict[str, Any]) -> None:
+    """Write a store atomically: into a temporary sibling, renamed onto ``path`` when complete.
+
+    A killed writer leaves only ``<path>.tmp-<pid>``, which no reader accepts and which the next
+    write removes.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for stale in path.parent.glob(f"{path.name}.tmp-*"):
+        shutil.rmtree(stale, ignore_errors=True)
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    group = zarr.open_group(tmp, mode="w", zarr_format=3)
+    for key in ARRAYS:
+        array = arrays[key]
+        group.create_array(
+            key,
+            data=array,
+            chunks=(min(CHUNK_STEPS, len(array)), *array.shape[1:]),
+            compressors=BloscCodec(cname="zstd", clevel=3, shuffle="shuffle"),
+        )
+    group.attrs.update({**attrs, "fingerprint": fingerprint(arrays), "collector": COLLECTOR_VERSION})
+    if path.exists():
+        shutil.rmtree(path)
+    os.replace(tmp, path)
+
+
+# --------------------------------------------------------------------------------------------
+# Reading
+
+
+@dataclass(frozen=True)
+class Whitening:
+    """Per-column mean and standard deviation; ``(x - mean) / std`` whitens."""
+
+    mean: np.ndarray
+    std: np.ndarray
+
+    @classmethod
+    def of(cls, x: np.ndarray) -> Whitening:
+        std = x.std(axis=0)
+        return cls(mean=x.mean(axis=0), std=np.where(std < _STD_FLOOR, 1.0, std))
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        return (x - self.mean) / self.std
+
+
+@dataclass(frozen=True)
+class Rollouts:
+    """A validated store, loaded into memory."""
+
+    path: Path
+    attrs: dict[str, Any]
+    obs: np.ndarray = field(repr=False)
+    state: np.ndarray = field(repr=False)
+    action: np.ndarray = field(repr=False)
+    reward: np.ndarray = field(repr=False)
+    episode: np.ndarray = field(repr=False)
+    t: np.ndarray = field(repr=False)
+
+    @classmethod
+    def open(cls, path: str | Path, env_id: str | None = None) -> Rollouts:
+        """Open and check a store.
+
+        Args:
+            path: the store written by :func:`write_store`.
+            env_id: when given, the task the store must come from.
+
+        Raises:
+            RolloutsError: missing, truncated, inconsistent or foreign stores.
+        """
+        path = Path(path)
+        if not (path / "zarr.json").is_file():
+            raise RolloutsError(f"{path}: no rollouts store here (run `ede-pipeline collect`)")
+        try:
+            group = zarr.open_group(path, mode="r", zarr_format=3)
+            attrs = dict(group.attrs)
+            missing = [key for key in REQUIRED_ATTRS if key not in attrs]
+            if missing:
+                raise RolloutsError(f"{path}: attributes {', '.join(missing)} are missing")
+            absent = [key for key in ARRAYS if key not in group]
+            if absent:
+                raise RolloutsError(f"{path}: arrays {', '.join(absent)} are missing")
+            arrays = {key: group[key][...] for key in ARRAYS}
+        except RolloutsError:
+            raise
+        except (OSError, ValueError, KeyError, RuntimeError, json.JSONDecodeError) as error:
+            raise RolloutsError(f"{path}: unreadable store ({type(error).__name__}: {error})")
+        if env_id is not None and attrs["env_id"] != env_id:
+            raise RolloutsError(
+                f"{path}: collected on {attrs['env_id']} (family {attrs['family']}), "
+                f"expected {env_id}"
+            )
+        rollouts = cls(path=path, attrs=attrs, **arrays)
+        rollouts._check()
+        return rollouts
+
+    def _check(self) -> None:
+        lengths = {key: len(getattr(self, key)) for key in ARRAYS}
+        if len(set(lengths.values())) != 1:
+            raise RolloutsError(f"{self.path}: arrays differ in length {lengths}")
+        if len(self) == 0:
+            raise RolloutsError(f"{self.path}: the store is empty")
+        starts = np.flatnonzero(self.t == 0)
+        if starts.size == 0 or starts[0] != 0:
+            raise RolloutsError(f"{self.path}: the first row does not start an episode")
+        expected_t = np.arange(len(self)) - np.repeat(starts, np.diff([*starts, len(self)]))
+        expected_episode = np.repeat(np.arange(starts.size), np.diff([*starts, len(self)]))
+        if not (np.array_equal(self.t, expected_t) and np.array_equal(self.episode, expected_episode)):
+            raise RolloutsError(f"{self.path}: episodes are not contiguous and in order")
+        if self.attrs["fingerprint"] != fingerprint(self.arrays()):
+            raise RolloutsError(f"{self.path}: content does not match its fingerprint")
+
+    def __len__(self) -> int:
+        return len(self.reward)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {key: getattr(self, key) for key in ARRAYS}
+
+    @property
+    def num_episodes(self) -> int:
+        return int(self.episode[-1]) + 1
+
+    def window_starts(self, k: int, episodes: np.ndarray | None = None) -> np.ndarray:
+        """Every row ``t`` whose k-step window stays inside its episode (optionally only in
+        ``episodes``)."""
+        if k <= 0:
+            raise ValueError(f"k must be positive, got {k}")
+        t = np.arange(len(self) - k)
+        valid = self.episode[t + k] == self.episode[t]
+        if episodes is not None:
+            valid &= np.isin(self.episode[t], episodes)
+        return t[valid]
+
+    def windows(self, starts: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(state[t], action[t:t+k], state[t+k])`` for each ``t`` of ``starts``.
+
+        Returns:
+            States (B, S), action sequences (B, K, A) and states k steps later (B, S).
+        """
+        steps = starts[:, None] + np.arange(k)  # (B, K)
+        return self.state[starts], self.action[steps], self.state[starts + k]
+
+    def whitening(self, k: int, starts: np.ndarray | None = None) -> tuple[Whitening, Whitening]:
+        """Whitening of the state and of its k-step change, over ``starts`` (default: all)."""
+        if starts is None:
+            starts = self.window_starts(k)
+        state, _, later = self.windows(starts, k)
+        return Whitening.of(state), Whitening.of(later - state)
+
+    def iter_episodes(self) -> Iterator[slice]:
+        """The row range of each episode, in order."""
+        bounds = [*np.flatnonzero(self.t == 0), len(self)]
+        for start, stop in zip(bounds[:-1], bounds[1:]):
+            yield slice(int(start), int(stop))

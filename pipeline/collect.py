@@ -1,0 +1,88 @@
+"""Stage 1, ``ede-pipeline collect``: random-policy rollouts of a family's source task."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+
+from ede.config import Params
+from ede.envs import make
+from ede.rollouts import Rollouts, RolloutsError, write_store
+from ede.rollouts import collect as collect_steps
+from ede_pipeline.common import BadInput, check_family, family_option, params_option, rollouts_path
+from ede_pipeline.progress import progress
+
+
+
+@click.command()
+@family_option
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Store to write  [default: data/<family>/rollouts.zarr]",
+)
+@click.option("--workers", type=click.IntRange(min=1), help="Processes  [default: one per core]")
+@params_option
+def collect(params: Params, family: str, out: Path | None, workers: int | None) -> None:
+    """Stage 1: uniform random steps of a family's source task into a Zarr store."""
+    check_family(params, family)
+    out = out or rollouts_path(family)
+    env_id = params.families[family].source
+    config = params.collect
+    num_envs = config.num_envs or os.cpu_count() or 1
+    with progress(config.steps, f"collect {family}") as advance:
+        arrays = collect_steps(env_id, config.steps, num_envs, config.seed, workers, advance)
+    write_store(out, arrays, store_attrs(params, family, num_envs, arrays))
+    click.echo(f"{out}: {len(arrays['reward'])} steps, {int(arrays['episode'][-1]) + 1} episodes")
+
+
+def store_attrs(
+    params: Params, family: str, num_envs: int, arrays: dict[str, np.ndarray]
+) -> dict[str, Any]:
+    env = make(params.families[family].source)
+    try:
+        spaces = {
+            "observation_shape": list(env.observation_space.shape or ()),
+            "action_low": env.action_space.low.tolist(),  # type: ignore[attr-defined]
+            "action_high": env.action_space.high.tolist(),  # type: ignore[attr-defined]
+            "state_size": int(arrays["state"].shape[1]),
+        }
+    finally:
+        env.close()
+    return {
+        "env_id": params.families[family].source,
+        "family": family,
+        "seed": params.collect.seed,
+        "steps": params.collect.steps,
+        "num_envs": num_envs,
+        "spaces": spaces,
+        "params": {"collect": params.collect.model_dump(mode="json")},
+    }
+
+
+def open_rollouts(params: Params, family: str, path: Path | None) -> Any:
+    """Open a family's store, turning every problem with it into one line of bad input."""
+    try:
+        return Rollouts.open(path or rollouts_path(family), env_id=params.families[family].source)
+    except RolloutsError as error:
+        raise BadInput(str(error)) from None
+
+
+@click.command("inspect")
+@family_option
+@click.option("--rollouts", "path", type=click.Path(path_type=Path), help="Store to read.")
+@params_option
+def inspect_rollouts(params: Params, family: str, path: Path | None) -> None:
+    """Check a family's rollouts store and summarise it."""
+    check_family(params, family)
+    rollouts = open_rollouts(params, family, path)
+    state, delta = rollouts.whitening(params.embedding.k)
+    click.echo(f"{rollouts.path}: {rollouts.attrs['env_id']}, seed {rollouts.attrs['seed']}")
+    click.echo(f"  {len(rollouts)} steps in {rollouts.num_episodes} episodes")
+    click.echo(f"  state size {rollouts.state.shape[1]}, action size {rollouts.action.shape[1]}")
+    click.echo(f"  {len(rollouts.window_starts(params.embedding.k))} windows of k={params.embedding.k}")
+    click.echo(f"  fingerprint {rollouts.attrs['fingerprint']}")

@@ -1,0 +1,68 @@
+"""What every ``ede-pipeline`` command shares: params loading, bad-input errors, default paths."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+
+from ede.config import Params, ParamsError, load_params
+
+DEFAULT_PARAMS = Path("params.yaml")
+DATA = Path("data")
+
+
+def rollouts_path(family: str) -> Path:
+    """Where a family's rollouts live unless ``--out``/``--rollouts`` says otherwise."""
+    return DATA / family / "rollouts.zarr"
+
+
+class BadInput(click.ClickException):
+    """Input the user must fix: printed as ``Error: <message>``, exit code 2, no traceback."""
+
+    exit_code = 2
+
+    def show(self, file: Any = None) -> None:
+        for line in self.format_message().splitlines():
+            click.echo(f"Error: {line}", err=True)
+
+
+def params_option(command: Callable[..., Any]) -> Callable[..., Any]:
+    """Add ``--params FILE`` to a command and hand it the validated :class:`Params`."""
+
+    @click.option(
+        "--params",
+        "params_path",
+        type=click.Path(dir_okay=False, path_type=Path),
+        default=DEFAULT_PARAMS,
+        show_default=True,
+        help="The parameters file.",
+    )
+    @functools.wraps(command)
+    def wrapper(params_path: Path, **kwargs: Any) -> Any:
+        return command(params=read_params(params_path), **kwargs)
+
+    return wrapper
+
+
+def read_params(path: Path) -> Params:
+    try:
+        return load_params(path)
+    except ParamsError as error:
+        raise BadInput(str(error)) from None
+
+
+def family_option(command: Callable[..., Any]) -> Callable[..., Any]:
+    return click.option(
+        "--family", required=True, help="A family of params.yaml's `families`, e.g. reacher."
+    )(command)
+
+
+def check_family(params: Params, family: str) -> None:
+    if family not in params.families:
+        raise BadInput(
+            f"--family {family!r}: unknown; params.yaml's families are {', '.join(params.families)}"
+        )

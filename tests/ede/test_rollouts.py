@@ -1,0 +1,206 @@
+"""Rollout stores: what is collected is what is read, windows, determinism, atomic writes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from ede.envs import make
+from ede.rollouts import (
+    ARRAYS,
+    Rollouts,
+    RolloutsError,
+    collect,
+    physics_state,
+    write_store,
+)
+
+ATTRS = {
+    "env_id": "ede/Point-v0",
+    "family": "point",
+    "seed": 0,
+    "num_envs": 1,
+    "steps": 0,
+    "spaces": {},
+    "params": {},
+}
+
+
+def store_of(path: Path, arrays: dict[str, np.ndarray], env_id: str = "ede/Point-v0") -> Path:
+    write_store(path, arrays, {**ATTRS, "env_id": env_id, "steps": len(arrays["reward"])})
+    return path
+
+
+def ragged(lengths: list[int], state_size: int = 3, action_size: int = 2) -> dict[str, np.ndarray]:
+    """Hand-built rows of episodes of the given lengths; state[:, 0] is the global row index."""
+    n = sum(lengths)
+    state = np.zeros((n, state_size))
+    state[:, 0] = np.arange(n)
+    return {
+        "obs": np.random.default_rng(0).normal(size=(n, 4)),
+        "state": state,
+        "action": np.arange(n * action_size, dtype=np.float32).reshape(n, action_size),
+        "reward": np.zeros(n),
+        "episode": np.repeat(np.arange(len(lengths)), lengths),
+        "t": np.concatenate([np.arange(length) for length in lengths]).astype(np.int32),
+    }
+
+
+def direct_rollout(env_id: str, seed: int, index: int, steps: int) -> dict[str, np.ndarray]:
+    """Sub-environment ``index`` of a collection, replayed with a plain reset/step loop."""
+    env = make(env_id)
+    rng = np.random.default_rng([seed, index, 1])
+    low, high = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
+    rows: dict[str, list] = {"obs": [], "state": [], "action": [], "reward": []}
+    obs, _ = env.reset(seed=seed + index)
+    while len(rows["reward"]) < steps:
+        action = rng.uniform(low, high).astype(np.float32)
+        rows["obs"].append(obs)
+        rows["state"].append(physics_state(env))
+        rows["action"].append(action)
+        obs, reward, terminated, truncated, _ = env.step(action)
+        rows["reward"].append(reward)
+        if terminated or truncated:
+            obs, _ = env.reset()
+    env.close()
+    return {key: np.asarray(value) for key, value in rows.items()}
+
+
+def test_what_the_collector_stepped_is_what_the_reader_returns(tmp_path: Path) -> None:
+    arrays = collect("ede/ReacherVertical-v0", steps=400, num_envs=2, seed=5, workers=1)
+    rollouts = Rollouts.open(store_of(tmp_path / "r.zarr", arrays, "ede/ReacherVertical-v0"))
+    assert len(rollouts) == 400 and rollouts.num_episodes == 4
+    for index in range(2):  # sub-env i owns episodes 2i, 2i + 1
+        rows = slice(200 * index, 200 * (index + 1))
+        expected = direct_rollout("ede/ReacherVertical-v0", seed=5, index=index, steps=200)
+        for key, value in expected.items():
+            np.testing.assert_array_equal(getattr(rollouts, key)[rows], value, err_msg=key)
+    np.testing.assert_array_equal(rollouts.t[:100], np.arange(100))
+    np.testing.assert_array_equal(np.unique(rollouts.episode), np.arange(4))
+
+
+def test_the_state_column_is_qpos_then_qvel(tmp_path: Path) -> None:
+    arrays = collect("ede/PointMass-v0", steps=100, num_envs=1, seed=0, workers=1)
+    env = make("ede/PointMass-v0")
+    env.reset(seed=0)
+    data = env.unwrapped.data
+    np.testing.assert_array_equal(arrays["state"][0], np.concatenate([data.qpos, data.qvel]))
+
+
+def test_episodes_stay_whole_when_steps_do_not_divide() -> None:
+    arrays = collect("ede/Point-v0", steps=250, num_envs=2, seed=0, workers=1)
+    # 125 steps a sub-env, rounded up to whole 100-step episodes: 2 episodes each.
+    assert len(arrays["reward"]) == 400
+    np.testing.assert_array_equal(np.bincount(arrays["episode"]), [100] * 4)
+
+
+@pytest.mark.parametrize("k", [1, 2, 4])
+def test_windows_never_cross_an_episode_end_and_every_start_is_reachable(
+    tmp_path: Path, k: int
+) -> None:
+    lengths = [3, 7, 1, 5, 4, 9]
+    rollouts = Rollouts.open(store_of(tmp_path / "r.zarr", ragged(lengths)))
+    starts = rollouts.window_starts(k)
+    expected, row = [], 0
+    for length in lengths:
+        expected += [row + t for t in range(length - k)]  # state[t + k] is a row of the episode
+        row += length
+    np.testing.assert_array_equal(starts, expected)
+    state, actions, later = rollouts.windows(starts, k)
+    assert actions.shape == (len(starts), k, 2)
+    np.testing.assert_array_equal(later[:, 0] - state[:, 0], k)  # k rows on, same episode
+    assert np.all(rollouts.episode[starts] == rollouts.episode[starts + k])
+    np.testing.assert_array_equal(actions[:, 0], rollouts.action[starts])
+    np.testing.assert_array_equal(actions[:, -1], rollouts.action[starts + k - 1])
+
+
+def test_windows_can_be_restricted_to_episodes(tmp_path: Path) -> None:
+    rollouts = Rollouts.open(store_of(tmp_path / "r.zarr", ragged([6, 6, 6])))
+    starts = rollouts.window_starts(2, episodes=np.array([1]))
+    np.testing.assert_array_equal(starts, [6, 7, 8, 9])
+
+
+def test_whitening_of_state_and_k_step_change(tmp_path: Path) -> None:
+    rollouts = Rollouts.open(store_of(tmp_path / "r.zarr", ragged([10, 10])))
+    state_white, delta_white = rollouts.whitening(3)
+    starts = rollouts.window_starts(3)
+    np.testing.assert_allclose(state_white.mean[0], rollouts.state[starts, 0].mean())
+    np.testing.assert_allclose(delta_white.mean, [3.0, 0.0, 0.0])
+    np.testing.assert_allclose(delta_white.std, [1.0, 1.0, 1.0])  # constant columns: unscaled
+    whitened = state_white.apply(rollouts.state[starts])
+    np.testing.assert_allclose(whitened[:, 0].mean(), 0, atol=1e-12)
+    np.testing.assert_allclose(whitened[:, 0].std(), 1)
+
+
+def test_same_seed_same_store_byte_for_byte_other_seed_differs(tmp_path: Path) -> None:
+    def files(path: Path) -> dict[str, bytes]:
+        return {str(f.relative_to(path)): f.read_bytes() for f in sorted(path.rglob("*")) if f.is_file()}
+
+    one = store_of(tmp_path / "a.zarr", collect("ede/Point-v0", 300, 3, seed=1, workers=1))
+    two = store_of(tmp_path / "b.zarr", collect("ede/Point-v0", 300, 3, seed=1, workers=2))
+    other = collect("ede/Point-v0", 300, 3, seed=2, workers=1)
+    assert files(one) == files(two)  # also: the worker count changes nothing
+    assert not np.array_equal(other["state"], Rollouts.open(one).state)
+
+
+def test_a_foreign_store_is_refused(tmp_path: Path) -> None:
+    path = store_of(tmp_path / "r.zarr", ragged([5]))
+    with pytest.raises(RolloutsError, match="collected on ede/Point-v0.*expected Pusher-v5"):
+        Rollouts.open(path, env_id="Pusher-v5")
+
+
+def test_a_store_missing_a_chunk_is_refused(tmp_path: Path) -> None:
+    path = store_of(tmp_path / "r.zarr", ragged([50]))
+    chunk = next((path / "state" / "c").rglob("*"))
+    while chunk.is_dir():
+        chunk = next(chunk.iterdir())
+    chunk.unlink()  # Zarr would read it back as fill values: only the fingerprint can tell
+    with pytest.raises(RolloutsError, match="fingerprint"):
+        Rollouts.open(path)
+
+
+def test_arrays_of_unequal_length_are_refused(tmp_path: Path) -> None:
+    path = store_of(tmp_path / "r.zarr", ragged([5, 5]))
+    group = zarr.open_group(path, mode="a")
+    del group["reward"]
+    group.create_array("reward", data=np.zeros(7))
+    with pytest.raises(RolloutsError, match="differ in length"):
+        Rollouts.open(path)
+
+
+def test_interleaved_episodes_are_refused(tmp_path: Path) -> None:
+    arrays = ragged([4, 4])
+    arrays["episode"] = np.array([0, 1, 0, 1, 0, 1, 0, 1])
+    with pytest.raises(RolloutsError, match="contiguous"):
+        Rollouts.open(store_of(tmp_path / "r.zarr", arrays))
+
+
+@pytest.mark.parametrize("what", ["attribute", "array", "store"])
+def test_incomplete_stores_are_refused_with_the_path(tmp_path: Path, what: str) -> None:
+    path = store_of(tmp_path / "r.zarr", ragged([5]))
+    if what == "attribute":
+        group = zarr.open_group(path, mode="a")
+        attrs = dict(group.attrs)
+        del attrs["fingerprint"]
+        group.attrs.clear()
+        group.attrs.update(attrs)
+    elif what == "array":
+        del zarr.open_group(path, mode="a")["t"]
+    else:
+        (path / "zarr.json").unlink()
+    with pytest.raises(RolloutsError, match=str(path)):
+        Rollouts.open(path)
+
+
+def test_write_replaces_an_old_store_and_clears_stale_temporaries(tmp_path: Path) -> None:
+    path = tmp_path / "r.zarr"
+    stale = tmp_path / "r.zarr.tmp-999999"
+    stale.mkdir()
+    store_of(path, ragged([5]))
+    store_of(path, ragged([3, 3]))
+    assert Rollouts.open(path).num_episodes == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.zarr"]
+    assert set(ARRAYS) <= {p.name for p in path.iterdir()}
