@@ -68,7 +68,7 @@ class RolloutsError(ValueError):
 def physics_state(env: gymnasium.Env) -> np.ndarray:
     """The MuJoCo state of ``env``: qpos then qvel, as one float64 vector."""
     data = env.unwrapped.data  # type: ignore[attr-defined]
-    return np.concatenate([data.qpos, data.qvel]).astype(np.float64)
+    return np.concatenate((data.qpos, data.qvel))  # MuJoCo keeps both in float64
 
 
 # --------------------------------------------------------------------------------------------
@@ -88,8 +88,43 @@ def _quotas(steps: int, num_envs: int) -> list[int]:
     return [base + (i < extra) for i in range(num_envs)]
 
 
+class _ActionStream:
+    """Uniform random actions of one sub-environment, drawn in blocks.
+
+    A numpy ``Generator`` fills ``uniform(size=(n, A))`` from the same sequence of draws as ``n``
+    calls of size ``A``, so the blocks change the speed, not the actions.
+    """
+
+    BLOCK = 256
+
+    def __init__(self, rng: np.random.Generator, low: np.ndarray, high: np.ndarray, dtype: Any):
+        self._rng, self._low, self._high, self._dtype = rng, low, high, dtype
+        self._block = np.empty((0, low.size), dtype=dtype)
+        self._next = 0
+
+    def __call__(self) -> np.ndarray:
+        if self._next == len(self._block):
+            draws = self._rng.uniform(self._low, self._high, size=(self.BLOCK, self._low.size))
+            self._block, self._next = draws.astype(self._dtype), 0
+        self._next += 1
+        return self._block[self._next - 1]
+
+
+class _NoInfo(gymnasium.Wrapper):
+    """Drops ``info``: the collector records none of it, and batching it is the vector env's
+    largest per-step cost."""
+
+    def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
+        obs, _ = self.env.reset(**kwargs)
+        return obs, {}
+
+    def step(self, action: Any) -> tuple[Any, Any, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, _ = self.env.step(action)
+        return obs, reward, terminated, truncated, {}
+
+
 def _run_sub_envs(
-    jobs: list[_SubEnvJob], progress: Any = None
+    jobs: list[_SubEnvJob], progress: Callable[[int], None] | None = None
 ) -> list[list[dict[str, np.ndarray]]]:
     """Step a group of sub-environments in lock step (one gymnasium ``SyncVectorEnv``).
 
@@ -102,13 +137,17 @@ def _run_sub_envs(
     ede_envs.register_envs()
     env_id = jobs[0].env_id
     vec = gymnasium.vector.SyncVectorEnv(
-        [lambda: gymnasium.make(env_id) for _ in jobs],
+        [lambda: _NoInfo(gymnasium.make(env_id)) for _ in jobs],
         autoreset_mode=gymnasium.vector.AutoresetMode.NEXT_STEP,
     )
     space = vec.single_action_space
     assert isinstance(space, gymnasium.spaces.Box)
     low, high = space.low.astype(np.float64), space.high.astype(np.float64)
-    rngs = [np.random.default_rng([job.seed, job.index, 1]) for job in jobs]
+    streams = [
+        _ActionStream(np.random.default_rng([job.seed, job.index, 1]), low, high, space.dtype)
+        for job in jobs
+    ]
+    idle = np.zeros(space.shape, dtype=space.dtype)
     obs, _ = vec.reset(seed=[job.seed + job.index for job in jobs])
 
     episodes: list[list[dict[str, np.ndarray]]] = [[] for _ in jobs]
@@ -117,15 +156,13 @@ def _run_sub_envs(
     resetting = np.zeros(len(jobs), dtype=bool)
     while any(recorded[j] < job.quota for j, job in enumerate(jobs)):
         states = [physics_state(env) for env in vec.envs]
-        # A resetting sub-env ignores its action: draw none, so its generator stays in step with
-        # a plain reset-and-step loop over the same env.
-        actions = np.stack(
-            [low * 0 if resetting[j] else rng.uniform(low, high) for j, rng in enumerate(rngs)]
-        ).astype(space.dtype)
+        # A resetting sub-env ignores its action: draw none, so its stream stays in step with a
+        # plain reset-and-step loop over the same env.
+        actions = np.stack([idle if resetting[j] else draw() for j, draw in enumerate(streams)])
         next_obs, rewards, terminated, truncated, _ = vec.step(actions)
         for j, job in enumerate(jobs):
             if resetting[j] or recorded[j] >= job.quota:
-                continue  # this call reset the sub-env (its action was ignored), or it is done
+                continue  # this call reset the sub-env, or it has recorded its share
             episode = current[j]
             episode["obs"].append(obs[j])
             episode["state"].append(states[j])

@@ -57,7 +57,7 @@ def direct_rollout(env_id: str, seed: int, index: int, steps: int) -> dict[str, 
     rows: dict[str, list] = {"obs": [], "state": [], "action": [], "reward": []}
     obs, _ = env.reset(seed=seed + index)
     while len(rows["reward"]) < steps:
-        action = rng.uniform(low, high).astype(np.float32)
+        action = rng.uniform(low, high).astype(np.float32)  # one action per call, no blocks
         rows["obs"].append(obs)
         rows["state"].append(physics_state(env))
         rows["action"].append(action)
