@@ -44,6 +44,9 @@ def _registered(task: str) -> str:
 
 
 TaskId = Annotated[str, AfterValidator(_registered)]
+Device = Annotated[
+    Literal["cpu", "cuda", "auto"], Field(description="where torch runs; auto: CUDA if present")
+]
 HiddenSizes = Annotated[
     list[PositiveInt], Field(min_length=1, description="hidden layer widths of an MLP")
 ]
@@ -83,9 +86,10 @@ class EmbeddingConfig(_Section):
     hidden: HiddenSizes = Field(default_factory=lambda: [400, 400])
     lr: float = Field(1e-4, gt=0)
     batch_size: PositiveInt = 128
-    epochs: PositiveInt = 100
+    epochs: PositiveInt = Field(10, description="passes over the training windows")
     holdout: float = Field(0.1, gt=0, lt=1, description="fraction of episodes never trained on")
     seed: Seed = 0
+    device: Device = "cpu"
 
 
 class DecoderConfig(_Section):
@@ -100,8 +104,9 @@ class DecoderConfig(_Section):
     hidden: HiddenSizes = Field(default_factory=lambda: [400, 400])
     lr: float = Field(1e-4, gt=0)
     batch_size: PositiveInt = 128
-    epochs: PositiveInt = 100
+    epochs: PositiveInt = Field(14, description="as many batches as the training windows fill")
     seed: Seed = 0
+    device: Device = "cpu"
 
 
 class TD3Config(_Section):
@@ -124,7 +129,7 @@ class TD3Config(_Section):
     precision: Literal["fp32", "bf16"] = Field(
         "fp32", description="matmul precision of updates (bf16 autocast keeps fp32 weights)"
     )
-    device: Literal["cpu", "cuda", "auto"] = "cpu"
+    device: Device = "cpu"
 
 
 class EdeTD3Config(_Section):

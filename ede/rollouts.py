@@ -27,7 +27,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -41,6 +40,7 @@ import zarr
 from zarr.codecs import BloscCodec
 
 import ede_envs
+from ede.atomic import write_atomically
 
 __all__ = [
     "ARRAYS",
@@ -252,24 +252,22 @@ def write_store(path: str | Path, arrays: dict[str, np.ndarray], attrs: dict[str
     A killed writer leaves only ``<path>.tmp-<pid>``, which no reader accepts and which the next
     write removes.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    for stale in path.parent.glob(f"{path.name}.tmp-*"):
-        shutil.rmtree(stale, ignore_errors=True)
-    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
-    group = zarr.open_group(tmp, mode="w", zarr_format=3)
-    for key in ARRAYS:
-        array = arrays[key]
-        group.create_array(
-            key,
-            data=array,
-            chunks=(min(CHUNK_STEPS, len(array)), *array.shape[1:]),
-            compressors=BloscCodec(cname="zstd", clevel=3, shuffle="shuffle"),
+
+    def write(tmp: Path) -> None:
+        group = zarr.open_group(tmp, mode="w", zarr_format=3)
+        for key in ARRAYS:
+            array = arrays[key]
+            group.create_array(
+                key,
+                data=array,
+                chunks=(min(CHUNK_STEPS, len(array)), *array.shape[1:]),
+                compressors=BloscCodec(cname="zstd", clevel=3, shuffle="shuffle"),
+            )
+        group.attrs.update(
+            {**attrs, "fingerprint": fingerprint(arrays), "collector": COLLECTOR_VERSION}
         )
-    group.attrs.update({**attrs, "fingerprint": fingerprint(arrays), "collector": COLLECTOR_VERSION})
-    if path.exists():
-        shutil.rmtree(path)
-    os.replace(tmp, path)
+
+    write_atomically(path, write)
 
 
 # --------------------------------------------------------------------------------------------

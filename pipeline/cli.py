@@ -9,7 +9,7 @@ from __future__ import annotations
 import click
 
 from ede.config import Params
-from ede_pipeline import collect
+from ede_pipeline import collect, pretrain
 from ede_pipeline.common import params_option
 
 
@@ -45,3 +45,4 @@ def envs() -> None:
 
 main.add_command(collect.collect)
 main.add_command(collect.inspect_rollouts)
+main.add_command(pretrain.pretrain)

@@ -41,3 +41,17 @@ def write_params(
         return path
 
     return write
+
+
+@pytest.fixture(scope="session")
+def point_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small rollouts store of ``ede/Point-v0`` (40 episodes), written once per session."""
+    from ede.rollouts import collect, write_store
+
+    path = tmp_path_factory.mktemp("point") / "rollouts.zarr"
+    arrays = collect("ede/Point-v0", steps=4_000, num_envs=1, seed=0, workers=1)
+    attrs = {"env_id": "ede/Point-v0", "family": "point", "seed": 0, "num_envs": 1,
+             "steps": 4_000, "spaces": {"action_low": [-1.0, -1.0], "action_high": [1.0, 1.0]},
+             "params": {}}
+    write_store(path, arrays, attrs)
+    return path

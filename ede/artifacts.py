@@ -1,0 +1,252 @@
+"""Saving and loading embedding artifacts: safetensors weights beside JSON metadata. No pickle.
+
+An artifact is a directory holding ``weights.safetensors`` and ``meta.json``; the metadata is
+validated by a pydantic model and records the SHA-256 of the weights file, so a tampered or
+mismatched pair is refused with a clear error.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+from typing import Any, Literal, TypeVar
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+from ede.atomic import write_atomically
+from ede.embedding import ActionDecoder, ActionEmbedding, Encoder, EncoderResult, Predictor
+from ede.rollouts import Whitening
+
+__all__ = [
+    "ArtifactError",
+    "DecoderMeta",
+    "EncoderMeta",
+    "WhiteningMeta",
+    "load_action_embedding",
+    "load_encoder",
+    "save_decoder",
+    "save_encoder",
+]
+
+WEIGHTS = "weights.safetensors"
+META = "meta.json"
+
+
+class ArtifactError(ValueError):
+    """An artifact that cannot be used; the message names the path and what is wrong."""
+
+
+class _Meta(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class WhiteningMeta(_Meta):
+    mean: list[float]
+    std: list[float] = Field(description="per-column standard deviation, > 0")
+
+    @classmethod
+    def of(cls, whitening: Whitening) -> WhiteningMeta:
+        return cls(mean=whitening.mean.tolist(), std=whitening.std.tolist())
+
+    def whitening(self) -> Whitening:
+        return Whitening(np.asarray(self.mean), np.asarray(self.std))
+
+
+class ActionSpaceMeta(_Meta):
+    low: list[float]
+    high: list[float]
+
+
+class EncoderMeta(_Meta):
+    kind: Literal["ede-encoder"] = "ede-encoder"
+    family: str
+    env_id: str
+    k: int = Field(gt=0)
+    dim: int = Field(gt=0)
+    state_size: int = Field(gt=0)
+    action_space: ActionSpaceMeta
+    hidden: list[int]
+    state_whitening: WhiteningMeta
+    delta_whitening: WhiteningMeta
+    code_whitening: WhiteningMeta
+    train_episodes: list[int]
+    holdout_episodes: list[int]
+    params: dict[str, Any] = Field(description="the params sections that made it")
+    data_fingerprint: str
+    weights_sha256: str
+
+
+class DecoderMeta(_Meta):
+    kind: Literal["ede-decoder"] = "ede-decoder"
+    family: str
+    k: int = Field(gt=0)
+    dim: int = Field(gt=0)
+    action_space: ActionSpaceMeta
+    hidden: list[int]
+    bound: float = Field(gt=0, description="largest whitened |z| seen: the EDE actor's bound")
+    code_whitening: WhiteningMeta
+    params: dict[str, Any]
+    data_fingerprint: str
+    encoder_sha256: str = Field(description="the encoder weights this decoder inverts")
+    weights_sha256: str
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _save(path: Path, modules: dict[str, nn.Module], meta: dict[str, Any], model: type[_Meta]) -> None:
+    def write(tmp: Path) -> None:
+        tensors = {
+            f"{name}.{key}": value.detach().cpu().contiguous()
+            for name, module in modules.items()
+            for key, value in module.state_dict().items()
+        }
+        save_file(tensors, tmp / WEIGHTS)
+        validated = model.model_validate({**meta, "weights_sha256": _sha256(tmp / WEIGHTS)})
+        (tmp / META).write_text(validated.model_dump_json(indent=2) + "\n")
+
+    write_atomically(Path(path), write)
+
+
+M = TypeVar("M", bound=_Meta)
+
+
+def _load_meta(path: Path, model: type[M]) -> tuple[M, dict[str, torch.Tensor]]:
+    meta_file, weights_file = path / META, path / WEIGHTS
+    if not meta_file.is_file() or not weights_file.is_file():
+        raise ArtifactError(f"{path}: no {model.__name__.removesuffix('Meta').lower()} here "
+                            f"(expected {META} and {WEIGHTS}; run `ede-pipeline pretrain`)")
+    try:
+        meta = model.model_validate_json(meta_file.read_text())
+    except ValidationError as error:
+        first = error.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise ArtifactError(f"{meta_file}: {where}: {first['msg']}") from None
+    if _sha256(weights_file) != meta.weights_sha256:  # type: ignore[attr-defined]
+        raise ArtifactError(f"{weights_file}: does not match the checksum in {META}")
+    try:
+        tensors = load_file(weights_file)
+    except (SafetensorError, OSError) as error:
+        raise ArtifactError(f"{weights_file}: unreadable ({error})") from None
+    return meta, tensors
+
+
+def _fill(path: Path, name: str, module: nn.Module, tensors: dict[str, torch.Tensor]) -> None:
+    """Load ``name.*`` tensors into ``module``, checking every name and shape first."""
+    expected = module.state_dict()
+    found = {k.removeprefix(f"{name}."): v for k, v in tensors.items() if k.startswith(f"{name}.")}
+    if set(found) != set(expected):
+        missing, extra = set(expected) - set(found), set(found) - set(expected)
+        raise ArtifactError(f"{path / WEIGHTS}: {name} tensors differ (missing {sorted(missing)}, "
+                            f"unexpected {sorted(extra)})")
+    for key, value in expected.items():
+        if found[key].shape != value.shape:
+            raise ArtifactError(
+                f"{path / WEIGHTS}: {name}.{key} has shape {tuple(found[key].shape)}, "
+                f"expected {tuple(value.shape)} from {META}"
+            )
+    module.load_state_dict(found)
+
+
+def save_encoder(
+    path: Path,
+    result: EncoderResult,
+    *,
+    family: str,
+    env_id: str,
+    low: np.ndarray,
+    high: np.ndarray,
+    params: dict[str, Any],
+    data_fingerprint: str,
+) -> None:
+    encoder = result.encoder
+    hidden = [m.out_features for m in encoder.body if isinstance(m, nn.Linear)]
+    meta = {
+        "family": family,
+        "env_id": env_id,
+        "k": encoder.k,
+        "dim": encoder.dim,
+        "state_size": len(result.state_whitening.mean),
+        "action_space": {"low": low.tolist(), "high": high.tolist()},
+        "hidden": hidden,
+        "state_whitening": WhiteningMeta.of(result.state_whitening),
+        "delta_whitening": WhiteningMeta.of(result.delta_whitening),
+        "code_whitening": WhiteningMeta.of(result.code_whitening),
+        "train_episodes": result.train_episodes.tolist(),
+        "holdout_episodes": result.holdout_episodes.tolist(),
+        "params": params,
+        "data_fingerprint": data_fingerprint,
+    }
+    _save(path, {"encoder": encoder, "predictor": result.predictor}, meta, EncoderMeta)
+
+
+def load_encoder(path: str | Path, device: torch.device | str = "cpu") -> tuple[EncoderMeta, EncoderResult]:
+    """Load an encoder artifact as an :class:`EncoderResult` (history and metrics empty)."""
+    path = Path(path)
+    meta, tensors = _load_meta(path, EncoderMeta)
+    action_size = len(meta.action_space.low)
+    encoder = Encoder(meta.k, action_size, meta.dim, meta.hidden)
+    predictor = Predictor(meta.state_size, meta.dim, meta.hidden)
+    _fill(path, "encoder", encoder, tensors)
+    _fill(path, "predictor", predictor, tensors)
+    result = EncoderResult(
+        encoder=encoder.to(device).eval(),
+        predictor=predictor.to(device).eval(),
+        state_whitening=meta.state_whitening.whitening(),
+        delta_whitening=meta.delta_whitening.whitening(),
+        code_whitening=meta.code_whitening.whitening(),
+        train_episodes=np.asarray(meta.train_episodes, dtype=int),
+        holdout_episodes=np.asarray(meta.holdout_episodes, dtype=int),
+    )
+    return meta, result
+
+
+def save_decoder(
+    path: Path,
+    decoder: ActionDecoder,
+    bound: float,
+    *,
+    encoder_path: Path,
+    params: dict[str, Any],
+) -> None:
+    encoder_meta, _ = _load_meta(Path(encoder_path), EncoderMeta)
+    hidden = [m.out_features for m in decoder.net if isinstance(m, nn.Linear)][:-1]
+    meta = {
+        "family": encoder_meta.family,
+        "k": decoder.k,
+        "dim": encoder_meta.dim,
+        "action_space": encoder_meta.action_space,
+        "hidden": hidden,
+        "bound": bound,
+        "code_whitening": encoder_meta.code_whitening,
+        "params": params,
+        "data_fingerprint": encoder_meta.data_fingerprint,
+        "encoder_sha256": encoder_meta.weights_sha256,
+    }
+    _save(path, {"decoder": decoder}, meta, DecoderMeta)
+
+
+def load_action_embedding(
+    encoder_path: str | Path, decoder_path: str | Path, device: torch.device | str = "cpu"
+) -> tuple[DecoderMeta, ActionEmbedding]:
+    """The ready :class:`ActionEmbedding` of a family: its encoder and the decoder that inverts it.
+
+    Raises:
+        ArtifactError: missing, tampered or mismatched artifacts.
+    """
+    encoder_path, decoder_path = Path(encoder_path), Path(decoder_path)
+    encoder_meta, encoded = load_encoder(encoder_path)
+    meta, tensors = _load_meta(decoder_path, DecoderMeta)
+    if meta.encoder_sha256 != encoder_meta.weights_sha256:
+        raise ArtifactError(f"{decoder_path}: was trained against another encoder than {encoder_path}")
+    low, high = np.asarray(meta.action_space.low), np.asarray(meta.action_space.high)
+    decoder = ActionDecoder(meta.dim, meta.k, low, high, meta.hidden)
+    _fill(decoder_path, "decoder", decoder, tensors)
+    embedding = ActionEmbedding(encoded.encoder, decoder, meta.code_whitening.whitening(), meta.bound)
+    return meta, embedding.to(device)
