@@ -130,6 +130,8 @@ class TD3Config(_Section):
         "fp32", description="matmul precision of updates (bf16 autocast keeps fp32 weights)"
     )
     device: Device = "cpu"
+    threads: PositiveInt = Field(1, description="torch threads of a run on CPU (1 is fastest for "
+                                 "these small networks, and lets runs share cores)")
 
 
 class EdeTD3Config(_Section):
@@ -143,19 +145,29 @@ class EdeTD3Config(_Section):
 class RunsConfig(_Section):
     """Stage 4: which runs make up the experiment."""
 
-    tasks: list[TaskId] = Field(min_length=1)
+    tasks: dict[str, list[TaskId]] = Field(
+        min_length=1, description="per family, the tasks to train on (its embedding transfers)"
+    )
     algos: list[Literal["td3", "ede-td3"]] = Field(default_factory=lambda: list(ALGOS))
     seeds: list[Seed] = Field(min_length=1)
     budgets: dict[str, PositiveInt] = Field(description="environment steps per task")
 
     @model_validator(mode="after")
     def _every_task_has_a_budget(self) -> RunsConfig:
-        missing = [task for task in self.tasks if task not in self.budgets]
+        missing = [task for task in self.all_tasks if task not in self.budgets]
         if missing:
             raise ValueError(f"runs.budgets: no budget for {', '.join(missing)}")
         if len(set(self.seeds)) != len(self.seeds):
             raise ValueError(f"runs.seeds: {self.seeds} repeats a seed; expected distinct seeds")
         return self
+
+    @property
+    def all_tasks(self) -> list[str]:
+        return [task for tasks in self.tasks.values() for task in tasks]
+
+    @property
+    def count(self) -> int:
+        return len(self.all_tasks) * len(self.algos) * len(self.seeds)
 
 
 class ReportConfig(_Section):
@@ -184,12 +196,15 @@ class Params(_Section):
     @model_validator(mode="after")
     def _tasks_are_placed(self) -> Params:
         problems = []
-        placed = {task for family in self.families.values() for task in family.tasks}
-        for task in self.runs.tasks:
-            if task not in placed:
-                problems.append(f"runs.tasks: {task!r} is in no family; add it to `families`")
+        for family, tasks in self.runs.tasks.items():
+            if family not in self.families:
+                problems.append(f"runs.tasks.{family}: not a family of `families`")
+                continue
+            for task in tasks:
+                if task not in self.families[family].tasks:
+                    problems.append(f"runs.tasks.{family}: {task!r} is not a task of that family")
         for task in self.report.thresholds:
-            if task not in self.runs.tasks:
+            if task not in self.runs.all_tasks:
                 problems.append(f"report.thresholds.{task}: not a task of runs.tasks")
         for a, b in itertools.combinations(self.families, 2):
             shared = set(self.families[a].tasks) & set(self.families[b].tasks)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import click
 
 from ede.config import Params
-from ede_pipeline import collect, pretrain
+from ede_pipeline import collect, pretrain, train
 from ede_pipeline.common import params_option
 
 
@@ -24,7 +24,7 @@ def main() -> None:
 def validate(params: Params) -> None:
     """Check a params file; print one line per problem, exit 2 if there is any."""
     families = ", ".join(params.families)
-    runs = len(params.runs.tasks) * len(params.runs.algos) * len(params.runs.seeds)
+    runs = params.runs.count
     click.echo(f"ok: {len(params.families)} families ({families}), {runs} runs")
 
 
@@ -46,3 +46,4 @@ def envs() -> None:
 main.add_command(collect.collect)
 main.add_command(collect.inspect_rollouts)
 main.add_command(pretrain.pretrain)
+main.add_command(train.train)

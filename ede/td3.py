@@ -1,0 +1,362 @@
+"""TD3 and EDE-TD3: one agent, one replay buffer, one update.
+
+TD3 (Fujimoto et al., 2018) is the special case k = 1 of EDE-TD3 (Section 3 of the paper): the
+two differ only through an :class:`ActionAdapter` — the identity for TD3, the learned decoder for
+EDE-TD3 — which fixes what the actor outputs (a raw action, or a whitened code z of k actions),
+its bounds, and k.
+
+Shapes: B batch, K actions per code (1 for TD3), A action size, C code size (A for TD3, D for
+EDE-TD3), O observation size.
+
+The critic is Q(s, c, i) with i the number of steps of code c already executed, fed as a one-hot
+of size K (absent when K = 1). Its target is Equation 1, batched over B and K::
+
+    y = Σ_{m<n} γ^m r_{t+m} + γ^n (1 − terminal) min_j Q'_j(s_{t+n}, c', i')
+
+where n ≤ K − i steps remain of the code, fewer if the episode ended first; c' = μ'(s_{t+n}) plus
+clipped smoothing noise and i' = 0 where the next code is chosen; and where a time limit cut the
+code short (truncated, not terminal), the code goes on: c' = c, i' = i + n. The actor follows
+∇_c Q_1(s, c, 0) (Equation 2).
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from typing import NamedTuple, Protocol
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ede.config import TD3Config
+from ede.embedding import ActionEmbedding
+from ede.nets import mlp
+
+__all__ = [
+    "ActionAdapter",
+    "Actor",
+    "Agent",
+    "Critic",
+    "EmbeddingAdapter",
+    "IdentityAdapter",
+    "ReplayBatch",
+    "ReplayBuffer",
+    "k_step_targets",
+]
+
+
+class ActionAdapter(Protocol):
+    """What the actor's outputs mean: codes in a box, each decoded to K raw actions."""
+
+    k: int
+    code_size: int
+    code_low: torch.Tensor  # (C,)
+    code_high: torch.Tensor  # (C,)
+
+    def decode(self, codes: torch.Tensor) -> torch.Tensor:
+        """(B, C) -> (B, K, A) raw actions."""
+        ...
+
+
+class IdentityAdapter:
+    """TD3: the code is the raw action, K = 1."""
+
+    k = 1
+
+    def __init__(self, low: np.ndarray, high: np.ndarray, device: torch.device) -> None:
+        self.code_size = len(low)
+        self.code_low = torch.as_tensor(low, dtype=torch.float32, device=device)
+        self.code_high = torch.as_tensor(high, dtype=torch.float32, device=device)
+
+    def decode(self, codes: torch.Tensor) -> torch.Tensor:
+        return codes.unsqueeze(1)  # (B, A) -> (B, 1, A)
+
+
+class EmbeddingAdapter:
+    """EDE-TD3: the code is a whitened z in [−bound, bound]^D, decoded to K actions by D."""
+
+    def __init__(self, embedding: ActionEmbedding, bound_scale: float = 1.0) -> None:
+        self.embedding = embedding
+        self.k, self.code_size = embedding.k, embedding.dim
+        bound = embedding.bound * bound_scale
+        device = embedding.device
+        self.code_low = torch.full((self.code_size,), -bound, device=device)
+        self.code_high = torch.full((self.code_size,), bound, device=device)
+
+    @torch.no_grad()
+    def decode(self, codes: torch.Tensor) -> torch.Tensor:
+        return self.embedding.decode(codes)  # (B, D) -> (B, K, A)
+
+
+class Actor(nn.Module):
+    """μ(s): a code inside [low, high] through a tanh."""
+
+    def __init__(self, obs_size: int, low: torch.Tensor, high: torch.Tensor, hidden: list[int]):
+        super().__init__()
+        self.net = mlp(obs_size, hidden, len(low))
+        self.register_buffer("centre", (high + low) / 2)
+        self.register_buffer("half_range", (high - low) / 2)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.centre + self.half_range * torch.tanh(self.net(obs))  # (B, O) -> (B, C)
+
+
+class Critic(nn.Module):
+    """Twin Q(s, c, i): two MLPs over (observation, code, one-hot of i)."""
+
+    def __init__(self, obs_size: int, code_size: int, k: int, hidden: list[int]) -> None:
+        super().__init__()
+        self.k = k
+        in_size = obs_size + code_size + (k if k > 1 else 0)
+        self.q1 = mlp(in_size, hidden, 1)
+        self.q2 = mlp(in_size, hidden, 1)
+
+    def _inputs(self, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor) -> torch.Tensor:
+        parts = [obs, code]
+        if self.k > 1:
+            parts.append(F.one_hot(i, self.k).to(obs.dtype))  # (B,) -> (B, K)
+        return torch.cat(parts, dim=-1)
+
+    def forward(
+        self, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        x = self._inputs(obs, code, i)
+        return self.q1(x).squeeze(-1), self.q2(x).squeeze(-1)  # (B,), (B,)
+
+    def first(self, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor) -> torch.Tensor:
+        return self.q1(self._inputs(obs, code, i)).squeeze(-1)
+
+
+class ReplayBatch(NamedTuple):
+    """Sampled steps and, for each, the K steps from it on (for the k-step target)."""
+
+    obs: torch.Tensor  # (B, O)
+    code: torch.Tensor  # (B, C)
+    i: torch.Tensor  # (B,) int64
+    rewards: torch.Tensor  # (B, K): r_t ... r_{t+K-1}
+    terminated: torch.Tensor  # (B, K) bool
+    truncated: torch.Tensor  # (B, K) bool
+    next_obs: torch.Tensor  # (B, K, O): s_{t+1} ... s_{t+K}
+
+
+class ReplayBuffer:
+    """A circular buffer of steps; samples come with the K steps that follow them.
+
+    Each step stores the code being executed and its index i. A sample's K-step future is read by
+    index arithmetic (``idx[:, None] + arange(K)``), never by a Python loop; the newest K − 1 steps
+    are not sampled because their future is not written yet.
+    """
+
+    def __init__(
+        self, capacity: int, obs_size: int, code_size: int, k: int, device: torch.device
+    ) -> None:
+        self.capacity, self.k, self.device = capacity, k, device
+        self.obs = torch.zeros((capacity, obs_size), device=device)
+        self.next_obs = torch.zeros((capacity, obs_size), device=device)
+        self.code = torch.zeros((capacity, code_size), device=device)
+        self.i = torch.zeros(capacity, dtype=torch.int64, device=device)
+        self.reward = torch.zeros(capacity, device=device)
+        self.terminated = torch.zeros(capacity, dtype=torch.bool, device=device)
+        self.truncated = torch.zeros(capacity, dtype=torch.bool, device=device)
+        self.head = 0  # where the next step goes
+        self.size = 0
+
+    FIELDS = ("obs", "next_obs", "code", "i", "reward", "terminated", "truncated")
+
+    def add(
+        self,
+        obs: np.ndarray,
+        code: torch.Tensor,
+        i: int,
+        reward: float,
+        next_obs: np.ndarray,
+        terminated: bool,
+        truncated: bool,
+    ) -> None:
+        h = self.head
+        self.obs[h] = torch.as_tensor(obs, dtype=torch.float32)
+        self.next_obs[h] = torch.as_tensor(next_obs, dtype=torch.float32)
+        self.code[h] = code
+        self.i[h] = i
+        self.reward[h] = reward
+        self.terminated[h] = terminated
+        self.truncated[h] = truncated
+        self.head = (h + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    @property
+    def sampleable(self) -> int:
+        return max(0, self.size - (self.k - 1))
+
+    def sample(self, batch_size: int, generator: torch.Generator) -> ReplayBatch:
+        if self.sampleable == 0:
+            raise ValueError("the buffer holds no step whose K-step future is written")
+        offset = torch.randint(
+            self.sampleable, (batch_size,), generator=generator, device=generator.device
+        )
+        oldest = self.head - self.size  # the oldest step, mod capacity
+        idx = ((oldest + offset) % self.capacity).to(self.device)  # (B,)
+        steps = (idx[:, None] + torch.arange(self.k, device=self.device)) % self.capacity  # (B, K)
+        return ReplayBatch(
+            obs=self.obs[idx],
+            code=self.code[idx],
+            i=self.i[idx],
+            rewards=self.reward[steps],
+            terminated=self.terminated[steps],
+            truncated=self.truncated[steps],
+            next_obs=self.next_obs[steps],
+        )
+
+    def state(self) -> tuple[dict[str, torch.Tensor], dict[str, int]]:
+        """Tensors and counters to checkpoint (only the filled part)."""
+        n = self.size
+        tensors = {name: getattr(self, name)[:n].cpu() for name in self.FIELDS}
+        return tensors, {"head": self.head, "size": self.size}
+
+    def load(self, tensors: dict[str, torch.Tensor], counters: dict[str, int]) -> None:
+        n = counters["size"]
+        for name in self.FIELDS:
+            getattr(self, name)[:n] = tensors[name].to(self.device)
+        self.head, self.size = counters["head"], n
+
+
+@dataclass(frozen=True)
+class TargetParts:
+    """Equation 1 split into what the networks must evaluate and what they multiply."""
+
+    returns: torch.Tensor  # (B,) discounted rewards of the steps that remain
+    discount: torch.Tensor  # (B,) γ^n, zero where the episode terminated
+    bootstrap_obs: torch.Tensor  # (B, O) s_{t+n}
+    keep_code: torch.Tensor  # (B,) bool: a time limit cut the code short, it goes on
+    next_i: torch.Tensor  # (B,) 0 where a new code is chosen, i + n where it goes on
+
+
+def k_step_targets(batch: ReplayBatch, gamma: float) -> TargetParts:
+    """The parts of Equation 1 that need no network, for a batch, all batched.
+
+    n = the steps that remain of each sample's code (K − i), cut after the first step where the
+    episode ended (terminated or truncated).
+    """
+    k = batch.rewards.shape[1]
+    m = torch.arange(k, device=batch.rewards.device)  # (K,)
+    remaining = k - batch.i  # (B,)
+    ended = batch.terminated | batch.truncated  # (B, K)
+    ended_before = (ended.cumsum(dim=1) - ended.long()) > 0  # an earlier step ended the episode
+    valid = (m < remaining[:, None]) & ~ended_before  # (B, K)
+    n = valid.sum(dim=1)  # (B,), >= 1
+    powers = gamma ** m.to(batch.rewards.dtype)  # (K,)
+    returns = (valid * powers * batch.rewards).sum(dim=1)  # (B,)
+    last = (n - 1)[:, None]  # (B, 1)
+    terminal = batch.terminated.gather(1, last).squeeze(1)  # (B,)
+    cut_short = batch.truncated.gather(1, last).squeeze(1) & (n < remaining)
+    bootstrap_obs = batch.next_obs.gather(
+        1, last[:, :, None].expand(-1, 1, batch.next_obs.shape[2])
+    ).squeeze(1)  # (B, K, O) -> (B, O)
+    discount = torch.where(terminal, 0.0, gamma ** n.to(batch.rewards.dtype))
+    next_i = torch.where(cut_short, batch.i + n, torch.zeros_like(n))
+    return TargetParts(returns, discount, bootstrap_obs, cut_short, next_i)
+
+
+def polyak(target: nn.Module, source: nn.Module, tau: float) -> None:
+    """target ← (1 − τ) target + τ source, in place."""
+    with torch.no_grad():
+        torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
+
+
+class Agent:
+    """The TD3 learner over any :class:`ActionAdapter` (TD3: identity, EDE-TD3: the decoder)."""
+
+    def __init__(
+        self,
+        obs_size: int,
+        adapter: ActionAdapter,
+        config: TD3Config,
+        device: torch.device,
+        seed: int,
+    ) -> None:
+        self.adapter, self.config, self.device = adapter, config, device
+        torch.manual_seed(seed)  # initial weights
+        low, high = adapter.code_low, adapter.code_high
+        self.scale = (high - low) / 2  # noise is relative to the half-range of the code box
+        self.actor = Actor(obs_size, low, high, config.hidden).to(device)
+        self.critic = Critic(obs_size, adapter.code_size, adapter.k, config.hidden).to(device)
+        self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
+        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=config.lr)
+        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=config.lr)
+        self.generator = torch.Generator(device=device).manual_seed(seed)
+        self.updates = 0
+        self.autocast = config.precision == "bf16"
+
+    def _noise(self, shape: torch.Size, std: float) -> torch.Tensor:
+        return torch.randn(shape, generator=self.generator, device=self.device) * std * self.scale
+
+    def clip(self, codes: torch.Tensor) -> torch.Tensor:
+        return codes.clamp(self.adapter.code_low, self.adapter.code_high)
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, explore: bool) -> torch.Tensor:
+        """The code for one observation: μ(s), plus exploration noise when ``explore``."""
+        code = self.actor(torch.as_tensor(obs, dtype=torch.float32, device=self.device)[None])[0]
+        if explore:
+            code = self.clip(code + self._noise(code.shape, self.config.exploration_noise))
+        return code
+
+    def random_code(self) -> torch.Tensor:
+        """A code uniform in the box: the start-steps behaviour."""
+        low, high = self.adapter.code_low, self.adapter.code_high
+        u = torch.rand(low.shape, generator=self.generator, device=self.device)
+        return low + u * (high - low)
+
+    def _autocast(self) -> torch.autocast:
+        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.autocast)
+
+    def target(self, batch: ReplayBatch) -> torch.Tensor:
+        """Equation 1 with TD3's clipped double-Q and target policy smoothing."""
+        c = self.config
+        parts = k_step_targets(batch, c.discount)
+        with torch.no_grad(), self._autocast():
+            noise = self._noise(batch.code.shape, c.policy_noise)
+            noise = torch.maximum(torch.minimum(noise, c.noise_clip * self.scale), -c.noise_clip * self.scale)
+            chosen = self.clip(self.actor_target(parts.bootstrap_obs) + noise)
+            next_code = torch.where(parts.keep_code[:, None], batch.code, chosen)
+            q1, q2 = self.critic_target(parts.bootstrap_obs, next_code, parts.next_i)
+            return parts.returns + parts.discount * torch.minimum(q1, q2).float()
+
+    def update(self, batch: ReplayBatch) -> dict[str, float]:
+        """One critic step, and every ``policy_delay`` steps an actor step and target moves."""
+        c = self.config
+        target = self.target(batch)
+        with self._autocast():
+            q1, q2 = self.critic(batch.obs, batch.code, batch.i)
+            critic_loss = F.mse_loss(q1.float(), target) + F.mse_loss(q2.float(), target)
+        self.critic_optimizer.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self.critic_optimizer.step()
+        self.updates += 1
+        if self.updates % c.policy_delay:
+            return {}
+        with self._autocast():
+            start = torch.zeros_like(batch.i)  # a new code is chosen: i = 0 (Equation 2)
+            actor_loss = -self.critic.first(batch.obs, self.actor(batch.obs), start).float().mean()
+        self.actor_optimizer.zero_grad(set_to_none=True)
+        actor_loss.backward()
+        self.actor_optimizer.step()
+        polyak(self.critic_target, self.critic, c.tau)
+        polyak(self.actor_target, self.actor, c.tau)
+        return {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item()}
+
+    # Checkpoints -------------------------------------------------------------------------
+
+    def modules(self) -> dict[str, nn.Module]:
+        return {
+            "actor": self.actor,
+            "critic": self.critic,
+            "actor_target": self.actor_target,
+            "critic_target": self.critic_target,
+        }
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {"actor_optimizer": self.actor_optimizer, "critic_optimizer": self.critic_optimizer}

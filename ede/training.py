@@ -1,0 +1,367 @@
+"""One training run of TD3 or EDE-TD3: the environment loop, evaluation, checkpoints, outputs.
+
+A run is determined by its task, algorithm, seed, budget, params and (for EDE-TD3) embedding. It
+writes, into its directory:
+
+* ``eval.csv``: ``step, episode, mean_return, std_return, wall_seconds`` after every evaluation;
+* ``metrics.json``: final and best return, area under the curve, steps per second, and the run's
+  identity (task, algo, seed, budget, params);
+* ``policy/``: the final actor as safetensors beside its JSON metadata;
+* ``checkpoint/`` while it runs: everything needed to continue exactly (networks, optimisers,
+  replay buffer, generator states, counters, the evaluation history, and the current episode as
+  its start plus the actions taken since, replayed on resume). A run started where a checkpoint of
+  the same configuration exists continues from it; on CPU a run killed at any point and resumed
+  ends with the same ``eval.csv`` returns as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+
+from ede.atomic import write_atomically, write_json, write_text
+from ede.config import EdeTD3Config, TD3Config
+from ede.embedding import ActionEmbedding
+from ede.envs import make
+from ede.td3 import ActionAdapter, Agent, EmbeddingAdapter, IdentityAdapter, ReplayBuffer
+
+__all__ = ["RunSpec", "area_under_curve", "evaluate", "train_run"]
+
+CHECKPOINT_VERSION = 1
+EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes are seeded apart from training ones
+EVAL_COLUMNS = ("step", "episode", "mean_return", "std_return", "wall_seconds")
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """What determines a run."""
+
+    task: str
+    algo: str  # "td3" or "ede-td3"
+    seed: int
+    budget: int  # environment steps
+    td3: TD3Config
+    ede_td3: EdeTD3Config
+    embedding_id: str = ""  # the decoder's weights checksum, for EDE-TD3
+
+    def identity(self) -> dict[str, Any]:
+        return {
+            "task": self.task,
+            "algo": self.algo,
+            "seed": self.seed,
+            "budget": self.budget,
+            "params": {
+                "td3": self.td3.model_dump(mode="json"),
+                "ede_td3": self.ede_td3.model_dump(mode="json"),
+            },
+            "embedding": self.embedding_id,
+        }
+
+    def fingerprint(self) -> str:
+        return hashlib.sha256(json.dumps(self.identity(), sort_keys=True).encode()).hexdigest()
+
+
+def area_under_curve(steps: np.ndarray, returns: np.ndarray) -> float:
+    """Trapezoidal area under the return curve divided by the steps it spans: a mean return."""
+    if len(steps) < 2:
+        return float(returns[0]) if len(returns) else float("nan")
+    return float(np.trapezoid(returns, steps) / (steps[-1] - steps[0]))
+
+
+def evaluate(
+    env: gymnasium.Env, agent: Agent, adapter: ActionAdapter, episodes: int, seed: int
+) -> np.ndarray:
+    """Returns of ``episodes`` deterministic episodes; episode e starts from ``reset(seed + e)``."""
+    returns = np.zeros(episodes)
+    for e in range(episodes):
+        obs, _ = env.reset(seed=seed + e)
+        done, i, plan = False, 0, np.zeros(0)
+        while not done:
+            if i == 0:
+                plan = adapter.decode(agent.act(obs, explore=False)[None])[0].cpu().numpy()
+            obs, reward, terminated, truncated, _ = env.step(plan[i])
+            returns[e] += float(reward)
+            i = (i + 1) % adapter.k
+            done = terminated or truncated
+            if done:
+                i = 0
+    return returns
+
+
+@dataclass
+class _Episode:
+    """The training episode under way, and how to rebuild it: its start and its actions."""
+
+    start: dict[str, Any]  # {"seed": s} for the first episode, else {"rng": bit generator state}
+    actions: list[np.ndarray] = field(default_factory=list)
+    ret: float = 0.0
+
+
+def _reset(env: gymnasium.Env, seed: int | None) -> tuple[np.ndarray, _Episode]:
+    if seed is not None:
+        start: dict[str, Any] = {"seed": seed}
+        obs, _ = env.reset(seed=seed)
+    else:
+        start = {"rng": env.unwrapped.np_random.bit_generator.state}
+        obs, _ = env.reset()
+    return obs, _Episode(start)
+
+
+def _replay(env: gymnasium.Env, episode: _Episode) -> np.ndarray:
+    """Rebuild the environment's state: the same reset, then the same actions."""
+    if "seed" in episode.start:
+        obs, _ = env.reset(seed=episode.start["seed"])
+    else:
+        env.unwrapped.np_random.bit_generator.state = episode.start["rng"]
+        obs, _ = env.reset()
+    for action in episode.actions:
+        obs, *_ = env.step(action)
+    return obs
+
+
+def _csv(rows: list[dict[str, float]]) -> str:
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=EVAL_COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    return out.getvalue()
+
+
+class _Run:
+    """The mutable state of a run, and its checkpoint."""
+
+    def __init__(self, spec: RunSpec, embedding: ActionEmbedding | None, device: torch.device):
+        self.spec = spec
+        self.env = make(spec.task)
+        self.eval_env = make(spec.task)
+        space = self.env.action_space
+        assert isinstance(space, gymnasium.spaces.Box)
+        obs_size = int(np.prod(self.env.observation_space.shape))
+        if spec.algo == "td3":
+            self.adapter: ActionAdapter = IdentityAdapter(space.low, space.high, device)
+        else:
+            assert embedding is not None
+            self.adapter = EmbeddingAdapter(embedding, spec.ede_td3.bound_scale)
+        self.agent = Agent(obs_size, self.adapter, spec.td3, device, spec.seed)
+        capacity = min(spec.td3.buffer_size, spec.budget)
+        self.buffer = ReplayBuffer(capacity, obs_size, self.adapter.code_size, self.adapter.k, device)
+        self.step = 0
+        self.episodes = 0
+        self.i = 0  # steps of the current code executed
+        self.code = torch.zeros(self.adapter.code_size, device=device)
+        self.plan = np.zeros((self.adapter.k, space.shape[0]), dtype=space.dtype)
+        self.history: list[dict[str, float]] = []
+        self.wall = 0.0  # seconds spent, over every session of this run
+        self.obs, self.episode = _reset(self.env, spec.seed)
+
+    # Checkpoints ---------------------------------------------------------------------------
+
+    def save(self, path: Path) -> None:
+        tensors: dict[str, torch.Tensor] = {}
+        for name, module in self.agent.modules().items():
+            for key, value in module.state_dict().items():
+                tensors[f"{name}.{key}"] = value
+        for name, optimizer in self.agent.optimizers().items():
+            for index, state in optimizer.state_dict()["state"].items():
+                for key, value in state.items():
+                    tensors[f"{name}.{index}.{key}"] = value
+        buffer_tensors, buffer_counters = self.buffer.state()
+        tensors |= {f"buffer.{key}": value for key, value in buffer_tensors.items()}
+        tensors["generator"] = self.agent.generator.get_state()
+        tensors["code"] = self.code
+        tensors["plan"] = torch.as_tensor(self.plan)
+        tensors["episode_actions"] = torch.as_tensor(
+            np.array(self.episode.actions, dtype=self.plan.dtype).reshape(-1, self.plan.shape[1])
+        )
+        tensors["obs"] = torch.as_tensor(np.asarray(self.obs))
+        state = {
+            "version": CHECKPOINT_VERSION,
+            "fingerprint": self.spec.fingerprint(),
+            "step": self.step,
+            "episodes": self.episodes,
+            "i": self.i,
+            "updates": self.agent.updates,
+            "wall_seconds": self.wall,
+            "buffer": buffer_counters,
+            "episode_start": self.episode.start,
+            "episode_return": self.episode.ret,
+            "history": self.history,
+        }
+
+        def write(tmp: Path) -> None:
+            save_file({k: v.detach().cpu().clone() for k, v in tensors.items()},
+                      tmp / "state.safetensors")
+            (tmp / "state.json").write_text(json.dumps(state))
+
+        write_atomically(path, write)
+
+    def load(self, path: Path) -> bool:
+        """Continue from ``path`` if it holds a checkpoint of this very run; else start afresh."""
+        state_file = path / "state.json"
+        if not state_file.is_file():
+            return False
+        state = json.loads(state_file.read_text())
+        if state.get("version") != CHECKPOINT_VERSION or state.get("fingerprint") != self.spec.fingerprint():
+            return False
+        tensors = load_file(path / "state.safetensors", device=str(self.agent.device))
+        for name, module in self.agent.modules().items():
+            module.load_state_dict({k.removeprefix(f"{name}."): v for k, v in tensors.items()
+                                    if k.startswith(f"{name}.")})
+        for name, optimizer in self.agent.optimizers().items():
+            saved = optimizer.state_dict()
+            per_param: dict[int, dict[str, torch.Tensor]] = {}
+            for key, value in tensors.items():
+                parts = key.split(".")
+                if parts[0] == name:
+                    per_param.setdefault(int(parts[1]), {})[parts[2]] = value
+            saved["state"] = per_param
+            optimizer.load_state_dict(saved)
+        self.buffer.load({k.removeprefix("buffer."): v for k, v in tensors.items()
+                          if k.startswith("buffer.")}, state["buffer"])
+        self.agent.generator.set_state(tensors["generator"].cpu())
+        self.agent.updates = state["updates"]
+        self.code = tensors["code"]
+        self.plan = tensors["plan"].cpu().numpy()
+        self.step, self.episodes, self.i = state["step"], state["episodes"], state["i"]
+        self.wall, self.history = state["wall_seconds"], state["history"]
+        self.episode = _Episode(
+            state["episode_start"], list(tensors["episode_actions"].cpu().numpy()),
+            state["episode_return"],
+        )
+        self.obs = _replay(self.env, self.episode)
+        if not np.array_equal(self.obs, tensors["obs"].cpu().numpy()):
+            raise RuntimeError(f"{path}: replaying the episode did not reach the saved state")
+        return True
+
+    # The loop ------------------------------------------------------------------------------
+
+    def evaluate(self) -> dict[str, float]:
+        returns = evaluate(self.eval_env, self.agent, self.adapter, self.spec.td3.eval_episodes,
+                           EVAL_SEED_OFFSET * (self.spec.seed + 1))
+        row = {"step": self.step, "episode": self.episodes, "mean_return": float(returns.mean()),
+               "std_return": float(returns.std()), "wall_seconds": round(self.wall, 3)}
+        self.history.append(row)
+        return row
+
+    def env_step(self) -> None:
+        """One environment step and one update (Section 3: learn from every step)."""
+        config = self.spec.td3
+        if self.i == 0:
+            if self.step < config.start_steps:
+                self.code = self.agent.random_code()
+            else:
+                self.code = self.agent.act(self.obs, explore=True)
+            self.plan = self.adapter.decode(self.code[None])[0].cpu().numpy()  # (K, A)
+        action = self.plan[self.i]
+        next_obs, reward, terminated, truncated, _ = self.env.step(action)
+        self.buffer.add(self.obs, self.code, self.i, float(reward), next_obs, terminated, truncated)
+        self.episode.actions.append(action)
+        self.episode.ret += float(reward)
+        self.step += 1
+        self.i = (self.i + 1) % self.adapter.k
+        if terminated or truncated:
+            self.episodes += 1
+            self.i = 0
+            self.obs, self.episode = _reset(self.env, None)
+        else:
+            self.obs = next_obs
+        if self.buffer.sampleable >= config.batch_size:
+            self.agent.update(self.buffer.sample(config.batch_size, self.agent.generator))
+
+
+def train_run(
+    spec: RunSpec,
+    out: Path,
+    embedding: ActionEmbedding | None = None,
+    device: torch.device = torch.device("cpu"),
+    progress: Callable[[int], None] | None = None,
+    keep_checkpoint: bool = False,
+) -> dict[str, Any]:
+    """Train one run into ``out`` (resuming from ``out/checkpoint`` when it matches).
+
+    Returns:
+        The metrics written to ``metrics.json``.
+    """
+    if spec.algo not in ("td3", "ede-td3"):
+        raise ValueError(f"unknown algorithm {spec.algo!r}; expected td3 or ede-td3")
+    if spec.algo == "ede-td3" and embedding is None:
+        raise ValueError("ede-td3 needs the family's action embedding")
+    out.mkdir(parents=True, exist_ok=True)
+    checkpoint = out / "checkpoint"
+    run = _Run(spec, embedding, device)
+    resumed = run.load(checkpoint)
+    if progress is not None and resumed:
+        progress(run.step)
+    config = spec.td3
+    session_start, steps_at_start = time.perf_counter(), run.step
+    wall_at_start = run.wall
+
+    def clock() -> None:
+        run.wall = wall_at_start + time.perf_counter() - session_start
+
+    if not run.history:
+        run.evaluate()
+        write_text(out / "eval.csv", _csv(run.history))
+    while run.step < spec.budget:
+        run.env_step()
+        if progress is not None:
+            progress(1)
+        if run.step % config.eval_every == 0 or run.step == spec.budget:
+            clock()
+            run.evaluate()
+            write_text(out / "eval.csv", _csv(run.history))
+        if run.step % config.checkpoint_every == 0 and run.step < spec.budget:
+            clock()
+            run.save(checkpoint)
+    clock()
+    write_text(out / "eval.csv", _csv(run.history))
+    steps = np.array([row["step"] for row in run.history], dtype=float)
+    returns = np.array([row["mean_return"] for row in run.history])
+    session_steps = run.step - steps_at_start
+    session_seconds = time.perf_counter() - session_start
+    metrics = {
+        "final_return": float(returns[-1]),
+        "best_return": float(returns.max()),
+        "auc": area_under_curve(steps, returns),
+        "steps_per_second": session_steps / session_seconds if session_steps else None,
+        "episodes": run.episodes,
+        "resumed_from_step": steps_at_start if resumed else None,
+        **spec.identity(),
+    }
+    save_policy(out / "policy", run.agent, spec, run.adapter)
+    write_json(out / "metrics.json", metrics)
+    if not keep_checkpoint:
+        shutil.rmtree(checkpoint, ignore_errors=True)
+    return metrics
+
+
+def save_policy(path: Path, agent: Agent, spec: RunSpec, adapter: ActionAdapter) -> None:
+    """The final actor: ``policy.safetensors`` beside ``policy.json``."""
+
+    def write(tmp: Path) -> None:
+        state = {k: v.detach().cpu().contiguous() for k, v in agent.actor.state_dict().items()}
+        save_file(state, tmp / "policy.safetensors")
+        meta = {
+            **spec.identity(),
+            "k": adapter.k,
+            "code_size": adapter.code_size,
+            "code_low": adapter.code_low.tolist(),
+            "code_high": adapter.code_high.tolist(),
+            "hidden": spec.td3.hidden,
+        }
+        write_json(tmp / "policy.json", meta)
+
+    write_atomically(path, write)

@@ -1,0 +1,186 @@
+"""TD3/EDE-TD3 internals: Equation 1 on hand-built replay data, the actor's gradient, targets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from ede.config import TD3Config
+from ede.td3 import Agent, IdentityAdapter, ReplayBuffer, k_step_targets
+
+GAMMA = 0.9
+K, OBS, CODE = 4, 3, 2
+
+
+class FixedAdapter:
+    """A K-step adapter with a box of codes, enough for the agent's update (decode unused)."""
+
+    k, code_size = K, CODE
+    code_low = -torch.ones(CODE)
+    code_high = torch.ones(CODE)
+
+    def decode(self, codes: torch.Tensor) -> torch.Tensor:
+        return codes[:, None].expand(-1, K, -1)
+
+
+def agent_for(k_adapter, **overrides) -> Agent:
+    config = TD3Config(hidden=[16, 16], policy_noise=0.0, discount=GAMMA, **overrides)
+    return Agent(OBS, k_adapter, config, torch.device("cpu"), seed=0)
+
+
+def filled_buffer(rewards, terminated=(), truncated=(), i=None) -> ReplayBuffer:
+    """Steps t = 0..n-1 with obs[t] = next_obs[t-1] = (t, t, t) and codes (t, -t)/10."""
+    n = len(rewards)
+    buffer = ReplayBuffer(32, OBS, CODE, K, torch.device("cpu"))
+    for t in range(n):
+        buffer.add(
+            obs=np.full(OBS, t, dtype=np.float32),
+            code=torch.tensor([t / 10, -t / 10]),
+            i=(t % K) if i is None else i[t],
+            reward=rewards[t],
+            next_obs=np.full(OBS, t + 1, dtype=np.float32),
+            terminated=t in terminated,
+            truncated=t in truncated,
+        )
+    return buffer
+
+
+def batch_at(buffer: ReplayBuffer, index: int):
+    """The batch of one sample at ``index``: sample() with the random offset pinned."""
+    generator = torch.Generator().manual_seed(0)
+    batch = buffer.sample(1, generator)
+    steps = (torch.tensor([index])[:, None] + torch.arange(K)) % buffer.capacity
+    return batch._replace(
+        obs=buffer.obs[[index]], code=buffer.code[[index]], i=buffer.i[[index]],
+        rewards=buffer.reward[steps], terminated=buffer.terminated[steps],
+        truncated=buffer.truncated[steps], next_obs=buffer.next_obs[steps],
+    )
+
+
+def q_min(agent: Agent, obs: torch.Tensor, code: torch.Tensor, i: int) -> float:
+    q1, q2 = agent.critic_target(obs[None], code[None], torch.tensor([i]))
+    return torch.minimum(q1, q2).item()
+
+
+def next_code(agent: Agent, obs: torch.Tensor) -> torch.Tensor:
+    return agent.clip(agent.actor_target(obs[None]))[0]
+
+
+REWARDS = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0]
+
+
+def test_equation_1_at_i_0_sums_k_rewards_and_bootstraps_at_the_next_choice() -> None:
+    agent = agent_for(FixedAdapter())
+    buffer = filled_buffer(REWARDS)
+    batch = batch_at(buffer, 4)  # i = 0: steps 4..7 remain, the next code is chosen at s_8
+    s8 = torch.full((OBS,), 8.0)
+    expected = sum(GAMMA**m * REWARDS[4 + m] for m in range(4))
+    expected += GAMMA**4 * q_min(agent, s8, next_code(agent, s8), 0)
+    assert agent.target(batch).item() == pytest.approx(expected, rel=1e-6)
+    parts = k_step_targets(batch, GAMMA)
+    assert parts.next_i.item() == 0 and not parts.keep_code.item()
+
+
+def test_equation_1_at_i_3_has_one_step_left() -> None:
+    agent = agent_for(FixedAdapter())
+    buffer = filled_buffer(REWARDS)
+    batch = batch_at(buffer, 3)  # i = 3: only r_3 remains, then s_4
+    s4 = torch.full((OBS,), 4.0)
+    expected = REWARDS[3] + GAMMA * q_min(agent, s4, next_code(agent, s4), 0)
+    assert agent.target(batch).item() == pytest.approx(expected, rel=1e-6)
+
+
+def test_an_episode_that_terminates_inside_the_code_is_cut_without_bootstrap() -> None:
+    agent = agent_for(FixedAdapter())
+    # Terminates after step 5; step 6 starts a new episode (i = 0 there).
+    buffer = filled_buffer(REWARDS, terminated={5}, i=[0, 1, 2, 3, 0, 1, 0, 1, 2, 3, 0, 1])
+    batch = batch_at(buffer, 4)
+    expected = REWARDS[4] + GAMMA * REWARDS[5]  # r_6, r_7 belong to the next episode
+    assert agent.target(batch).item() == pytest.approx(expected, rel=1e-6)
+    assert k_step_targets(batch, GAMMA).discount.item() == 0.0
+
+
+def test_a_time_limit_inside_the_code_bootstraps_with_the_code_going_on() -> None:
+    agent = agent_for(FixedAdapter())
+    buffer = filled_buffer(REWARDS, truncated={5}, i=[0, 1, 2, 3, 0, 1, 0, 1, 2, 3, 0, 1])
+    batch = batch_at(buffer, 4)  # code of step 4 ran 2 of its 4 steps when time ran out
+    s6, code = torch.full((OBS,), 6.0), buffer.code[4]
+    expected = REWARDS[4] + GAMMA * REWARDS[5] + GAMMA**2 * q_min(agent, s6, code, 2)
+    assert agent.target(batch).item() == pytest.approx(expected, rel=1e-6)
+    parts = k_step_targets(batch, GAMMA)
+    assert parts.keep_code.item() and parts.next_i.item() == 2
+
+
+def test_a_time_limit_at_the_codes_last_step_chooses_a_new_code() -> None:
+    agent = agent_for(FixedAdapter())
+    buffer = filled_buffer(REWARDS, truncated={7})
+    batch = batch_at(buffer, 4)
+    s8 = torch.full((OBS,), 8.0)
+    expected = sum(GAMMA**m * REWARDS[4 + m] for m in range(4))
+    expected += GAMMA**4 * q_min(agent, s8, next_code(agent, s8), 0)
+    assert agent.target(batch).item() == pytest.approx(expected, rel=1e-6)
+
+
+def test_with_k_1_the_target_is_td3s() -> None:
+    adapter = IdentityAdapter(-np.ones(CODE), np.ones(CODE), torch.device("cpu"))
+    agent = agent_for(adapter)
+    buffer = ReplayBuffer(8, OBS, CODE, 1, torch.device("cpu"))
+    for t in range(4):
+        buffer.add(np.full(OBS, t, dtype=np.float32), torch.zeros(CODE), 0, float(t), 
+                   np.full(OBS, t + 1, dtype=np.float32), t == 2, False)
+    batch = buffer.sample(64, torch.Generator().manual_seed(1))
+    targets = agent.target(batch)
+    for obs, target, reward in zip(batch.obs, targets, batch.rewards[:, 0]):
+        t = int(obs[0].item())
+        s1 = torch.full((OBS,), t + 1.0)
+        bootstrap = 0.0 if t == 2 else GAMMA * q_min(agent, s1, next_code(agent, s1), 0)
+        assert target.item() == pytest.approx(reward.item() + bootstrap, rel=1e-6)
+
+
+def test_the_newest_k_minus_1_steps_are_never_sampled() -> None:
+    buffer = filled_buffer(REWARDS[:6])
+    batch = buffer.sample(500, torch.Generator().manual_seed(0))
+    assert set(batch.obs[:, 0].long().tolist()) == {0, 1, 2}
+
+
+def test_the_actor_learns_only_through_the_critic_at_i_0(monkeypatch: pytest.MonkeyPatch) -> None:
+    agent = agent_for(FixedAdapter(), policy_delay=1)
+    buffer = filled_buffer(REWARDS)
+    seen_i = []
+    original = type(agent.critic).first
+
+    def spy(self, obs, code, i):
+        seen_i.append(i.clone())
+        return original(self, obs, code, i)
+
+    monkeypatch.setattr(type(agent.critic), "first", spy)
+    critic_after_its_step = {}
+
+    def snapshot(*args, **kwargs):
+        out = step(*args, **kwargs)
+        critic_after_its_step.update({k: v.clone() for k, v in agent.critic.state_dict().items()})
+        return out
+
+    step = agent.critic_optimizer.step
+    agent.critic_optimizer.step = snapshot
+    actor_before = [p.clone() for p in agent.actor.parameters()]
+    agent.update(buffer.sample(16, torch.Generator().manual_seed(0)))
+    assert len(seen_i) == 1 and torch.all(seen_i[0] == 0)
+    assert any(not torch.equal(a, b) for a, b in zip(actor_before, agent.actor.parameters()))
+    for key, value in agent.critic.state_dict().items():  # the actor step left Q alone
+        assert torch.equal(value, critic_after_its_step[key]), key
+
+
+def test_actor_updates_wait_for_the_policy_delay_and_targets_move_by_tau() -> None:
+    agent = agent_for(FixedAdapter(), policy_delay=2, tau=0.25)
+    buffer = filled_buffer(REWARDS)
+    actor_before = [p.clone() for p in agent.actor.parameters()]
+    target_before = [p.clone() for p in agent.critic_target.parameters()]
+    agent.update(buffer.sample(16, torch.Generator().manual_seed(0)))  # update 1: critic only
+    assert all(torch.equal(a, b) for a, b in zip(actor_before, agent.actor.parameters()))
+    assert all(torch.equal(a, b) for a, b in zip(target_before, agent.critic_target.parameters()))
+    agent.update(buffer.sample(16, torch.Generator().manual_seed(1)))  # update 2: actor, targets
+    for old, new, online in zip(target_before, agent.critic_target.parameters(),
+                                agent.critic.parameters()):
+        torch.testing.assert_close(new, 0.75 * old + 0.25 * online)

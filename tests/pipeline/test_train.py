@@ -1,0 +1,174 @@
+"""``ede-pipeline train``: learning, exact resume after SIGKILL, outputs and bad input."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner, Result
+
+from ede.envs import make
+from ede.training import EVAL_SEED_OFFSET
+from ede_pipeline.cli import main
+
+BUDGET = 3_000
+
+
+def tiny(params: dict) -> None:
+    params["collect"].update(steps=4_000, num_envs=1)
+    for section in ("embedding", "decoder"):
+        params[section].update(hidden=[64, 64], epochs=10, lr=1e-3)
+    params["td3"].update(hidden=[64, 64], batch_size=64, start_steps=500, eval_every=500,
+                         eval_episodes=5, checkpoint_every=400)
+    params["runs"].update(tasks={"point": ["ede/Point-v0"], "reacher": ["ede/ReacherVertical-v0"]},
+                          seeds=[0], budgets={"ede/Point-v0": BUDGET, "ede/ReacherVertical-v0": 500})
+
+
+def run(*args: str) -> Result:
+    return CliRunner().invoke(main, list(args))
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A working directory with tiny params and the point family's embedding."""
+    import yaml
+
+    from tests.conftest import REPO
+
+    path = tmp_path_factory.mktemp("train")
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    tiny(params)
+    (path / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    cwd = os.getcwd()
+    os.chdir(path)
+    try:
+        for command in (["collect", "--family", "point"], ["pretrain", "encoder", "--family", "point"],
+                        ["pretrain", "decoder", "--family", "point"]):
+            result = run(*command)
+            assert result.exit_code == 0, result.output
+    finally:
+        os.chdir(cwd)
+    return path
+
+
+@pytest.fixture
+def in_workdir(workdir: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    monkeypatch.chdir(workdir)
+    return workdir
+
+
+def returns_of(path: Path) -> list[float]:
+    with open(path / "eval.csv") as handle:
+        return [float(row["mean_return"]) for row in csv.DictReader(handle)]
+
+
+def random_policy_return(episodes: int = 5) -> float:
+    env = make("ede/Point-v0")
+    rng = np.random.default_rng(0)
+    total = 0.0
+    for e in range(episodes):
+        env.reset(seed=EVAL_SEED_OFFSET + e)
+        done = False
+        while not done:
+            _, reward, terminated, truncated, _ = env.step(rng.uniform(-1, 1, 2).astype(np.float32))
+            total += reward
+            done = terminated or truncated
+    return total / episodes
+
+
+@pytest.mark.parametrize("algo", ["td3", "ede-td3"])
+def test_both_algorithms_clearly_beat_a_random_policy(in_workdir: Path, algo: str) -> None:
+    result = run("train", "--task", "ede/Point-v0", "--algo", algo, "--seed", "0")
+    assert result.exit_code == 0, result.output
+    out = in_workdir / "data/runs/ede/Point-v0" / algo / "seed0"
+    returns = returns_of(out)
+    assert len(returns) == BUDGET // 500 + 1
+    random_return = random_policy_return()
+    # Random wandering scores about -130 here; reaching the goal and staying scores about -15.
+    assert max(returns[-2:]) > 0.5 * random_return, (returns, random_return)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["final_return"] == returns[-1] and metrics["best_return"] == max(returns)
+    assert metrics["algo"] == algo and metrics["seed"] == 0 and metrics["budget"] == BUDGET
+    assert metrics["steps_per_second"] > 0
+    policy = json.loads((out / "policy/policy.json").read_text())
+    assert policy["k"] == (4 if algo == "ede-td3" else 1)
+    assert not (out / "checkpoint").exists()  # removed once the run is complete
+
+
+def test_a_run_killed_midway_resumes_to_the_same_returns(in_workdir: Path) -> None:
+    reference = in_workdir / "reference"
+    result = run("train", "--task", "ede/Point-v0", "--algo", "ede-td3", "--seed", "1",
+                 "--out", str(reference))
+    assert result.exit_code == 0, result.output
+
+    killed = in_workdir / "killed"
+    command = [sys.executable, "-m", "ede_pipeline", "train", "--task", "ede/Point-v0",
+               "--algo", "ede-td3", "--seed", "1", "--out", str(killed)]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not (killed / "checkpoint/state.json").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.7)  # somewhere after the first checkpoint, mid-way between two
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert not (killed / "metrics.json").exists(), "the run finished before it was killed"
+    state = json.loads((killed / "checkpoint/state.json").read_text())
+    assert 0 < state["step"] < BUDGET
+
+    resumed = run("train", "--task", "ede/Point-v0", "--algo", "ede-td3", "--seed", "1",
+                  "--out", str(killed))
+    assert resumed.exit_code == 0, resumed.output
+    assert returns_of(killed) == returns_of(reference)
+    metrics = json.loads((killed / "metrics.json").read_text())
+    assert metrics["resumed_from_step"] == state["step"]
+
+
+def test_a_checkpoint_of_other_params_is_not_resumed(in_workdir: Path, write_params) -> None:
+    out = in_workdir / "other"
+    assert run("train", "--task", "ede/ReacherVertical-v0", "--algo", "td3", "--seed", "0",
+               "--out", str(out), "--keep-checkpoint").exit_code == 0
+    params = in_workdir / "params.yaml"
+    text = params.read_text()
+    params.write_text(text.replace("discount: 0.99", "discount: 0.98"))
+    try:
+        result = run("train", "--task", "ede/ReacherVertical-v0", "--algo", "td3", "--seed", "0",
+                     "--out", str(out))
+    finally:
+        params.write_text(text)
+    assert result.exit_code == 0
+    assert json.loads((out / "metrics.json").read_text())["resumed_from_step"] is None
+
+
+def bad(result: Result, message: str) -> None:
+    assert result.exit_code == 2, result.output
+    assert result.stderr.count("\n") == 1 and message in result.stderr, result.stderr
+    assert "Traceback" not in result.output
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--task", "ede/Nope-v0", "--algo", "td3", "--seed", "0"], "--task 'ede/Nope-v0': not in"),
+        (["--task", "ede/Point-v0", "--algo", "ddpg", "--seed", "0"], "--algo 'ddpg': unknown"),
+        (["--task", "ede/Point-v0", "--algo", "td3", "--seed", "-3"], "--seed -3: expected"),
+        (["--task", "ede/ReacherVertical-v0", "--algo", "ede-td3", "--seed", "0"],
+         "needs the reacher family's embedding"),
+        (["--task", "ede/ReacherVertical-v0", "--algo", "ede-td3", "--seed", "0",
+          "--encoder", "data/point/embedding/encoder", "--decoder", "data/point/embedding/decoder"],
+         "the embedding of family point, but ede/ReacherVertical-v0 is in family reacher"),
+    ],
+)
+def test_bad_train_input_is_one_line_exit_2_and_writes_nothing(
+    in_workdir: Path, args: list[str], message: str
+) -> None:
+    out = in_workdir / "bad-run"
+    bad(run("train", *args, "--out", str(out)), message)
+    assert not out.exists()
