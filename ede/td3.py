@@ -284,8 +284,10 @@ class Agent:
         self.critic = Critic(obs_size, adapter.code_size, adapter.k, config.hidden).to(device)
         self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=config.lr)
-        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=config.lr)
+        # One fused kernel per step instead of a Python loop over tensors: a third of an update's
+        # time on CPU for networks this small.
+        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=config.lr, fused=True)
+        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=config.lr, fused=True)
         self.generator = torch.Generator(device=device).manual_seed(seed)
         self.updates = 0
         self.autocast = config.precision == "bf16"
@@ -338,12 +340,16 @@ class Agent:
         self.updates += 1
         if self.updates % c.policy_delay:
             return {}
+        # The actor follows ∇_c Q_1(s, c, 0) (Equation 2); Q's own weights get no gradient here,
+        # which also spares the backward pass their weight products.
+        self.critic.requires_grad_(False)
         with self._autocast():
-            start = torch.zeros_like(batch.i)  # a new code is chosen: i = 0 (Equation 2)
+            start = torch.zeros_like(batch.i)  # a new code is chosen: i = 0
             actor_loss = -self.critic.first(batch.obs, self.actor(batch.obs), start).float().mean()
         self.actor_optimizer.zero_grad(set_to_none=True)
         actor_loss.backward()
         self.actor_optimizer.step()
+        self.critic.requires_grad_(True)
         polyak(self.critic_target, self.critic, c.tau)
         polyak(self.actor_target, self.actor, c.tau)
         return {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item()}

@@ -278,7 +278,7 @@ class _Run:
             self.obs, self.episode = _reset(self.env, None)
         else:
             self.obs = next_obs
-        if self.buffer.sampleable >= config.batch_size:
+        if self.step >= config.start_steps and self.buffer.sampleable >= config.batch_size:
             self.agent.update(self.buffer.sample(config.batch_size, self.agent.generator))
 
 
