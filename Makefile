@@ -12,7 +12,7 @@ PYTEST_ARGS ?=
 # Stages call `ede-pipeline` and `dvc` by name.
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: install repro test clean-venv
+.PHONY: install repro quick test clean-venv
 
 install: $(STAMP)
 
@@ -25,6 +25,10 @@ $(STAMP): pyproject.toml setup.py
 
 repro: install
 	$(BIN)/dvc repro
+
+# The quick look (params-quick.yaml) as a DVC experiment: params.yaml is left with its values.
+quick: install
+	$(BIN)/ede-pipeline set-params params-quick.yaml | xargs -d '\n' $(BIN)/dvc exp run
 
 test: install
 	$(BIN)/pytest $(PYTEST_ARGS)

@@ -36,9 +36,10 @@ from ede.atomic import write_atomically, write_json, write_text
 from ede.config import EdeTD3Config, TD3Config
 from ede.embedding import ActionEmbedding
 from ede.envs import make
+from ede.stats import area_under_curve
 from ede.td3 import ActionAdapter, Agent, EmbeddingAdapter, IdentityAdapter, ReplayBuffer
 
-__all__ = ["RunSpec", "area_under_curve", "evaluate", "train_run"]
+__all__ = ["RunSpec", "evaluate", "train_run"]
 
 CHECKPOINT_VERSION = 1
 EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes are seeded apart from training ones
@@ -72,13 +73,6 @@ class RunSpec:
 
     def fingerprint(self) -> str:
         return hashlib.sha256(json.dumps(self.identity(), sort_keys=True).encode()).hexdigest()
-
-
-def area_under_curve(steps: np.ndarray, returns: np.ndarray) -> float:
-    """Trapezoidal area under the return curve divided by the steps it spans: a mean return."""
-    if len(steps) < 2:
-        return float(returns[0]) if len(returns) else float("nan")
-    return float(np.trapezoid(returns, steps) / (steps[-1] - steps[0]))
 
 
 def evaluate(

@@ -6,11 +6,16 @@ stderr and exit code 2, before anything is written.
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import click
+import yaml
+from pydantic import ValidationError
 
 from ede.config import Params
-from ede_pipeline import collect, pretrain, train
-from ede_pipeline.common import params_option
+from ede_pipeline import collect, pretrain, report, train
+from ede_pipeline.common import BadInput, params_option
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -26,6 +31,32 @@ def validate(params: Params) -> None:
     families = ", ".join(params.families)
     runs = params.runs.count
     click.echo(f"ok: {len(params.families)} families ({families}), {runs} runs")
+
+
+@main.command("set-params")
+@click.argument("overrides", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@params_option
+def set_params(params: Params, overrides: Path) -> None:
+    """Print ``-S key=value`` arguments for ``dvc exp run`` from a file of overrides.
+
+    The file holds params sections with only the keys to change; the result is checked against the
+    params file first. One argument per line, for ``xargs -d '\\n'``.
+    """
+    changes = yaml.safe_load(overrides.read_text()) or {}
+    merged = params.model_dump(mode="json")
+    for section, values in changes.items():
+        if not isinstance(values, dict) or section not in merged:
+            raise BadInput(f"{overrides}: {section}: expected a section of the params with keys")
+        merged[section] = {**merged[section], **values}
+    try:
+        Params.model_validate(merged)
+    except ValidationError as error:
+        first = error.errors()[0]
+        raise BadInput(f"{overrides}: {'.'.join(map(str, first['loc']))}: {first['msg']}") from None
+    for section, values in changes.items():
+        for key, value in values.items():
+            click.echo("-S")
+            click.echo(f"{section}.{key}={json.dumps(value)}")
 
 
 @main.command()
@@ -47,3 +78,4 @@ main.add_command(collect.collect)
 main.add_command(collect.inspect_rollouts)
 main.add_command(pretrain.pretrain)
 main.add_command(train.train)
+main.add_command(report.report)

@@ -1,0 +1,283 @@
+"""The report's content: learning curves and their statistics, and the paper's two pictures.
+
+Everything here takes loaded data and returns numbers or matplotlib figures; reading files and
+writing HTML is the pipeline's business.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only, never a display
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+
+from ede.embedding import ActionEmbedding  # noqa: E402
+from ede.envs import make  # noqa: E402
+from ede.stats import (  # noqa: E402
+    Interval,
+    align_curves,
+    area_under_curve,
+    bootstrap_mean,
+    steps_to_threshold,
+)
+
+__all__ = [
+    "ALGO_STYLE",
+    "Curve",
+    "TaskRow",
+    "effect_space",
+    "exploration",
+    "learning_curve_figure",
+    "read_curve",
+    "summarise_task",
+]
+
+ALGO_STYLE = {"td3": ("TD3", "tab:blue"), "ede-td3": ("EDE-TD3", "tab:red")}
+
+
+@dataclass(frozen=True)
+class Curve:
+    """One run's evaluation curve."""
+
+    seed: int
+    steps: np.ndarray
+    returns: np.ndarray
+
+
+def read_curve(run_dir: Path, seed: int) -> Curve | None:
+    """The curve of a finished run (``metrics.json`` present), or None if it is missing."""
+    if not (run_dir / "metrics.json").is_file() or not (run_dir / "eval.csv").is_file():
+        return None
+    with open(run_dir / "eval.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    json.loads((run_dir / "metrics.json").read_text())  # complete and readable
+    steps = np.array([float(row["step"]) for row in rows])
+    returns = np.array([float(row["mean_return"]) for row in rows])
+    return Curve(seed, steps, returns)
+
+
+@dataclass
+class TaskRow:
+    """One algorithm on one task: its statistics over seeds."""
+
+    task: str
+    algo: str
+    final: Interval
+    auc: Interval
+    to_threshold: Interval | None
+    seeds: list[int] = field(default_factory=list)
+    missing: list[int] = field(default_factory=list)
+
+
+def summarise_task(
+    task: str,
+    algo: str,
+    curves: list[Curve],
+    missing: list[int],
+    threshold: float | None,
+    confidence: float,
+    samples: int,
+    rng: np.random.Generator,
+) -> TaskRow:
+    """Final return, area under the curve and steps to ``threshold``, with bootstrap intervals."""
+    final = np.array([c.returns[-1] for c in curves])
+    auc = np.array([area_under_curve(c.steps, c.returns) for c in curves])
+    to_threshold = None
+    if threshold is not None:
+        reached = np.array([steps_to_threshold(c.steps, c.returns, threshold) for c in curves])
+        to_threshold = bootstrap_mean(reached, confidence, samples, rng)
+    return TaskRow(
+        task=task,
+        algo=algo,
+        final=bootstrap_mean(final, confidence, samples, rng),
+        auc=bootstrap_mean(auc, confidence, samples, rng),
+        to_threshold=to_threshold,
+        seeds=[c.seed for c in curves],
+        missing=missing,
+    )
+
+
+def curve_band(
+    curves: list[Curve], confidence: float, samples: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Mean over seeds with a bootstrap band at every evaluated step.
+
+    Runs of unequal length count where they have data; ``n`` says how many seeds each point has.
+
+    Returns:
+        steps, mean, low, high, n — each (T,).
+    """
+    steps, table = align_curves([(c.steps, c.returns) for c in curves])
+    mean, low, high, n = (np.full(len(steps), np.nan) for _ in range(4))
+    for t in range(len(steps)):
+        values = table[:, t][~np.isnan(table[:, t])]
+        interval = bootstrap_mean(values, confidence, samples, rng)
+        mean[t], low[t], high[t], n[t] = interval.mean, interval.low, interval.high, interval.n
+    return steps, mean, low, high, n
+
+
+def learning_curve_figure(
+    family: str,
+    tasks: list[str],
+    curves: dict[tuple[str, str], list[Curve]],
+    confidence: float,
+    samples: int,
+    rng: np.random.Generator,
+) -> Figure:
+    """One panel per task of a family: each algorithm's mean return with its bootstrap band."""
+    figure, axes = plt.subplots(1, len(tasks), figsize=(4.2 * len(tasks), 3.4), squeeze=False)
+    for ax, task in zip(axes[0], tasks):
+        for algo, (label, colour) in ALGO_STYLE.items():
+            runs = curves.get((task, algo), [])
+            if not runs:
+                continue
+            steps, mean, low, high, _ = curve_band(runs, confidence, samples, rng)
+            ax.plot(steps, mean, color=colour, label=f"{label} ({len(runs)} seeds)")
+            ax.fill_between(steps, low, high, color=colour, alpha=0.2, linewidth=0)
+        ax.set_title(task)
+        ax.set_xlabel("environment steps")
+        ax.grid(alpha=0.3)
+        if ax.lines:
+            ax.legend(fontsize=8)
+        else:
+            ax.text(0.5, 0.5, "no finished runs", ha="center", va="center", transform=ax.transAxes)
+    axes[0][0].set_ylabel("evaluation return")
+    figure.suptitle(f"{family} family: mean over seeds, {100 * confidence:.0f}% bootstrap band")
+    figure.tight_layout()
+    return figure
+
+
+def _position_colours(xy: np.ndarray) -> np.ndarray:
+    """A 2-D colour map: red grows with x, green with y (each scaled to the data's range)."""
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    unit = (xy - lo) / np.where(hi > lo, hi - lo, 1.0)
+    return np.stack([unit[:, 0], unit[:, 1], 1.0 - 0.5 * (unit[:, 0] + unit[:, 1])], axis=1)
+
+
+@dataclass
+class EffectSpace:
+    effects: np.ndarray  # (N, 2) s[t+k] - s[t]
+    codes: np.ndarray  # (N, 2) whitened E(a)
+    r_squared: float  # of the best affine map effect -> code
+    figure: Figure
+
+
+def effect_space(
+    embedding: ActionEmbedding, rng: np.random.Generator, sequences: int = 2000,
+    env_id: str = "ede/Point-v0",
+) -> EffectSpace:
+    """Figure 6: effects of random k-step sequences beside their codes, same colours.
+
+    Each sequence is stepped from a fresh reset of ``env_id``; its effect is the change of the
+    first two state coordinates (the position). The affine fit z ≈ A·effect + b is reported as
+    its R² over both code dimensions.
+    """
+    env = make(env_id)
+    k = embedding.k
+    low, high = env.action_space.low, env.action_space.high  # type: ignore[attr-defined]
+    actions = rng.uniform(low, high, size=(sequences, k, len(low))).astype(np.float32)
+    effects = np.zeros((sequences, 2))
+    for n in range(sequences):
+        env.reset(seed=int(rng.integers(2**31)))
+        start = env.unwrapped.data.qpos[:2].copy()  # type: ignore[attr-defined]
+        for action in actions[n]:
+            env.step(action)
+        effects[n] = env.unwrapped.data.qpos[:2] - start  # type: ignore[attr-defined]
+    env.close()
+    with torch.no_grad():
+        codes = embedding.encode(torch.as_tensor(actions, device=embedding.device)).cpu().numpy()
+    design = np.hstack([effects, np.ones((sequences, 1))])
+    coefficients, *_ = np.linalg.lstsq(design, codes[:, :2], rcond=None)
+    residual = codes[:, :2] - design @ coefficients
+    r_squared = 1 - residual.var(axis=0).sum() / codes[:, :2].var(axis=0).sum()
+
+    colours = _position_colours(effects)
+    figure, (left, right) = plt.subplots(1, 2, figsize=(8.4, 4))
+    left.scatter(effects[:, 0], effects[:, 1], c=colours, s=6)
+    left.set(title=f"effect s[t+{k}] − s[t]", xlabel="Δx", ylabel="Δy", aspect="equal")
+    right.scatter(codes[:, 0], codes[:, 1], c=colours, s=6)
+    right.set(title=f"EDE space E(a)  (affine fit R² = {r_squared:.3f})", xlabel="z₁",
+              ylabel="z₂", aspect="equal")
+    figure.tight_layout()
+    return EffectSpace(effects, codes, float(r_squared), figure)
+
+
+@dataclass
+class Exploration:
+    raw_positions: list[np.ndarray]  # per episode, (T, 2)
+    ede_positions: list[np.ndarray]
+    raw_coverage: float  # fraction of the arena's grid cells visited
+    ede_coverage: float
+    figure: Figure
+
+
+def _coverage(positions: list[np.ndarray], half_width: float, cells: int) -> float:
+    xy = np.concatenate(positions)
+    index = np.clip(((xy + half_width) / (2 * half_width) * cells).astype(int), 0, cells - 1)
+    return len({(i, j) for i, j in index}) / cells**2
+
+
+def exploration(
+    embedding: ActionEmbedding,
+    rng: np.random.Generator,
+    episodes: int = 10,
+    env_id: str = "ede/PointMass-v0",
+    half_width: float = 1.0,
+    cells: int = 20,
+) -> Exploration:
+    """Figure 7: positions over ``episodes`` episodes of uniform random raw actions, and of
+    uniform random EDE codes (in [−bound, bound]^D) chosen every k steps and decoded.
+
+    Coverage is the fraction of a ``cells`` × ``cells`` grid over the arena
+    ([−half_width, half_width]²) that the positions visit.
+    """
+    env = make(env_id)
+    low, high = env.action_space.low, env.action_space.high  # type: ignore[attr-defined]
+    seeds = rng.integers(2**31, size=episodes)
+
+    def rollout(choose: str) -> list[np.ndarray]:
+        paths = []
+        for seed in seeds:
+            env.reset(seed=int(seed))
+            path, plan, done, i = [], np.zeros(0), False, 0
+            while not done:
+                if choose == "raw":
+                    action = rng.uniform(low, high).astype(np.float32)
+                else:
+                    if i == 0:
+                        z = rng.uniform(-embedding.bound, embedding.bound, size=(1, embedding.dim))
+                        with torch.no_grad():
+                            plan = embedding.decode(
+                                torch.as_tensor(z, dtype=torch.float32, device=embedding.device)
+                            )[0].cpu().numpy()
+                    action = plan[i]
+                    i = (i + 1) % embedding.k
+                _, _, terminated, truncated, _ = env.step(action)
+                path.append(env.unwrapped.data.qpos[:2].copy())  # type: ignore[attr-defined]
+                done = terminated or truncated
+            paths.append(np.array(path))
+        return paths
+
+    raw, ede = rollout("raw"), rollout("ede")
+    env.close()
+    raw_cov, ede_cov = _coverage(raw, half_width, cells), _coverage(ede, half_width, cells)
+    figure, axes = plt.subplots(1, 2, figsize=(8.4, 4.2))
+    for ax, paths, title in ((axes[0], raw, f"uniform random actions ({100 * raw_cov:.1f}% covered)"),
+                             (axes[1], ede, f"uniform random EDE actions ({100 * ede_cov:.1f}% covered)")):
+        for path in paths:
+            ax.plot(path[:, 0], path[:, 1], linewidth=1)
+        ax.set(xlim=(-half_width, half_width), ylim=(-half_width, half_width), aspect="equal",
+               title=title)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    figure.tight_layout()
+    return Exploration(raw, ede, raw_cov, ede_cov, figure)

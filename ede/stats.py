@@ -1,0 +1,77 @@
+"""The statistics of learning curves: area under the curve, steps to a threshold, bootstrap."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Interval", "align_curves", "area_under_curve", "bootstrap_mean", "steps_to_threshold"]
+
+
+def area_under_curve(steps: np.ndarray, returns: np.ndarray) -> float:
+    """Trapezoidal area under a return curve divided by the steps it spans: its mean return.
+
+    A curve of one point has that point's return; an empty one is NaN.
+    """
+    steps, returns = np.asarray(steps, dtype=float), np.asarray(returns, dtype=float)
+    if len(steps) != len(returns):
+        raise ValueError(f"{len(steps)} steps but {len(returns)} returns")
+    if len(steps) == 0:
+        return float("nan")
+    if len(steps) == 1 or steps[-1] == steps[0]:
+        return float(returns[0])
+    return float(np.trapezoid(returns, steps) / (steps[-1] - steps[0]))
+
+
+def steps_to_threshold(steps: np.ndarray, returns: np.ndarray, threshold: float) -> float:
+    """The first evaluated step whose return reaches ``threshold``; ``inf`` if none does."""
+    reached = np.flatnonzero(np.asarray(returns) >= threshold)
+    return float(np.asarray(steps)[reached[0]]) if reached.size else float("inf")
+
+
+@dataclass(frozen=True)
+class Interval:
+    """A mean with its bootstrap confidence interval, over ``n`` seeds."""
+
+    mean: float
+    low: float
+    high: float
+    n: int
+
+    def __str__(self) -> str:
+        if self.n == 0:
+            return "missing"
+        return f"{self.mean:.4g} [{self.low:.4g}, {self.high:.4g}]"
+
+
+def bootstrap_mean(
+    values: np.ndarray, confidence: float, samples: int, rng: np.random.Generator
+) -> Interval:
+    """Percentile bootstrap interval of the mean of ``values`` (one per seed).
+
+    Infinite values (a seed that never reached a threshold) make every resample that draws them
+    infinite, so the interval is honest about them: its high end is ``inf`` as soon as more than
+    ``(1 - confidence) / 2`` of the resamples draw one.
+    """
+    values = np.asarray(values, dtype=float)
+    n = len(values)
+    if n == 0:
+        return Interval(float("nan"), float("nan"), float("nan"), 0)
+    resamples = values[rng.integers(0, n, size=(samples, n))].mean(axis=1)  # (samples,)
+    alpha = (1 - confidence) / 2
+    low, high = np.quantile(resamples, [alpha, 1 - alpha], method="inverted_cdf")
+    return Interval(float(values.mean()), float(low), float(high), n)
+
+
+def align_curves(curves: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Put curves of possibly unequal length on the union of their steps.
+
+    Returns:
+        steps (T,) and returns (N, T) with NaN where a curve has no evaluation at that step.
+    """
+    steps = np.unique(np.concatenate([s for s, _ in curves])) if curves else np.zeros(0)
+    table = np.full((len(curves), len(steps)), np.nan)
+    for row, (s, r) in enumerate(curves):
+        table[row, np.searchsorted(steps, s)] = r
+    return steps, table

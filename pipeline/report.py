@@ -1,0 +1,260 @@
+"""Stage 5, ``ede-pipeline report``: one self-contained HTML page of every result."""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import html
+import io
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+from matplotlib.figure import Figure
+
+from ede.artifacts import ArtifactError, load_action_embedding
+from ede.atomic import write_atomically, write_json
+from ede.config import Params
+from ede.report import (
+    ALGO_STYLE,
+    Curve,
+    TaskRow,
+    curve_band,
+    effect_space,
+    exploration,
+    learning_curve_figure,
+    read_curve,
+    summarise_task,
+)
+from ede_pipeline.common import params_option
+from ede_pipeline.pretrain import embedding_dir
+from ede_pipeline.train import run_dir
+
+STYLE = """
+body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }
+table { border-collapse: collapse; margin: 1em 0; font-size: 0.9em; }
+th, td { border: 1px solid #ccc; padding: 0.3em 0.6em; text-align: right; }
+th:first-child, td:first-child { text-align: left; }
+img { max-width: 100%; }
+.missing { color: #b00; }
+code { font-size: 0.85em; }
+"""
+
+
+def _png(figure: Figure) -> bytes:
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=110)
+    return buffer.getvalue()
+
+
+def _fmt(value: float) -> str:
+    return "never" if math.isinf(value) else f"{value:.4g}"
+
+
+def _interval(interval: Any) -> str:
+    if interval is None:
+        return "no threshold set"
+    if interval.n == 0:
+        return '<span class="missing">missing</span>'
+    return f"{_fmt(interval.mean)} [{_fmt(interval.low)}, {_fmt(interval.high)}]"
+
+
+class Page:
+    """Sections of HTML and the PNG files beside them."""
+
+    def __init__(self) -> None:
+        self.parts: list[str] = []
+        self.images: dict[str, bytes] = {}
+
+    def add(self, text: str) -> None:
+        self.parts.append(text)
+
+    def figure(self, name: str, figure: Figure, alt: str) -> None:
+        data = _png(figure)
+        self.images[name] = data
+        encoded = base64.b64encode(data).decode()
+        self.add(f'<img src="data:image/png;base64,{encoded}" alt="{html.escape(alt)}" id="{name}">')
+
+    def html(self, title: str) -> str:
+        return (f"<!DOCTYPE html>\n<html><head><meta charset='utf-8'><title>{title}</title>"
+                f"<style>{STYLE}</style></head><body>\n" + "\n".join(self.parts) + "\n</body></html>\n")
+
+
+def _table(rows: list[TaskRow]) -> str:
+    head = ("<tr><th>algorithm</th><th>final return</th><th>area under curve</th>"
+            "<th>steps to threshold</th><th>seeds</th></tr>")
+    body = []
+    for row in rows:
+        label = ALGO_STYLE[row.algo][0]
+        missing = (f' <span class="missing">(missing: {", ".join(map(str, row.missing))})</span>'
+                   if row.missing else "")
+        body.append(f"<tr><td>{label}</td><td>{_interval(row.final)}</td><td>{_interval(row.auc)}</td>"
+                    f"<td>{_interval(row.to_threshold)}</td><td>{len(row.seeds)}{missing}</td></tr>")
+    return f"<table>{head}{''.join(body)}</table>"
+
+
+def _embedding(params: Params, family: str) -> tuple[Any, Any] | None:
+    folder = embedding_dir(family)
+    if family not in params.families:
+        return None
+    try:
+        return load_action_embedding(folder / "encoder", folder / "decoder")
+    except ArtifactError:
+        return None
+
+
+def build(params: Params, params_text: str) -> tuple[Page, dict[str, Any], dict[str, str]]:
+    """The page, the DVC metrics and the curve CSVs of the report."""
+    config = params.report
+    rng = np.random.default_rng(config.seed)
+    page = Page()
+    page.add("<h1>Effect-Dependent Embeddings: EDE-TD3 against TD3</h1>")
+    page.add(f"<p>{params.runs.count} runs expected: {len(params.runs.all_tasks)} tasks × "
+             f"{len(params.runs.algos)} algorithms × {len(params.runs.seeds)} seeds. Intervals are "
+             f"{100 * config.confidence:.0f}% percentile bootstrap intervals of the mean over seeds "
+             f"({config.bootstrap_samples} resamples).</p>")
+    metrics: dict[str, Any] = {}
+    curve_files: dict[str, str] = {}
+    missing_runs: list[str] = []
+
+    page.add("<h2>Learning curves</h2>")
+    for family, tasks in params.runs.tasks.items():
+        curves: dict[tuple[str, str], list[Curve]] = {}
+        rows: dict[str, list[TaskRow]] = {}
+        for task in tasks:
+            for algo in params.runs.algos:
+                found, missing = [], []
+                for seed in params.runs.seeds:
+                    curve = read_curve(run_dir(task, algo, seed), seed)
+                    if curve is None:
+                        missing.append(seed)
+                        missing_runs.append(str(run_dir(task, algo, seed)))
+                    else:
+                        found.append(curve)
+                curves[(task, algo)] = found
+                row = summarise_task(task, algo, found, missing, config.thresholds.get(task),
+                                     config.confidence, config.bootstrap_samples, rng)
+                rows.setdefault(task, []).append(row)
+                metrics.setdefault(task, {})[algo] = {
+                    "final_return": None if row.final.n == 0 else row.final.mean,
+                    "auc": None if row.auc.n == 0 else row.auc.mean,
+                    "seeds": row.final.n,
+                }
+            curve_files[task] = _curve_csv(task, params.runs.algos, curves, config, rng)
+        source = params.families[family].source
+        page.add(f"<h3>{family} family (embedding learned on {source})</h3>")
+        page.figure(f"curves-{family}", learning_curve_figure(
+            family, tasks, curves, config.confidence, config.bootstrap_samples, rng),
+            f"learning curves of the {family} family")
+        for task in tasks:
+            threshold = config.thresholds.get(task)
+            note = f" (threshold {threshold:g})" if threshold is not None else ""
+            page.add(f"<h4>{task}{note}</h4>" + _table(rows[task]))
+
+    page.add("<h2>The EDE space against the effect space (Figure 6)</h2>")
+    loaded = _embedding(params, "point")
+    if loaded is None:
+        page.add('<p class="missing">missing: the point family\'s embedding '
+                 "(data/point/embedding).</p>")
+    else:
+        space = effect_space(loaded[1], rng)
+        metrics["effect_space_affine_r2"] = space.r_squared
+        page.add(f"<p>Effects s[t+{loaded[1].k}] − s[t] of {len(space.effects)} random "
+                 f"{loaded[1].k}-step sequences on ede/Point-v0 (left) and their codes E(a) "
+                 f"(right), coloured by effect. Best affine map effect → code: "
+                 f"<b>R² = {space.r_squared:.4f}</b>.</p>")
+        page.figure("effect-space", space.figure, "effect space beside EDE space")
+
+    page.add("<h2>Exploration (Figure 7)</h2>")
+    loaded = _embedding(params, "pointmass")
+    if loaded is None:
+        page.add('<p class="missing">missing: the pointmass family\'s embedding '
+                 "(data/pointmass/embedding).</p>")
+    else:
+        explored = exploration(loaded[1], rng)
+        metrics["coverage"] = {"raw": explored.raw_coverage, "ede": explored.ede_coverage}
+        page.add(f"<p>Positions over ten episodes on ede/PointMass-v0: uniform random actions "
+                 f"every step cover <b>{100 * explored.raw_coverage:.1f}%</b> of the arena (a 20×20 "
+                 f"grid); uniform random EDE actions chosen every {loaded[1].k} steps cover "
+                 f"<b>{100 * explored.ede_coverage:.1f}%</b>.</p>")
+        page.figure("exploration", explored.figure, "exploration with raw and EDE actions")
+
+    page.add("<h2>Missing runs</h2>")
+    if missing_runs:
+        page.add(f'<p class="missing">{len(missing_runs)} of {params.runs.count} runs have no '
+                 "results:</p><ul>" + "".join(f"<li><code>{html.escape(r)}</code></li>"
+                                              for r in missing_runs) + "</ul>")
+    else:
+        page.add("<p>None: every run the params name is here.</p>")
+    metrics["missing_runs"] = len(missing_runs)
+
+    page.add("<h2>Provenance</h2>" + _provenance(params, params_text))
+    return page, metrics, curve_files
+
+
+def _curve_csv(task: str, algos: list[str], curves: dict, config: Any, rng: np.random.Generator) -> str:
+    """Mean curve per algorithm on the union of steps, for ``dvc plots``."""
+    series = {algo: curve_band(curves[(task, algo)], config.confidence, config.bootstrap_samples, rng)
+              for algo in algos if curves[(task, algo)]}
+    steps = sorted({float(s) for band in series.values() for s in band[0]})
+    lines = [",".join(["step", *series])]
+    for step in steps:
+        cells = []
+        for band in series.values():
+            where = np.flatnonzero(band[0] == step)
+            cells.append(f"{band[1][where[0]]:.6g}" if where.size else "")
+        lines.append(",".join([f"{step:g}", *cells]))
+    return "\n".join(lines) + "\n"
+
+
+def _provenance(params: Params, params_text: str) -> str:
+    rows = [f"<tr><td>params.yaml</td><td><code>{hashlib.sha256(params_text.encode()).hexdigest()}"
+            "</code></td></tr>"]
+    for family in params.families:
+        folder = embedding_dir(family)
+        for name in ("encoder", "decoder"):
+            meta = folder / name / "meta.json"
+            if meta.is_file():
+                data = json.loads(meta.read_text())
+                if name == "encoder":
+                    rows.append(f"<tr><td>{family} rollouts</td><td><code>{data['data_fingerprint']}"
+                                "</code></td></tr>")
+                rows.append(f"<tr><td>{family} {name} weights</td><td><code>"
+                            f"{data['weights_sha256']}</code></td></tr>")
+    params_html = html.escape(json.dumps(params.model_dump(mode="json"), indent=1))
+    return ("<table><tr><th>input</th><th>SHA-256</th></tr>" + "".join(rows) + "</table>"
+            f"<details><summary>the params</summary><pre>{params_html}</pre></details>")
+
+
+@click.command()
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("data/report"),
+              show_default=True, help="Report directory: index.html and its PNG figures.")
+@click.option("--metrics", type=click.Path(dir_okay=False, path_type=Path),
+              default=Path("data/report-metrics.json"), show_default=True,
+              help="Summary metrics (DVC metrics): mean final return and AUC per task and algorithm.")
+@click.option("--curves", type=click.Path(file_okay=False, path_type=Path),
+              default=Path("data/report-curves"), show_default=True,
+              help="Mean learning curve per task, one CSV each (DVC plots).")
+@params_option
+def report(params: Params, out: Path, metrics: Path, curves: Path) -> None:
+    """Stage 5: learning curves, tables, the EDE pictures and provenance in one HTML page."""
+    params_path = Path(click.get_current_context().params.get("params_path") or "params.yaml")
+    params_text = params_path.read_text() if params_path.is_file() else ""
+    page, summary, curve_files = build(params, params_text)
+
+    def write_page(tmp: Path) -> None:
+        (tmp / "index.html").write_text(page.html("EDE report"))
+        for name, data in page.images.items():
+            (tmp / f"{name}.png").write_bytes(data)
+
+    def write_curves(tmp: Path) -> None:
+        for task, text in curve_files.items():
+            (tmp / f"{task.replace('/', '_')}.csv").write_text(text)
+
+    write_atomically(curves, write_curves)
+    write_json(metrics, summary)
+    write_atomically(out, write_page)
+    click.echo(f"{out / 'index.html'}: {summary['missing_runs']} of {params.runs.count} runs missing")

@@ -1,0 +1,71 @@
+"""Report maths against hand-computed cases."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ede.stats import align_curves, area_under_curve, bootstrap_mean, steps_to_threshold
+
+
+def test_area_under_curve_is_the_trapezoidal_mean_return() -> None:
+    # Trapezoids: (0 + 10) / 2 * 100 + (10 + 10) / 2 * 100 = 1500 over 200 steps.
+    assert area_under_curve(np.array([0, 100, 200]), np.array([0.0, 10.0, 10.0])) == 7.5
+    # Uneven spacing: (2 + 4) / 2 * 1 + (4 + 0) / 2 * 3 = 9 over 4 steps.
+    assert area_under_curve(np.array([0, 1, 4]), np.array([2.0, 4.0, 0.0])) == 2.25
+    assert area_under_curve(np.array([50]), np.array([-3.0])) == -3.0
+    assert math.isnan(area_under_curve(np.array([]), np.array([])))
+    with pytest.raises(ValueError):
+        area_under_curve(np.array([0, 1]), np.array([1.0]))
+
+
+def test_steps_to_threshold_is_the_first_step_reaching_it() -> None:
+    steps = np.array([0, 500, 1000, 1500])
+    assert steps_to_threshold(steps, np.array([-9.0, -5.0, -2.0, -3.0]), -5.0) == 500
+    assert steps_to_threshold(steps, np.array([-9.0, -5.0, -2.0, -3.0]), -2.5) == 1000
+    assert steps_to_threshold(steps, np.array([-9.0, -8.0, -7.0, -6.0]), 0.0) == math.inf
+
+
+def test_bootstrap_interval_of_identical_values_is_a_point() -> None:
+    interval = bootstrap_mean(np.array([2.0, 2.0, 2.0]), 0.95, 500, np.random.default_rng(0))
+    assert (interval.mean, interval.low, interval.high, interval.n) == (2.0, 2.0, 2.0, 3)
+
+
+def test_bootstrap_interval_of_two_values_by_hand() -> None:
+    # Resampling [0, 10] twice: means 0 (p = 1/4), 5 (p = 1/2), 10 (p = 1/4).
+    # The 2.5% and 97.5% quantiles of that distribution are 0 and 10; at 40% confidence
+    # (30% and 70% quantiles) both ends are 5.
+    rng = np.random.default_rng(1)
+    wide = bootstrap_mean(np.array([0.0, 10.0]), 0.95, 20_000, rng)
+    assert (wide.mean, wide.low, wide.high) == (5.0, 0.0, 10.0)
+    narrow = bootstrap_mean(np.array([0.0, 10.0]), 0.40, 20_000, rng)
+    assert (narrow.low, narrow.high) == (5.0, 5.0)
+
+
+def test_bootstrap_interval_covers_the_mean_and_shrinks_with_more_seeds() -> None:
+    rng = np.random.default_rng(2)
+    few = bootstrap_mean(rng.normal(0, 1, 4), 0.95, 4000, rng)
+    many = bootstrap_mean(rng.normal(0, 1, 400), 0.95, 4000, rng)
+    assert few.low <= few.mean <= few.high and many.low <= many.mean <= many.high
+    assert (many.high - many.low) < (few.high - few.low)
+    assert -0.3 < many.mean < 0.3
+
+
+def test_a_seed_that_never_reaches_the_threshold_shows_in_the_interval() -> None:
+    steps = np.array([0, 100, 200])
+    reached = [steps_to_threshold(steps, np.array(r), 1.0) for r in
+               ([0.0, 1.0, 2.0], [0.0, 0.5, 1.5], [0.0, 0.0, 0.0])]
+    assert reached == [100.0, 200.0, math.inf]
+    interval = bootstrap_mean(np.array(reached), 0.95, 2000, np.random.default_rng(3))
+    assert interval.mean == math.inf and interval.high == math.inf
+    assert interval.low == 100.0  # the resample of the fastest seed three times
+    assert str(bootstrap_mean(np.array([]), 0.95, 10, np.random.default_rng(0))) == "missing"
+
+
+def test_curves_of_unequal_length_align_on_the_union_of_steps() -> None:
+    steps, table = align_curves([(np.array([0, 10, 20]), np.array([1.0, 2.0, 3.0])),
+                                 (np.array([0, 10]), np.array([4.0, 5.0]))])
+    np.testing.assert_array_equal(steps, [0, 10, 20])
+    np.testing.assert_array_equal(table, [[1.0, 2.0, 3.0], [4.0, 5.0, np.nan]])
