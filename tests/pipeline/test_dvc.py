@@ -52,3 +52,42 @@ def test_dvc_collect_stage_writes_the_store_and_is_then_up_to_date(repo_copy: Pa
     assert "didn't change, skipping" in again.stdout or "up to date" in again.stdout, again.stdout
     lock = yaml.safe_load((repo_copy / "dvc.lock").read_text())
     assert lock["stages"]["collect@point"]["params"]["params.yaml"]["collect"]["steps"] == 200
+
+
+def tiny_pipeline(params: dict) -> None:
+    """Every stage at the smallest size that still exercises it."""
+    params["collect"].update(steps=200, num_envs=1)
+    small = {"hidden": [16, 16], "epochs": 1, "batch_size": 64}
+    params["embedding"].update(small, holdout=0.5)
+    params["decoder"].update(small)
+    params["td3"].update(hidden=[16, 16], batch_size=32, start_steps=50, eval_every=100,
+                         eval_episodes=1, checkpoint_every=1000, buffer_size=1000)
+    params["runs"].update(seeds=[0], budgets={task: 200 for task in params["runs"]["budgets"]})
+    params["report"].update(bootstrap_samples=100)
+
+
+@pytest.mark.slow
+def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
+    repo_copy: Path,
+) -> None:
+    params_file = repo_copy / "params.yaml"
+    params = yaml.safe_load(params_file.read_text())
+    tiny_pipeline(params)
+    params_file.write_text(yaml.safe_dump(params, sort_keys=False))
+
+    first = dvc(repo_copy, "repro")
+    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
+    page = (repo_copy / "data/report/index.html").read_text()
+    for section in ("Learning curves", "Figure 6", "Figure 7", "Missing runs", "Provenance"):
+        assert section in page
+    assert "None: every run the params name is here." in page
+    assert page.count("data:image/png;base64,") == 4
+
+    params["td3"]["tau"] = 0.01
+    params_file.write_text(yaml.safe_dump(params, sort_keys=False))
+    second = dvc(repo_copy, "repro")
+    assert second.returncode == 0, second.stdout[-3000:] + second.stderr[-3000:]
+    ran = {line.split("'")[1] for line in second.stdout.splitlines() if line.startswith("Running stage")}
+    runs = sum(len(tasks) for tasks in params["runs"]["tasks"].values()) * 2
+    assert len(ran) == runs + 1 and "report" in ran, sorted(ran)
+    assert all(stage.startswith("train_") for stage in ran - {"report"}), sorted(ran)

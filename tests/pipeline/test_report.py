@@ -1,0 +1,136 @@
+"""``ede-pipeline report``: every section, with one seed, missing runs and unequal lengths."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner, Result
+
+from ede.artifacts import save_decoder, save_encoder
+from ede.config import DecoderConfig, EmbeddingConfig
+from ede.embedding import train_decoder, train_encoder
+from ede.rollouts import Rollouts, collect, write_store
+from ede_pipeline.cli import main
+
+TASKS = {"reacher": ["ede/ReacherVertical-v0"], "sevendof": ["Pusher-v5"]}
+
+
+def fake_run(root: Path, task: str, algo: str, seed: int, returns: list[float]) -> None:
+    """A finished run as ``train`` leaves it: eval.csv and metrics.json."""
+    out = root / "data/runs" / task / algo / f"seed{seed}"
+    out.mkdir(parents=True)
+    lines = ["step,episode,mean_return,std_return,wall_seconds"]
+    lines += [f"{1000 * i},{10 * i},{r},1.0,{i}" for i, r in enumerate(returns)]
+    (out / "eval.csv").write_text("\n".join(lines) + "\n")
+    (out / "metrics.json").write_text(json.dumps({"final_return": returns[-1]}))
+
+
+def embedding(root: Path, family: str, env_id: str) -> None:
+    """A small trained embedding of a family, where the pipeline would put it."""
+    torch.set_num_threads(1)
+    store = root / "scratch" / f"{family}.zarr"
+    write_store(store, collect(env_id, 2_000, 1, 0, workers=1),
+                {"env_id": env_id, "family": family, "seed": 0, "num_envs": 1, "steps": 2000,
+                 "spaces": {}, "params": {}})
+    rollouts = Rollouts.open(store)
+    small = {"hidden": [32, 32], "epochs": 3, "lr": 1e-3}
+    encoded = train_encoder(rollouts, EmbeddingConfig(**small))
+    low, high = -np.ones(2), np.ones(2)
+    decoded = train_decoder(rollouts, encoded, DecoderConfig(**small), 4, low, high)
+    folder = root / "data" / family / "embedding"
+    save_encoder(folder / "encoder", encoded, family=family, env_id=env_id, low=low, high=high,
+                 params={}, data_fingerprint=rollouts.attrs["fingerprint"])
+    save_decoder(folder / "decoder", decoded.decoder, decoded.bound,
+                 encoder_path=folder / "encoder", params={})
+
+
+@pytest.fixture(scope="module")
+def embeddings(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("embeddings")
+    embedding(root, "point", "ede/Point-v0")
+    embedding(root, "pointmass", "ede/PointMass-v0")
+    return root
+
+
+@pytest.fixture
+def project(tmp_path: Path, write_params, monkeypatch: pytest.MonkeyPatch) -> Path:
+    def edit(params: dict) -> None:
+        params["runs"].update(tasks=TASKS, seeds=[0, 1, 2], budgets={"ede/ReacherVertical-v0": 2000,
+                                                                     "Pusher-v5": 2000})
+        params["report"].update(thresholds={"ede/ReacherVertical-v0": -5.0}, bootstrap_samples=200)
+
+    write_params(edit)
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+def report(root: Path) -> tuple[Result, str]:
+    result = CliRunner().invoke(main, ["report"])
+    assert result.exit_code == 0, result.output
+    return result, (root / "data/report/index.html").read_text()
+
+
+def test_every_section_with_runs_missing_and_of_unequal_length(project: Path, embeddings: Path) -> None:
+    shutil.copytree(embeddings / "data", project / "data")
+    fake_run(project, "ede/ReacherVertical-v0", "td3", 0, [-20, -12, -8])
+    fake_run(project, "ede/ReacherVertical-v0", "td3", 1, [-21, -10])  # stopped early
+    fake_run(project, "ede/ReacherVertical-v0", "ede-td3", 0, [-20, -6, -4])
+    fake_run(project, "ede/ReacherVertical-v0", "ede-td3", 1, [-19, -5, -3])
+    fake_run(project, "ede/ReacherVertical-v0", "ede-td3", 2, [-18, -7, -2])
+    _, page = report(project)
+    for section in ("Learning curves", "reacher family", "sevendof family", "Figure 6", "R² =",
+                    "Figure 7", "of the arena", "Missing runs", "Provenance", "threshold -5"):
+        assert section in page, section
+    for image in ("curves-reacher", "curves-sevendof", "effect-space", "exploration"):
+        assert f'id="{image}"' in page and (project / f"data/report/{image}.png").is_file()
+    assert page.count("data:image/png;base64,") == 4  # self-contained
+    # 12 runs expected (2 tasks x 2 algos x 3 seeds); 5 exist.
+    assert "7 of 12 runs have no results" in page
+    assert "data/runs/Pusher-v5/td3/seed0" in page and "data/runs/ede/ReacherVertical-v0/td3/seed2" in page
+    metrics = json.loads((project / "data/report-metrics.json").read_text())
+    assert metrics["missing_runs"] == 7
+    assert metrics["ede/ReacherVertical-v0"]["td3"] == {"final_return": -9.0, "auc": pytest.approx(
+        np.mean([(-20 + -12) / 2 * 0.5 + (-12 + -8) / 2 * 0.5, (-21 + -10) / 2])), "seeds": 2}
+    assert metrics["ede/ReacherVertical-v0"]["ede-td3"]["final_return"] == -3.0
+    assert metrics["Pusher-v5"]["td3"]["seeds"] == 0
+    curve = (project / "data/report-curves/ede_ReacherVertical-v0.csv").read_text().splitlines()
+    assert curve[0] == "step,td3,ede-td3" and curve[1] == "0,-20.5,-19"
+    assert curve[3] == "2000,-8,-3"  # the short run no longer counts at step 2000
+
+
+def test_one_seed_and_no_embeddings_still_render(project: Path) -> None:
+    fake_run(project, "Pusher-v5", "ede-td3", 0, [-50, -40])
+    _, page = report(project)
+    assert "missing: the point family's embedding" in page
+    assert "missing: the pointmass family's embedding" in page
+    assert "EDE-TD3 (1 seeds)" not in page  # the legend is in the picture, not the text
+    metrics = json.loads((project / "data/report-metrics.json").read_text())
+    assert metrics["Pusher-v5"]["ede-td3"] == {"final_return": -40.0, "auc": -45.0, "seeds": 1}
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="Debian's chromium is not installed")
+def test_the_page_opens_in_headless_chromium_with_its_figures(project: Path, embeddings: Path) -> None:
+    shutil.copytree(embeddings / "data", project / "data")
+    fake_run(project, "ede/ReacherVertical-v0", "td3", 0, [-20, -12, -8])
+    report(project)
+    page = project / "data/report/index.html"
+    shot = project / "shot.png"
+    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+             "--disable-background-networking", "--disable-component-update", "--disable-sync",
+             f"--user-data-dir={project / 'chrome-profile'}"]
+    result = subprocess.run(
+        ["chromium", *flags, f"--screenshot={shot}", "--window-size=1200,2400", page.as_uri()],
+        capture_output=True, text=True, timeout=120, env={**os.environ, "HOME": str(project)},
+    )
+    assert result.returncode == 0, result.stderr
+    assert shot.is_file() and shot.stat().st_size > 20_000
+    dom = subprocess.run(["chromium", *flags, "--dump-dom", page.as_uri()], capture_output=True,
+                         text=True, timeout=120, env={**os.environ, "HOME": str(project)})
+    assert dom.returncode == 0 and dom.stdout.count("<img") == 4
