@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import click
 import yaml
@@ -56,7 +57,15 @@ def set_params(params: Params, overrides: Path) -> None:
     for section, values in changes.items():
         for key, value in values.items():
             click.echo("-S")
-            click.echo(f"{section}.{key}={json.dumps(value)}")
+            click.echo(f"{section}.{key}={_hydra(value)}")
+
+
+def _hydra(value: Any) -> str:
+    """A value in the override grammar of DVC's ``-S`` (Hydra's): mappings with unquoted keys,
+    since task ids such as ``ede/ReacherTurn-v0`` are valid there and quoted keys are not."""
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k}: {_hydra(v)}" for k, v in value.items()) + "}"
+    return json.dumps(value)
 
 
 @main.command()
