@@ -48,3 +48,35 @@ def test_envs_lists_every_task_with_its_family_and_shapes() -> None:
     assert rows["ede/Striker-v0"][4] == rows["Pusher-v5"][4]
     assert rows["ede/ReacherTurn-v0"][4] == "Box[-1,1]^2"
     assert all(row[-1] == "100" for row in rows.values())
+
+
+def test_set_params_turns_an_override_file_into_dvc_set_param_arguments(tmp_path) -> None:
+    overrides = tmp_path / "quick.yaml"
+    overrides.write_text("td3:\n  start_steps: 5\nruns:\n  seeds: [0, 1]\n"
+                         "  budgets: {ede/ReacherVertical-v0: 10, ede/ReacherTurn-v0: 10,\n"
+                         "            ede/ReacherPush-v0: 10, Pusher-v5: 10, ede/Striker-v0: 10}\n")
+    result = CliRunner().invoke(main, ["set-params", str(overrides), "--params",
+                                       str(REPO / "params.yaml")])
+    assert result.exit_code == 0, result.output
+    lines = result.stdout.splitlines()
+    assert lines[0::2] == ["-S"] * 3
+    assert lines[1::2] == [
+        "td3.start_steps=5",
+        "runs.seeds=[0, 1]",
+        "runs.budgets={ede/ReacherVertical-v0: 10, ede/ReacherTurn-v0: 10, "
+        "ede/ReacherPush-v0: 10, Pusher-v5: 10, ede/Striker-v0: 10}",
+    ]
+
+
+def test_set_params_refuses_overrides_that_make_bad_params(tmp_path) -> None:
+    overrides = tmp_path / "quick.yaml"
+    overrides.write_text("td3:\n  batch_size: 0\n")
+    result = CliRunner().invoke(main, ["set-params", str(overrides), "--params",
+                                       str(REPO / "params.yaml")])
+    assert result.exit_code == 2 and "td3.batch_size" in result.stderr
+
+
+def test_the_quick_configuration_is_valid() -> None:
+    result = CliRunner().invoke(main, ["set-params", str(REPO / "params-quick.yaml"), "--params",
+                                       str(REPO / "params.yaml")])
+    assert result.exit_code == 0, result.output
