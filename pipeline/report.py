@@ -96,13 +96,16 @@ def _table(rows: list[TaskRow]) -> str:
     return f"<table>{head}{''.join(body)}</table>"
 
 
-def _embedding(params: Params, family: str) -> tuple[Any, Any] | None:
+def _embedding(params: Params, family: str, page: Page) -> tuple[Any, Any] | None:
+    """A family's embedding, or None with the reason on the page."""
     folder = embedding_dir(family)
-    if family not in params.families:
-        return None
     try:
+        if family not in params.families:
+            raise ArtifactError(f"no family {family!r} in the params")
         return load_action_embedding(folder / "encoder", folder / "decoder")
-    except ArtifactError:
+    except ArtifactError as error:
+        page.add(f'<p class="missing">missing: the {family} family\'s embedding '
+                 f"({html.escape(str(error))}).</p>")
         return None
 
 
@@ -155,11 +158,8 @@ def build(params: Params, params_text: str) -> tuple[Page, dict[str, Any], dict[
             page.add(f"<h4>{task}{note}</h4>" + _table(rows[task]))
 
     page.add("<h2>The EDE space against the effect space (Figure 6)</h2>")
-    loaded = _embedding(params, "point")
-    if loaded is None:
-        page.add('<p class="missing">missing: the point family\'s embedding '
-                 "(data/point/embedding).</p>")
-    else:
+    loaded = _embedding(params, "point", page)
+    if loaded is not None:
         space = effect_space(loaded[1], rng)
         metrics["effect_space_affine_r2"] = space.r_squared
         page.add(f"<p>Effects s[t+{loaded[1].k}] − s[t] of {len(space.effects)} random "
@@ -169,11 +169,8 @@ def build(params: Params, params_text: str) -> tuple[Page, dict[str, Any], dict[
         page.figure("effect-space", space.figure, "effect space beside EDE space")
 
     page.add("<h2>Exploration (Figure 7)</h2>")
-    loaded = _embedding(params, "pointmass")
-    if loaded is None:
-        page.add('<p class="missing">missing: the pointmass family\'s embedding '
-                 "(data/pointmass/embedding).</p>")
-    else:
+    loaded = _embedding(params, "pointmass", page)
+    if loaded is not None:
         explored = exploration(loaded[1], rng)
         metrics["coverage"] = {"raw": explored.raw_coverage, "ede": explored.ede_coverage}
         page.add(f"<p>Positions over ten episodes on ede/PointMass-v0: uniform random actions "
