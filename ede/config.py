@@ -47,6 +47,11 @@ TaskId = Annotated[str, AfterValidator(_registered)]
 Device = Annotated[
     Literal["cpu", "cuda", "auto"], Field(description="where torch runs; auto: CUDA if present")
 ]
+Threads = Annotated[
+    int,
+    Field(gt=0, description="torch threads on CPU: 1 is fastest for networks this small and "
+          "lets stages and runs share the cores (more threads than cores slows everything)"),
+]
 HiddenSizes = Annotated[
     list[PositiveInt], Field(min_length=1, description="hidden layer widths of an MLP")
 ]
@@ -90,6 +95,7 @@ class EmbeddingConfig(_Section):
     holdout: float = Field(0.1, gt=0, lt=1, description="fraction of episodes never trained on")
     seed: Seed = 0
     device: Device = "cpu"
+    threads: Threads = 1
 
 
 class DecoderConfig(_Section):
@@ -107,6 +113,7 @@ class DecoderConfig(_Section):
     epochs: PositiveInt = Field(14, description="as many batches as the training windows fill")
     seed: Seed = 0
     device: Device = "cpu"
+    threads: Threads = 1
 
 
 class TD3Config(_Section):
@@ -130,8 +137,7 @@ class TD3Config(_Section):
         "fp32", description="matmul precision of updates (bf16 autocast keeps fp32 weights)"
     )
     device: Device = "cpu"
-    threads: PositiveInt = Field(1, description="torch threads of a run on CPU (1 is fastest for "
-                                 "these small networks, and lets runs share cores)")
+    threads: Threads = 1
 
 
 class EdeTD3Config(_Section):

@@ -9,6 +9,7 @@ from typing import Any
 
 import click
 import numpy as np
+import torch
 
 from ede.artifacts import ArtifactError, load_encoder, save_decoder, save_encoder
 from ede.atomic import write_json, write_text
@@ -83,6 +84,7 @@ def encoder(
     check_family(params, family)
     config = params.embedding
     device = _device(config.device)
+    torch.set_num_threads(config.threads)
     data = open_rollouts(params, family, rollouts)
     if len(data.window_starts(config.k)) == 0:
         raise BadInput(f"{data.path}: no episode is longer than k={config.k} steps")
@@ -124,6 +126,7 @@ def decoder(
     check_family(params, family)
     config = params.decoder
     device = _device(config.device)
+    torch.set_num_threads(config.threads)
     data = open_rollouts(params, family, rollouts)
     folder = embedding_dir(family)
     encoder_path = encoder_path or folder / "encoder"
