@@ -13,6 +13,7 @@ from typing import Any
 
 import click
 import numpy as np
+import torch
 from matplotlib.figure import Figure
 
 from ede.artifacts import ArtifactError, load_action_embedding
@@ -238,6 +239,7 @@ def _provenance(params: Params, params_text: str) -> str:
 @params_option
 def report(params: Params, out: Path, metrics: Path, curves: Path) -> None:
     """Stage 5: learning curves, tables, the EDE pictures and provenance in one HTML page."""
+    torch.set_num_threads(params.embedding.threads)  # it only encodes and decodes small batches
     params_path = Path(click.get_current_context().params.get("params_path") or "params.yaml")
     params_text = params_path.read_text() if params_path.is_file() else ""
     page, summary, curve_files = build(params, params_text)
