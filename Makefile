@@ -12,7 +12,7 @@ PYTEST_ARGS ?=
 # Stages call `ede-pipeline` and `dvc` by name.
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: install repro quick test clean-venv
+.PHONY: install repro quick test container-test clean-venv
 
 install: $(STAMP)
 
@@ -32,6 +32,11 @@ quick: install
 
 test: install
 	$(BIN)/pytest $(PYTEST_ARGS)
+
+# The image, built with podman and run for real (README.md, "Batch jobs"); needs root, installs
+# podman, runc and debootstrap with apt when missing.
+container-test: install
+	scripts/container-test.sh
 
 clean-venv:
 	rm -rf $(VENV)
