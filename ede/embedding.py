@@ -325,6 +325,7 @@ def train_decoder(
     for p in encoder.parameters():
         p.requires_grad_(False)
     embedding_whitening = encoded.code_whitening
+    torch.manual_seed(config.seed)  # initial weights
     decoder = ActionDecoder(encoder.dim, k, low, high, config.hidden).to(device)
     code_mean = torch.as_tensor(embedding_whitening.mean, dtype=torch.float32, device=device)
     code_std = torch.as_tensor(embedding_whitening.std, dtype=torch.float32, device=device)
@@ -340,7 +341,6 @@ def train_decoder(
     held_z = whitened_codes(rollouts.window_starts(k, encoded.holdout_episodes))
     bound = train_z.abs().max().item()
 
-    torch.manual_seed(config.seed)
     generator = torch.Generator().manual_seed(config.seed)
     prior_generator = torch.Generator(device=device).manual_seed(config.seed + 1)
     optimizer = torch.optim.Adam(decoder.parameters(), lr=config.lr)

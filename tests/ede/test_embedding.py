@@ -78,6 +78,20 @@ def test_the_decoder_output_re_encodes_to_its_input(point: Rollouts, trained: En
     torch.testing.assert_close(embedding.encode(actions), z, atol=0.15, rtol=0)
 
 
+def test_training_is_determined_by_the_seed(point: Rollouts, trained: EncoderResult) -> None:
+    def weights(seed: int, noise: int) -> list[torch.Tensor]:
+        torch.manual_seed(noise)  # whatever the global generator holds must not matter
+        encoded = train_encoder(point, EmbeddingConfig(epochs=1, seed=seed, **SMALL))
+        torch.manual_seed(noise + 1)
+        decoded = train_decoder(point, encoded, DecoderConfig(epochs=1, seed=seed, **SMALL), 4,
+                                LOW, HIGH)
+        return [*encoded.encoder.state_dict().values(), *decoded.decoder.state_dict().values()]
+
+    first, again, other = weights(0, noise=1), weights(0, noise=2), weights(1, noise=1)
+    assert all(torch.equal(a, b) for a, b in zip(first, again))
+    assert not all(torch.equal(a, b) for a, b in zip(first, other))
+
+
 @pytest.mark.parametrize("beta", [0.0, 1e3])
 def test_beta_zero_keeps_information_and_a_huge_beta_collapses_to_the_prior(
     point: Rollouts, beta: float
