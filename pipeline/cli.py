@@ -15,7 +15,7 @@ import yaml
 from pydantic import ValidationError
 
 from ede.config import Params
-from ede_pipeline import collect, pretrain, report, train
+from ede_pipeline import collect, pretrain, report, sweep, train
 from ede_pipeline.common import BadInput, params_option
 
 
@@ -88,3 +88,4 @@ main.add_command(collect.inspect_rollouts)
 main.add_command(pretrain.pretrain)
 main.add_command(train.train)
 main.add_command(report.report)
+main.add_command(sweep.sweep)

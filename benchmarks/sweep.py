@@ -1,0 +1,97 @@
+"""Sweep wall time: four short train runs through ``dvc repro`` against ``ede-pipeline sweep --jobs 2``.
+
+    python benchmarks/sweep.py [--steps 3000] [--jobs 2]
+
+Two scratch copies of this repo (its tracked files, in a fresh git repository under a temporary
+folder) with small params: one reacher task, TD3 and EDE-TD3, two seeds — four runs of ``--steps``
+environment steps each. The embedding (collect, pretrain) is made once, untimed, and copied to
+both. Then, timed: ``dvc repro train_reacher`` in one copy (one run at a time) and
+``ede-pipeline sweep train_reacher --jobs N`` in the other. Both include their own start-up and
+DVC's hashing and caching. Prints both wall times and the ratio; goal: >= 1.8x with 2 jobs on 2
+cores. Also checks that the two copies agree on every run's returns.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+TASK = "ede/ReacherVertical-v0"
+
+
+def scratch_copy(dest: Path, steps: int) -> None:
+    files = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard"],
+                           cwd=REPO, capture_output=True, text=True, check=True).stdout.split()
+    for name in files:
+        if (REPO / name).is_file():
+            (dest / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(REPO / name, dest / name)
+    params = yaml.safe_load((dest / "params.yaml").read_text())
+    params["collect"].update(steps=2_000, num_envs=1)
+    small = {"hidden": [64, 64], "epochs": 1, "batch_size": 64}
+    params["embedding"].update(small)
+    params["decoder"].update(small)
+    params["td3"].update(hidden=[64, 64], start_steps=500, eval_every=steps // 4, eval_episodes=2,
+                         checkpoint_every=10 * steps)
+    params["runs"].update(tasks={**params["runs"]["tasks"], "reacher": [TASK]}, seeds=[0, 1],
+                          budgets={task: steps for task in params["runs"]["budgets"]})
+    (dest / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    for command in (["git", "init", "-q"], ["git", "add", "-A"]):
+        subprocess.run(command, cwd=dest, check=True)
+
+
+def timed(copy: Path, *argv: str) -> float:
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}"}
+    start = time.perf_counter()
+    result = subprocess.run(argv, cwd=copy, env=env, capture_output=True, text=True)
+    seconds = time.perf_counter() - start
+    if result.returncode != 0:
+        sys.exit(f"{' '.join(argv)} failed:\n{result.stdout[-3000:]}{result.stderr[-3000:]}")
+    return seconds
+
+
+def returns(copy: Path) -> dict[str, list[str]]:
+    found = {}
+    for path in sorted((copy / "data/runs").rglob("eval.csv")):
+        with path.open() as file:
+            found[str(path.relative_to(copy))] = [row["mean_return"] for row in csv.DictReader(file)]
+    return found
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=3_000, help="environment steps per run")
+    parser.add_argument("--jobs", type=int, default=2)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory(prefix="ede-sweep-bench-") as tmp:
+        base = Path(tmp) / "base"
+        scratch_copy(base, args.steps)
+        timed(base, str(BIN / "dvc"), "repro", "pretrain_decoder@reacher")
+        repro, swept = Path(tmp) / "repro", Path(tmp) / "sweep"
+        shutil.copytree(base, repro, symlinks=True)
+        shutil.copytree(base, swept, symlinks=True)
+        sequential = timed(repro, str(BIN / "dvc"), "repro", "train_reacher")
+        parallel = timed(swept, str(BIN / "ede-pipeline"), "sweep", "train_reacher",
+                         "--jobs", str(args.jobs))
+        if returns(repro) != returns(swept) or len(returns(swept)) != 4:
+            sys.exit("the sweep's returns differ from dvc repro's")
+    print(f"4 train runs of {args.steps} steps ({TASK}, td3 and ede-td3, seeds 0 and 1), "
+          f"{os.cpu_count()} cores")
+    print(f"dvc repro train_reacher              {sequential:7.1f} s   1.00x")
+    print(f"ede-pipeline sweep --jobs {args.jobs}           {parallel:7.1f} s   "
+          f"{sequential / parallel:.2f}x")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,394 @@
+"""``ede-pipeline sweep``: the out-of-date train stages of ``dvc.yaml``, run in parallel, recorded by DVC.
+
+``dvc repro`` runs one stage at a time, and two ``dvc repro`` processes in one checkout race on the
+repository's lock. A sweep takes that lock once, as ``dvc repro`` does, and inside it:
+
+1. brings the train stages' upstream stages (collect, pretrain) up to date with ``dvc repro``,
+   one at a time: they are few and cheap;
+2. asks DVC which train stage instances are out of date (``Stage.changed``, what ``dvc status``
+   reports); for each, it does what ``dvc repro`` does before the command — removes the stage's
+   outputs (never the run's ``checkpoint/``, which is not one) and restores the run from DVC's run
+   cache if this very run (command, dependencies, params) was recorded before;
+3. runs the commands of the others in parallel — threads each waiting on one child process
+   (``--executor local``), or one Ray task each (``--executor ray``);
+4. records each run as it finishes, exactly as ``dvc repro`` would: the stage's dependencies and
+   outputs hashed, the outputs committed to DVC's cache and the run cache, its ``dvc.lock`` entry
+   written. A following ``dvc repro`` or ``dvc status`` sees it as up to date.
+
+A run that fails (non-zero exit, a killed process or Ray worker) is reported with the path of its
+log and recorded nowhere; the others are recorded all the same, and the sweep exits 1. Its
+checkpoint stays, so the next ``sweep`` (or ``dvc repro``) runs only what is still out of date and
+resumes that run where it stopped.
+
+On Ray, every node runs the command in this very checkout, which must be at the same path on every
+node (a shared filesystem); only this process touches DVC. A cluster without a shared filesystem
+runs each stage as a batch job instead (``scripts/batch-job.sh``: pull, run, push; README.md).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import click
+
+from ede_pipeline.common import DEFAULT_PARAMS, BadInput, read_params
+
+if TYPE_CHECKING:
+    from dvc.repo import Repo
+    from dvc.stage import Stage
+
+TRAIN_STAGES = "train_*"  # the stages of dvc.yaml a sweep runs unless told others
+LOGS = Path(".dvc") / "tmp" / "sweep"  # DVC's own git-ignored scratch folder
+TAIL = 20  # lines of a failed run's log shown in the report
+
+
+@dataclass(frozen=True)
+class Job:
+    """One stage's command, ready for any executor: plain data that pickles."""
+
+    stage: str
+    argvs: list[list[str]]  # one argv per line of the stage's ``cmd``, as DVC would run them
+    cwd: str  # the checkout, the same path on every node
+    env: dict[str, str]  # set on top of the executing process's environment
+    log: str  # where the commands' output goes
+
+
+@dataclass(frozen=True)
+class Outcome:
+    stage: str
+    returncode: int | None  # None: no exit status, the executor lost the run (``error`` says why)
+    seconds: float
+    error: str = ""
+
+
+def run_job(job: Job) -> Outcome:
+    """Run a job's commands one after the other, output to its log; stop at the first failure.
+
+    Module-level and free of DVC so that a Ray worker can import and run it.
+    """
+    start = time.perf_counter()
+    env = {**os.environ, **job.env}
+    # The interpreter's own scripts first: `ede-pipeline` and `dvc` of the environment running this.
+    bin_dir = str(Path(sys.executable).parent)
+    env["PATH"] = os.pathsep.join([bin_dir, env.get("PATH", "")])
+    log_path = Path(job.log)
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    returncode = 0
+    with log_path.open("w") as log:
+        for argv in job.argvs:
+            log.write(f"$ {' '.join(argv)}\n")
+            log.flush()
+            returncode = subprocess.run(
+                argv, cwd=job.cwd, env=env, stdout=log, stderr=subprocess.STDOUT, check=False
+            ).returncode
+            if returncode != 0:
+                break
+    return Outcome(job.stage, returncode, time.perf_counter() - start)
+
+
+# ---------------------------------------------------------------------------------------------
+# Executors: submit jobs, hand back outcomes as they finish.
+
+
+class LocalExecutor:
+    """At most ``jobs`` child processes at once, on this machine."""
+
+    def __init__(self, jobs: int) -> None:
+        self.pool = ThreadPoolExecutor(max_workers=jobs)
+
+    def map_unordered(self, jobs: list[Job]) -> Iterator[Outcome]:
+        pending: set[Future[Outcome]] = {self.pool.submit(run_job, job) for job in jobs}
+        try:
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                yield from (future.result() for future in done)
+        finally:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+class RayExecutor:
+    """One Ray task per job, ``num_cpus`` each; at most ``jobs`` in flight if given."""
+
+    def __init__(self, address: str | None, num_cpus: float, jobs: int | None) -> None:
+        try:
+            import ray
+        except ImportError:
+            raise BadInput("--executor ray needs Ray: pip install -e '.[ray]'") from None
+        self.ray = ray
+        if not ray.is_initialized():
+            ray.init(address=address, include_dashboard=False, log_to_driver=False,
+                     configure_logging=False)
+        # No automatic retry: a lost run is reported, and the next sweep resumes it.
+        self.task = ray.remote(run_job).options(num_cpus=num_cpus, max_retries=0)
+        self.jobs = jobs
+
+    def map_unordered(self, jobs: list[Job]) -> Iterator[Outcome]:
+        ray = self.ray
+        queue = list(reversed(jobs))
+        running: dict[Any, tuple[Job, float]] = {}
+        limit = self.jobs or len(jobs)
+        while queue or running:
+            while queue and len(running) < limit:
+                job = queue.pop()
+                running[self.task.remote(job)] = (job, time.perf_counter())
+            [ref], _ = ray.wait(list(running), num_returns=1)
+            job, start = running.pop(ref)
+            try:
+                yield ray.get(ref)
+            except ray.exceptions.RayError as error:  # the worker or its node died, not the run
+                first = str(error).strip().splitlines()[0] if str(error).strip() else ""
+                yield Outcome(job.stage, None, time.perf_counter() - start,
+                              error=f"{type(error).__name__}: {first}")
+
+
+# ---------------------------------------------------------------------------------------------
+# DVC: which stages, what to run, how to record.
+
+
+def dvc_executable() -> str:
+    beside = Path(sys.executable).parent / "dvc"
+    return str(beside) if beside.exists() else (shutil.which("dvc") or "dvc")
+
+
+def stage_argvs(stage: Stage) -> list[list[str]]:
+    """The argv DVC's ``cmd_run`` would execute for each line of the stage's command."""
+    from dvc.stage.run import _enforce_cmd_list, _make_cmd, get_executable
+
+    executable = get_executable()
+    return [list(_make_cmd(executable, cmd)) for cmd in _enforce_cmd_list(stage.cmd)]
+
+
+def stage_env(stage: Stage) -> dict[str, str]:
+    """The variables DVC's ``cmd_run`` sets for a stage's command."""
+    from dvc.env import DVC_ROOT, DVC_STAGE
+
+    return {DVC_ROOT: stage.repo.root_dir, DVC_STAGE: stage.addressing}
+
+
+def collect_stages(repo: Repo, targets: tuple[str, ...]) -> list[Stage]:
+    from dvc.exceptions import DvcException
+
+    stages: dict[str, Stage] = {}
+    for target in targets or (TRAIN_STAGES,):
+        try:
+            found = repo.stage.collect(target, glob=target == TRAIN_STAGES or "*" in target)
+        except DvcException as error:
+            raise BadInput(f"{target}: {error}") from None
+        stages.update((stage.addressing, stage) for stage in found)
+    if not stages:
+        raise BadInput(f"no stages match {' '.join(targets or (TRAIN_STAGES,))}")
+    return list(stages.values())
+
+
+def upstream_of(repo: Repo, stages: list[Stage]) -> list[Stage]:
+    """Every stage the given ones depend on, directly or not, that is not one of them."""
+    import networkx as nx
+
+    graph = repo.index.graph
+    names = {stage.addressing for stage in stages}
+    upstream: dict[str, Stage] = {}
+    for stage in stages:
+        for dependency in nx.descendants(graph, stage):  # DVC's edges point to dependencies
+            if dependency.addressing not in names:
+                upstream[dependency.addressing] = dependency
+    return list(upstream.values())
+
+
+def record(stage: Stage) -> None:
+    """What ``dvc repro`` does once a stage's command has succeeded: hash the dependencies and
+    outputs, save the run to the run cache, commit the outputs to the cache, write ``dvc.lock``."""
+    no_cache_outs = any(not out.use_cache for out in stage.outs if not (out.is_metric or out.is_plot))
+    stage.save(run_cache=not no_cache_outs)
+    stage.commit()
+    stage.dump(update_pipeline=False)
+
+
+def restore_from_run_cache(stage: Stage) -> bool:
+    """``dvc repro``'s first resort: check out this very run's outputs if DVC has them."""
+    from dvc.stage.cache import RunCacheNotFoundError
+
+    try:
+        stage.repo.stage_cache.restore(stage)
+    except RunCacheNotFoundError:
+        return False
+    return True
+
+
+@contextmanager
+def repo_lock(repo: Repo) -> Iterator[None]:
+    from dvc.lock import LockError
+    from dvc.repo import lock_repo
+
+    try:
+        with lock_repo(repo):
+            yield
+    except LockError as error:
+        raise BadInput(f"{error} (a `dvc` command or another sweep is running here)") from None
+
+
+# ---------------------------------------------------------------------------------------------
+# Progress.
+
+
+def _duration(seconds: float) -> str:
+    seconds = round(seconds)
+    hours, rest = divmod(seconds, 3600)
+    return f"{hours}h{rest // 60:02d}m{rest % 60:02d}s" if hours else f"{rest // 60}m{rest % 60:02d}s"
+
+
+class Tally:
+    """One line per finished run, with the overall count and an ETA from the pace so far."""
+
+    def __init__(self, total: int) -> None:
+        self.total, self.done, self.start = total, 0, time.perf_counter()
+
+    def line(self, status: str, stage: str, detail: str) -> str:
+        self.done += 1
+        elapsed = time.perf_counter() - self.start
+        left = self.total - self.done
+        eta = f"ETA {_duration(elapsed / self.done * left)}" if left else "done"
+        return (f"[{self.done}/{self.total}] {status:<6} {stage}  {detail}  "
+                f"(elapsed {_duration(elapsed)}, {eta})")
+
+
+def _tail(text: str) -> str:
+    lines = text.rstrip().splitlines()[-TAIL:]
+    return "\n".join(f"    | {line}" for line in lines)
+
+
+# ---------------------------------------------------------------------------------------------
+# The command.
+
+
+@click.command()
+@click.argument("targets", nargs=-1)
+@click.option("-j", "--jobs", type=click.IntRange(min=1),
+              help="Runs at once  [default: local: the number of cores; ray: as the cluster fits]")
+@click.option("--executor", type=click.Choice(["local", "ray"]), default="local", show_default=True,
+              help="Child processes on this machine, or Ray tasks on a cluster.")
+@click.option("--address", help="Ray: the cluster to join (`ray start --head` prints it; "
+              "default: $RAY_ADDRESS, else a new local Ray instance).")
+@click.option("--cpus-per-run", type=click.FloatRange(min=0, min_open=True), default=1.0,
+              show_default=True, help="Ray: the num_cpus of each run's task.")
+@click.option("--logs", type=click.Path(file_okay=False, path_type=Path), default=LOGS,
+              show_default=True, help="Where each run's output goes, one file per stage.")
+@click.pass_context
+def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, executor: str,
+          address: str | None, cpus_per_run: float, logs: Path) -> None:
+    """Run the out-of-date train stages in parallel and record each with DVC.
+
+    TARGETS are stages as `dvc repro` takes them (default: every `train_*` stage of dvc.yaml).
+    Their upstream stages are brought up to date first with `dvc repro`. Exits 1 if any run failed;
+    what succeeded is recorded all the same, and running the sweep again runs only the rest.
+    """
+    from dvc.exceptions import DvcException
+    from dvc.repo import Repo
+
+    if not Path("dvc.yaml").is_file():
+        raise BadInput(f"run from the repository root (no dvc.yaml in {Path.cwd()})")
+    if executor == "local" and address:
+        raise BadInput("--address is for --executor ray")
+    read_params(DEFAULT_PARAMS)  # bad params end here, before anything runs
+
+    with Repo(".") as repo:
+        stages = collect_stages(repo, targets)
+        _bring_upstream_up_to_date(repo, stages)
+
+    with Repo(".") as repo, repo_lock(repo):
+        stages = collect_stages(repo, targets)  # the index as it is after the upstream stages ran
+        stale = [stage for stage in stages if stage.changed()]
+        click.echo(f"sweep: {len(stale)} of {len(stages)} stages out of date", err=True)
+        if not stale:
+            return
+        tally = Tally(len(stale))
+        failed: list[str] = []
+        pending: list[Job] = []
+        for stage in stale:
+            try:
+                stage.remove_outs(ignore_remove=False, force=False)
+                if restore_from_run_cache(stage):
+                    record(stage)
+                    click.echo(tally.line("cached", stage.addressing, "restored from the run cache"))
+                    continue
+                stage.save_deps()
+            except (DvcException, OSError) as error:  # this stage only; the others go on
+                failed.append(stage.addressing)
+                click.echo(tally.line("FAILED", stage.addressing,
+                                      f"not started: {type(error).__name__}: {error}"))
+                continue
+            log = (Path(repo.root_dir) / logs / f"{_safe(stage.addressing)}.log").resolve()
+            pending.append(Job(stage.addressing, stage_argvs(stage), repo.root_dir,
+                               stage_env(stage), str(log)))
+        runner = _executor(executor, jobs, address, cpus_per_run)
+        by_name = {stage.addressing: stage for stage in stale}
+        for outcome in runner.map_unordered(pending):
+            stage = by_name[outcome.stage]
+            log = _log_path(repo, logs, outcome)
+            problem = _problem(outcome)
+            if not problem:
+                try:
+                    record(stage)
+                except (DvcException, OSError) as error:  # reported with the run; others go on
+                    problem = f"not recorded: {type(error).__name__}: {error}"
+            if problem:
+                failed.append(outcome.stage)
+                click.echo(tally.line("FAILED", outcome.stage, f"{problem}; log: {log}"))
+                if log.is_file():
+                    click.echo(_tail(log.read_text()), err=True)
+            else:
+                click.echo(tally.line("ok", outcome.stage, f"{outcome.seconds:.1f}s"))
+
+    recorded = len(stale) - len(failed)
+    click.echo(f"sweep: {recorded} recorded, {len(failed)} failed", err=True)
+    if failed:
+        click.echo("failed (run `ede-pipeline sweep` again to resume them): " + " ".join(failed),
+                   err=True)
+        ctx.exit(1)
+
+
+def _bring_upstream_up_to_date(repo: Repo, stages: list[Stage]) -> None:
+    with repo_lock(repo):
+        stale = [stage.addressing for stage in upstream_of(repo, stages) if stage.changed()]
+    if not stale:
+        return
+    click.echo(f"sweep: dvc repro {' '.join(stale)}", err=True)
+    result = subprocess.run([dvc_executable(), "repro", *stale], check=False)
+    if result.returncode != 0:
+        raise click.ClickException(f"dvc repro of the upstream stages failed "
+                                   f"(exit {result.returncode}); nothing else was run")
+
+
+def _executor(kind: str, jobs: int | None, address: str | None,
+              cpus_per_run: float) -> LocalExecutor | RayExecutor:
+    if kind == "local":
+        return LocalExecutor(jobs or os.cpu_count() or 1)
+    return RayExecutor(address, cpus_per_run, jobs)
+
+
+def _problem(outcome: Outcome) -> str:
+    if outcome.returncode is None:
+        return f"lost after {outcome.seconds:.1f}s ({outcome.error})"
+    if outcome.returncode < 0:
+        return f"killed by signal {-outcome.returncode} after {outcome.seconds:.1f}s"
+    if outcome.returncode > 0:
+        return f"exit {outcome.returncode} after {outcome.seconds:.1f}s"
+    return ""
+
+
+def _log_path(repo: Repo, logs: Path, outcome: Outcome) -> Path:
+    return (Path(repo.root_dir) / logs / f"{_safe(outcome.stage)}.log").resolve()
+
+
+def _safe(name: str) -> str:
+    return name.replace("/", "_").replace("@", "__")
+

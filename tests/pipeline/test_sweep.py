@@ -1,0 +1,186 @@
+"""``ede-pipeline sweep`` records exactly what ``dvc repro`` would, in parallel, run by run.
+
+Scratch copies of the repo with tiny params and four train runs (one task, both algorithms, two
+seeds): ``dvc repro train_reacher`` in one copy is the reference; the sweeps in others must leave
+the same ``dvc.lock`` entries and the same returns. Runs are deterministic on CPU; only the wall
+times they write (``eval.csv``'s ``wall_seconds``, ``metrics.json``'s speed) differ, so the hashes
+of those two files are compared by content minus the times instead.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from tests.conftest import REPO
+from tests.pipeline.test_dvc import dvc, tiny_pipeline
+
+pytestmark = pytest.mark.slow
+
+TASK = "ede/ReacherVertical-v0"
+STAGES = [f"train_reacher@{TASK}-{algo}-{seed}" for algo in ("td3", "ede-td3") for seed in (0, 1)]
+BROKEN = "train_reacher@ede/ReacherVertical-v0-td3-1"
+BROKEN_CHECKPOINT = f"data/runs/{TASK}/td3/seed1/checkpoint/state.json"
+UNTIMED = {"metrics.json", "eval.csv"}  # the run's files that hold wall times
+
+
+def scratch_copy(dest: Path) -> Path:
+    """The repo's files in a fresh git repository, tiny params, runs of one reacher task."""
+    files = subprocess.run(
+        ["git", "ls-files", "--cached", "--others", "--exclude-standard"],
+        cwd=REPO, capture_output=True, text=True, check=True,
+    ).stdout.split()
+    for name in files:
+        if (REPO / name).is_file():
+            (dest / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(REPO / name, dest / name)
+    params = yaml.safe_load((dest / "params.yaml").read_text())
+    tiny_pipeline(params)
+    params["runs"]["tasks"]["reacher"] = [TASK]
+    params["runs"]["seeds"] = [0, 1]
+    (dest / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    for command in (["git", "init", "-q"], ["git", "add", "-A"]):
+        subprocess.run(command, cwd=dest, check=True)
+    return dest
+
+
+def ok(result: subprocess.CompletedProcess[str]) -> str:
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    return result.stdout + result.stderr
+
+
+def sweep(copy: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    bin_dir = Path(sys.executable).parent
+    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
+    return subprocess.run([str(bin_dir / "ede-pipeline"), "sweep", *args], cwd=copy, env=env,
+                          capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def upstream(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A copy whose embedding is made (collect, pretrain), and no run yet."""
+    copy = scratch_copy(tmp_path_factory.mktemp("upstream") / "repo")
+    ok(dvc(copy, "repro", "pretrain_decoder@reacher"))
+    return copy
+
+
+@pytest.fixture(scope="module")
+def reference(upstream: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """What ``dvc repro`` of the four train stages records, one at a time."""
+    copy = tmp_path_factory.mktemp("reference") / "repo"
+    shutil.copytree(upstream, copy, symlinks=True)
+    ok(dvc(copy, "repro", "train_reacher"))
+    return record_of(copy)
+
+
+@pytest.fixture
+def copy_of_upstream(upstream: Path, tmp_path: Path) -> Path:
+    copy = tmp_path / "repo"
+    shutil.copytree(upstream, copy, symlinks=True)
+    return copy
+
+
+def record_of(copy: Path, stages: list[str] = STAGES) -> dict[str, Any]:
+    """Per stage: its dvc.lock entry (untimed files' hashes set aside) and its returns."""
+    lock = yaml.safe_load((copy / "dvc.lock").read_text())["stages"]
+    record = {}
+    for stage in stages:
+        entry = lock[stage]
+        for out in entry["outs"]:
+            if Path(out["path"]).name in UNTIMED:
+                assert (copy / out["path"]).is_file(), out["path"]
+                out.pop("md5"), out.pop("size")
+        run = copy / next(Path(out["path"]).parent for out in entry["outs"])
+        with (run / "eval.csv").open() as file:
+            returns = [(row["step"], row["mean_return"]) for row in csv.DictReader(file)]
+        metrics = json.loads((run / "metrics.json").read_text())
+        record[stage] = {"lock": entry, "returns": returns, "final": metrics["final_return"]}
+    return record
+
+
+def assert_up_to_date(copy: Path) -> None:
+    status = ok(dvc(copy, "status", "train_reacher"))
+    assert "up to date" in status, status
+
+
+def test_sweep_with_two_jobs_records_what_dvc_repro_records(
+    copy_of_upstream: Path, reference: dict[str, Any]
+) -> None:
+    copy = copy_of_upstream
+    # An upstream stage out of date (its output gone): the sweep has `dvc repro` bring it back.
+    shutil.rmtree(copy / "data/reacher/embedding/decoder")
+    out = ok(sweep(copy, "train_reacher", "--jobs", "2"))
+    assert "sweep: dvc repro pretrain_decoder@reacher" in out, out
+    assert "4 of 4 stages out of date" in out, out
+    assert out.count(" ok ") == 4 and "[4/4]" in out and "ETA" in out, out
+    assert record_of(copy) == reference
+    assert not (copy / f"data/runs/{TASK}/td3/seed0/checkpoint").exists()
+    assert_up_to_date(copy)
+
+
+def break_one_run(copy: Path) -> None:
+    """A corrupt checkpoint (a disk that filled up, say): that run's command fails, for real."""
+    (copy / BROKEN_CHECKPOINT).parent.mkdir(parents=True)
+    (copy / BROKEN_CHECKPOINT).write_text('{"step": ')
+
+
+def test_a_failed_run_is_reported_and_the_others_recorded_then_resumed(
+    copy_of_upstream: Path, reference: dict[str, Any]
+) -> None:
+    copy = copy_of_upstream
+    break_one_run(copy)
+    failed = sweep(copy, "train_reacher", "--jobs", "2")
+    out = failed.stdout + failed.stderr
+    assert failed.returncode == 1, out
+    log = copy / ".dvc/tmp/sweep" / (BROKEN.replace("/", "_").replace("@", "__") + ".log")
+    assert f"FAILED {BROKEN}" in out and f"log: {log}" in out, out
+    assert "ede-pipeline train" in log.read_text() and "JSONDecodeError" in log.read_text()
+    assert "3 recorded, 1 failed" in out, out
+    others = [stage for stage in STAGES if stage != BROKEN]
+    lock = yaml.safe_load((copy / "dvc.lock").read_text())["stages"]
+    assert BROKEN not in lock
+    assert record_of(copy, others) == {stage: reference[stage] for stage in others}
+
+    (copy / BROKEN_CHECKPOINT).unlink()
+    again = ok(sweep(copy, "train_reacher", "--jobs", "2"))
+    assert "1 of 4 stages out of date" in again and f"ok     {BROKEN}" in again, again
+    assert record_of(copy) == reference
+    assert_up_to_date(copy)
+
+
+@pytest.fixture
+def ray_cluster() -> Iterator[str]:
+    """A Ray cluster on this machine only, two CPUs (two runs at once); its address."""
+    import ray  # part of the dev extra: a missing Ray fails this test rather than skipping it
+
+    context = ray.init(num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1",
+                       log_to_driver=False, configure_logging=False)
+    try:
+        yield context.address_info["gcs_address"]
+    finally:
+        ray.shutdown()
+
+
+def test_sweep_on_a_ray_cluster_records_what_dvc_repro_records(
+    copy_of_upstream: Path, reference: dict[str, Any], ray_cluster: str
+) -> None:
+    copy = copy_of_upstream
+    break_one_run(copy)
+    failed = sweep(copy, "train_reacher", "--executor", "ray", "--address", ray_cluster)
+    out = failed.stdout + failed.stderr
+    assert failed.returncode == 1 and f"FAILED {BROKEN}" in out, out
+    assert "3 recorded, 1 failed" in out and "[4/4]" in out, out
+    others = [stage for stage in STAGES if stage != BROKEN]
+    assert record_of(copy, others) == {stage: reference[stage] for stage in others}
+    log = copy / ".dvc/tmp/sweep" / (BROKEN.replace("/", "_").replace("@", "__") + ".log")
+    assert "JSONDecodeError" in log.read_text()
