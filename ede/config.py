@@ -146,6 +146,11 @@ class EdeTD3Config(_Section):
     bound_scale: float = Field(
         1.0, gt=0, description="the actor's |z| bound, × the largest whitened |z| the decoder saw"
     )
+    target_noise_scale: float = Field(
+        0.25, gt=0, description="target smoothing noise and its clip, × td3's values × the bound; "
+        "0.25 = 1/k for k = 4, as the authors' code divides them by k (one code moves the state "
+        "k steps, so the same noise on it perturbs k actions)"
+    )
 
 
 class RunsConfig(_Section):

@@ -54,6 +54,7 @@ class ActionAdapter(Protocol):
     code_size: int
     code_low: torch.Tensor  # (C,)
     code_high: torch.Tensor  # (C,)
+    target_noise_scale: float  # target smoothing noise and its clip, relative to the code box
 
     def decode(self, codes: torch.Tensor) -> torch.Tensor:
         """(B, C) -> (B, K, A) raw actions."""
@@ -64,6 +65,7 @@ class IdentityAdapter:
     """TD3: the code is the raw action, K = 1."""
 
     k = 1
+    target_noise_scale = 1.0
 
     def __init__(self, low: np.ndarray, high: np.ndarray, device: torch.device) -> None:
         self.code_size = len(low)
@@ -77,8 +79,11 @@ class IdentityAdapter:
 class EmbeddingAdapter:
     """EDE-TD3: the code is a whitened z in [−bound, bound]^D, decoded to K actions by D."""
 
-    def __init__(self, embedding: ActionEmbedding, bound_scale: float = 1.0) -> None:
+    def __init__(
+        self, embedding: ActionEmbedding, bound_scale: float = 1.0, target_noise_scale: float = 1.0
+    ) -> None:
         self.embedding = embedding
+        self.target_noise_scale = target_noise_scale
         self.k, self.code_size = embedding.k, embedding.dim
         bound = embedding.bound * bound_scale
         device = embedding.device
@@ -280,6 +285,7 @@ class Agent:
         torch.manual_seed(seed)  # initial weights
         low, high = adapter.code_low, adapter.code_high
         self.scale = (high - low) / 2  # noise is relative to the half-range of the code box
+        self.target_scale = self.scale * adapter.target_noise_scale
         self.actor = Actor(obs_size, low, high, config.hidden).to(device)
         self.critic = Critic(obs_size, adapter.code_size, adapter.k, config.hidden).to(device)
         self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
@@ -292,8 +298,8 @@ class Agent:
         self.updates = 0
         self.autocast = config.precision == "bf16"
 
-    def _noise(self, shape: torch.Size, std: float) -> torch.Tensor:
-        return torch.randn(shape, generator=self.generator, device=self.device) * std * self.scale
+    def _noise(self, shape: torch.Size, std: float, scale: torch.Tensor) -> torch.Tensor:
+        return torch.randn(shape, generator=self.generator, device=self.device) * std * scale
 
     def clip(self, codes: torch.Tensor) -> torch.Tensor:
         return codes.clamp(self.adapter.code_low, self.adapter.code_high)
@@ -301,9 +307,10 @@ class Agent:
     @torch.no_grad()
     def act(self, obs: np.ndarray, explore: bool) -> torch.Tensor:
         """The code for one observation: μ(s), plus exploration noise when ``explore``."""
+        c = self.config
         code = self.actor(torch.as_tensor(obs, dtype=torch.float32, device=self.device)[None])[0]
         if explore:
-            code = self.clip(code + self._noise(code.shape, self.config.exploration_noise))
+            code = self.clip(code + self._noise(code.shape, c.exploration_noise, self.scale))
         return code
 
     def random_code(self) -> torch.Tensor:
@@ -320,8 +327,9 @@ class Agent:
         c = self.config
         parts = k_step_targets(batch, c.discount)
         with torch.no_grad(), self._autocast():
-            noise = self._noise(batch.code.shape, c.policy_noise)
-            noise = torch.maximum(torch.minimum(noise, c.noise_clip * self.scale), -c.noise_clip * self.scale)
+            noise = self._noise(batch.code.shape, c.policy_noise, self.target_scale)
+            clip = c.noise_clip * self.target_scale
+            noise = torch.maximum(torch.minimum(noise, clip), -clip)
             chosen = self.clip(self.actor_target(parts.bootstrap_obs) + noise)
             next_code = torch.where(parts.keep_code[:, None], batch.code, chosen)
             q1, q2 = self.critic_target(parts.bootstrap_obs, next_code, parts.next_i)

@@ -148,7 +148,9 @@ class _Run:
             self.adapter: ActionAdapter = IdentityAdapter(space.low, space.high, device)
         else:
             assert embedding is not None
-            self.adapter = EmbeddingAdapter(embedding, spec.ede_td3.bound_scale)
+            self.adapter = EmbeddingAdapter(
+                embedding, spec.ede_td3.bound_scale, spec.ede_td3.target_noise_scale
+            )
         self.agent = Agent(obs_size, self.adapter, spec.td3, device, spec.seed)
         capacity = min(spec.td3.buffer_size, spec.budget)
         self.buffer = ReplayBuffer(capacity, obs_size, self.adapter.code_size, self.adapter.k, device)

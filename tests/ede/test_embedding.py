@@ -76,6 +76,12 @@ def test_the_decoder_output_re_encodes_to_its_input(point: Rollouts, trained: En
     actions = embedding.decode(z)
     assert actions.shape == (256, 4, 2) and actions.abs().max() <= 1.0
     torch.testing.assert_close(embedding.encode(actions), z, atol=0.15, rtol=0)
+    # Minimum norm: of all sequences with a random sequence's effect, D picks a small one. On the
+    # linear point that is the effect split evenly over the k steps, a quarter of the norm.
+    sequences = torch.rand(512, 4, 2, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    decoded = embedding.decode(embedding.encode(sequences))
+    assert decoded.pow(2).sum() < 0.5 * sequences.pow(2).sum()
+    assert embedding.decode(embedding.encode(torch.zeros(1, 4, 2))).abs().max() < 0.1
 
 
 def test_training_is_determined_by_the_seed(point: Rollouts, trained: EncoderResult) -> None:

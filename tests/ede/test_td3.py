@@ -19,6 +19,7 @@ class FixedAdapter:
     k, code_size = K, CODE
     code_low = -torch.ones(CODE)
     code_high = torch.ones(CODE)
+    target_noise_scale = 0.25
 
     def decode(self, codes: torch.Tensor) -> torch.Tensor:
         return codes[:, None].expand(-1, K, -1)
@@ -184,3 +185,23 @@ def test_actor_updates_wait_for_the_policy_delay_and_targets_move_by_tau() -> No
     for old, new, online in zip(target_before, agent.critic_target.parameters(),
                                 agent.critic.parameters()):
         torch.testing.assert_close(new, 0.75 * old + 0.25 * online)
+
+
+def test_target_smoothing_noise_is_clipped_relative_to_the_code_box(monkeypatch) -> None:
+    agent = agent_for(FixedAdapter())
+    agent.config = agent.config.model_copy(update={"policy_noise": 1e3, "noise_clip": 0.5})
+    buffer = filled_buffer(REWARDS)
+    seen = []
+    original = type(agent.critic_target).forward
+
+    def spy(self, obs, code, i):
+        seen.append((obs.clone(), code.clone()))
+        return original(self, obs, code, i)
+
+    monkeypatch.setattr(type(agent.critic_target), "forward", spy)
+    agent.target(buffer.sample(64, torch.Generator().manual_seed(0)))
+    obs, code = seen[0]
+    offset = code - agent.clip(agent.actor_target(obs))
+    # half-range 1 x noise_clip 0.5 x the adapter's target_noise_scale 0.25, saturated by the
+    # huge noise (up to the box's own clip at ±1)
+    assert offset.abs().max().item() == pytest.approx(0.125, abs=1e-6)
