@@ -7,7 +7,6 @@ writing HTML is the pipeline's business.
 from __future__ import annotations
 
 import csv
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -54,12 +53,14 @@ class Curve:
 
 
 def read_curve(run_dir: Path, seed: int) -> Curve | None:
-    """The curve of a finished run (``metrics.json`` present), or None if it is missing."""
+    """The curve of a finished run, or None if it is missing.
+
+    A run is finished when its ``metrics.json`` exists: ``train`` writes it (atomically) last.
+    """
     if not (run_dir / "metrics.json").is_file() or not (run_dir / "eval.csv").is_file():
         return None
     with open(run_dir / "eval.csv") as handle:
         rows = list(csv.DictReader(handle))
-    json.loads((run_dir / "metrics.json").read_text())  # complete and readable
     steps = np.array([float(row["step"]) for row in rows])
     returns = np.array([float(row["mean_return"]) for row in rows])
     return Curve(seed, steps, returns)

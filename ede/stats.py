@@ -40,9 +40,14 @@ class Interval:
     n: int
 
     def __str__(self) -> str:
+        """``mean [low, high]``; ``inf`` (a threshold never reached) reads "never"."""
         if self.n == 0:
             return "missing"
-        return f"{self.mean:.4g} [{self.low:.4g}, {self.high:.4g}]"
+
+        def show(value: float) -> str:
+            return "never" if np.isinf(value) else f"{value:.4g}"
+
+        return f"{show(self.mean)} [{show(self.low)}, {show(self.high)}]"
 
 
 def bootstrap_mean(

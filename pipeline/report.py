@@ -7,7 +7,6 @@ import hashlib
 import html
 import io
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -51,16 +50,12 @@ def _png(figure: Figure) -> bytes:
     return buffer.getvalue()
 
 
-def _fmt(value: float) -> str:
-    return "never" if math.isinf(value) else f"{value:.4g}"
-
-
 def _interval(interval: Any) -> str:
     if interval is None:
         return "no threshold set"
     if interval.n == 0:
         return '<span class="missing">missing</span>'
-    return f"{_fmt(interval.mean)} [{_fmt(interval.low)}, {_fmt(interval.high)}]"
+    return str(interval)
 
 
 class Page:
