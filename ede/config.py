@@ -52,6 +52,7 @@ Threads = Annotated[
     Field(gt=0, description="torch threads on CPU: 1 is fastest for networks this small and "
           "lets stages and runs share the cores (more threads than cores slows everything)"),
 ]
+Precision = Literal["fp32", "bf16-matmul", "bf16"]
 HiddenSizes = Annotated[
     list[PositiveInt], Field(min_length=1, description="hidden layer widths of an MLP")
 ]
@@ -133,8 +134,10 @@ class TD3Config(_Section):
     eval_every: PositiveInt = 5_000
     eval_episodes: PositiveInt = 10
     checkpoint_every: PositiveInt = 50_000
-    precision: Literal["fp32", "bf16"] = Field(
-        "fp32", description="matmul precision of updates (bf16 autocast keeps fp32 weights)"
+    precision: Precision = Field(
+        "fp32",
+        description="fp32; bf16-matmul: fp32 tensors, matrix products from bf16 inputs with fp32 "
+        "accumulation (TF32 on CUDA); bf16: bf16 autocast (fp32 weights and optimiser state)",
     )
     device: Device = "cpu"
     threads: Threads = 1

@@ -32,7 +32,7 @@ from torch import nn
 
 from ede.config import TD3Config
 from ede.embedding import ActionEmbedding
-from ede.nets import mlp
+from ede.nets import matmul_precision, mlp
 
 __all__ = [
     "ActionAdapter",
@@ -245,29 +245,34 @@ def k_step_targets(batch: ReplayBatch, gamma: float) -> TargetParts:
     episode ended (terminated or truncated).
     """
     k = batch.rewards.shape[1]
-    m = torch.arange(k, device=batch.rewards.device)  # (K,)
+    m = torch.arange(k, dtype=batch.rewards.dtype, device=batch.rewards.device)  # (K,)
     remaining = k - batch.i  # (B,)
     ended = batch.terminated | batch.truncated  # (B, K)
-    ended_before = (ended.cumsum(dim=1) - ended.long()) > 0  # an earlier step ended the episode
+    ended_before = ended.cumsum(dim=1) > ended  # an earlier step ended the episode
     valid = (m < remaining[:, None]) & ~ended_before  # (B, K)
     n = valid.sum(dim=1)  # (B,), >= 1
-    powers = gamma ** m.to(batch.rewards.dtype)  # (K,)
-    returns = (valid * powers * batch.rewards).sum(dim=1)  # (B,)
+    returns = (valid * gamma**m * batch.rewards).sum(dim=1)  # (B,)
     last = (n - 1)[:, None]  # (B, 1)
     terminal = batch.terminated.gather(1, last).squeeze(1)  # (B,)
     cut_short = batch.truncated.gather(1, last).squeeze(1) & (n < remaining)
     bootstrap_obs = batch.next_obs.gather(
         1, last[:, :, None].expand(-1, 1, batch.next_obs.shape[2])
     ).squeeze(1)  # (B, K, O) -> (B, O)
-    discount = torch.where(terminal, 0.0, gamma ** n.to(batch.rewards.dtype))
+    discount = torch.where(terminal, 0.0, gamma**n)
     next_i = torch.where(cut_short, batch.i + n, torch.zeros_like(n))
     return TargetParts(returns, discount, bootstrap_obs, cut_short, next_i)
 
 
-def polyak(target: nn.Module, source: nn.Module, tau: float) -> None:
-    """target ← (1 − τ) target + τ source, in place."""
+def polyak(target: list[torch.Tensor], source: list[torch.Tensor], tau: float) -> None:
+    """target ← (1 − τ) target + τ source, in place, tensor by tensor."""
     with torch.no_grad():
-        torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
+        torch._foreach_lerp_(target, source, tau)
+
+
+def _clear_grads(params: list[torch.Tensor]) -> None:
+    """``optimizer.zero_grad(set_to_none=True)`` without its per-call bookkeeping."""
+    for p in params:
+        p.grad = None
 
 
 class Agent:
@@ -296,6 +301,13 @@ class Agent:
         self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=config.lr, fused=True)
         self.generator = torch.Generator(device=device).manual_seed(seed)
         self.updates = 0
+        # Listed once: walking the module trees every update costs more than the moves themselves.
+        self._critic_params = list(self.critic.parameters())
+        self._actor_params = list(self.actor.parameters())
+        self._polyak_pairs = [
+            (list(self.critic_target.parameters()), self._critic_params),
+            (list(self.actor_target.parameters()), self._actor_params),
+        ]
         self.autocast = config.precision == "bf16"
 
     def _noise(self, shape: torch.Size, std: float, scale: torch.Tensor) -> torch.Tensor:
@@ -336,13 +348,20 @@ class Agent:
             return parts.returns + parts.discount * torch.minimum(q1, q2).float()
 
     def update(self, batch: ReplayBatch) -> dict[str, float]:
-        """One critic step, and every ``policy_delay`` steps an actor step and target moves."""
+        """One critic step, and every ``policy_delay`` steps an actor step and target moves.
+
+        Its matrix products follow ``td3.precision`` (see :func:`ede.nets.matmul_precision`).
+        """
+        with matmul_precision(self.config.precision):
+            return self._update(batch)
+
+    def _update(self, batch: ReplayBatch) -> dict[str, float]:
         c = self.config
         target = self.target(batch)
         with self._autocast():
             q1, q2 = self.critic(batch.obs, batch.code, batch.i)
             critic_loss = F.mse_loss(q1.float(), target) + F.mse_loss(q2.float(), target)
-        self.critic_optimizer.zero_grad(set_to_none=True)
+        _clear_grads(self._critic_params)
         critic_loss.backward()
         self.critic_optimizer.step()
         self.updates += 1
@@ -350,16 +369,18 @@ class Agent:
             return {}
         # The actor follows ∇_c Q_1(s, c, 0) (Equation 2); Q's own weights get no gradient here,
         # which also spares the backward pass their weight products.
-        self.critic.requires_grad_(False)
+        for p in self._critic_params:
+            p.requires_grad_(False)
         with self._autocast():
             start = torch.zeros_like(batch.i)  # a new code is chosen: i = 0
             actor_loss = -self.critic.first(batch.obs, self.actor(batch.obs), start).float().mean()
-        self.actor_optimizer.zero_grad(set_to_none=True)
+        _clear_grads(self._actor_params)
         actor_loss.backward()
         self.actor_optimizer.step()
-        self.critic.requires_grad_(True)
-        polyak(self.critic_target, self.critic, c.tau)
-        polyak(self.actor_target, self.actor, c.tau)
+        for p in self._critic_params:
+            p.requires_grad_(True)
+        for target, source in self._polyak_pairs:
+            polyak(target, source, c.tau)
         return {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item()}
 
     # Checkpoints -------------------------------------------------------------------------

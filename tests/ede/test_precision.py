@@ -1,0 +1,92 @@
+"""``td3.precision``: what each setting computes, that it stays inside updates, reproducibility."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from ede.config import TD3Config
+from ede.nets import matmul_precision
+from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
+
+PRECISIONS = ["fp32", "bf16-matmul", "bf16"]
+
+
+def bf16_units() -> bool:
+    """Whether this CPU multiplies bf16 natively (AVX-512-BF16 or AMX); else oneDNN stays fp32."""
+    return torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported()
+
+
+def relative_error(a: torch.Tensor, b: torch.Tensor) -> float:
+    return ((a - b).abs().max() / b.abs().max()).item()
+
+
+def test_bf16_matmul_rounds_product_inputs_to_bf16_inside_its_block_only() -> None:
+    generator = torch.Generator().manual_seed(0)
+    x, w = torch.randn(64, 256, generator=generator), torch.randn(256, 256, generator=generator)
+    exact = x.double() @ w.double()
+    rounded = x.bfloat16().double() @ w.bfloat16().double()  # bf16 inputs, exact accumulation
+    before = torch.get_float32_matmul_precision()
+    with matmul_precision("bf16-matmul"):
+        inside = (x @ w).double()
+    outside = (x @ w).double()
+    assert torch.get_float32_matmul_precision() == before
+    assert relative_error(outside, exact) < 1e-5
+    if bf16_units():
+        # fp32 accumulation of bf16-rounded inputs: ~1e-2 away from the fp32 product
+        assert relative_error(inside, rounded) < 1e-5 < 1e-3 < relative_error(inside, exact)
+    else:
+        assert relative_error(inside, exact) < 1e-5
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_the_other_precisions_keep_fp32_products(precision: str) -> None:
+    with matmul_precision(precision):
+        assert torch.get_float32_matmul_precision() == "highest"
+
+
+def test_the_process_wide_setting_comes_back_after_an_error() -> None:
+    torch.set_float32_matmul_precision("high")
+    try:
+        with pytest.raises(RuntimeError), matmul_precision("bf16-matmul"):
+            raise RuntimeError("inside")
+        assert torch.get_float32_matmul_precision() == "high"
+    finally:
+        torch.set_float32_matmul_precision("highest")
+
+
+def trained_agent(precision: str, updates: int = 6) -> Agent:
+    config = TD3Config(hidden=[64, 64], batch_size=32, precision=precision)
+    device = torch.device("cpu")
+    agent = Agent(5, IdentityAdapter(-np.ones(2), np.ones(2), device), config, device, seed=0)
+    buffer = ReplayBuffer(256, 5, 2, 1, device)
+    rng = np.random.default_rng(0)
+    for t in range(200):
+        buffer.add(rng.normal(size=5), torch.as_tensor(rng.uniform(-1, 1, 2), dtype=torch.float32),
+                   0, float(rng.normal()), rng.normal(size=5), False, t % 50 == 49)
+    for _ in range(updates):
+        agent.update(buffer.sample(32, agent.generator))
+    return agent
+
+
+def actor_weights(agent: Agent) -> list[torch.Tensor]:
+    return [p.detach().clone() for p in agent.actor.parameters()]
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test_each_precision_is_reproducible_and_keeps_fp32_weights(precision: str) -> None:
+    first, second = trained_agent(precision), trained_agent(precision)
+    for a, b in zip(actor_weights(first), actor_weights(second)):
+        assert a.dtype == torch.float32 and torch.equal(a, b)
+    assert torch.get_float32_matmul_precision() == "highest"  # nothing leaks out of update()
+
+
+@pytest.mark.parametrize("precision", ["bf16-matmul", "bf16"])
+def test_reduced_precisions_change_the_updates_only_slightly(precision: str) -> None:
+    reference = actor_weights(trained_agent("fp32"))
+    reduced = actor_weights(trained_agent(precision))
+    errors = [relative_error(r, f) for r, f in zip(reduced, reference)]
+    assert max(errors) < 0.05, errors
+    if precision == "bf16" or bf16_units():
+        assert max(errors) > 0, "the setting had no effect"
