@@ -1,6 +1,7 @@
 """Training throughput: stable-baselines3's TD3 against our TD3 and EDE-TD3, same schedule.
 
     python benchmarks/train_throughput.py [--steps 6000] [--precision fp32|bf16-matmul|bf16|all]
+                                          [--hidden 256,256] [--batch-size 256]
 
 In one process and one torch thread, on gymnasium's ``Reacher-v5``: environment steps per second
 with one update per step (batch 256, 256-256 networks, policy delay 2, 1,000 uniform random
@@ -8,6 +9,7 @@ start steps, then one update per step; each learner timed after an untimed warm-
 own), for SB3's TD3 (the reference, measured in the same run), our TD3 and our EDE-TD3 (with an
 embedding of Reacher-v5's actions; its weights do not matter for speed), in each ``td3.precision``.
 Prints each and its ratio to SB3. Goals: our TD3 >= 1.5x SB3; EDE-TD3 >= 0.9x our TD3.
+``--hidden 400,300 --batch-size 100`` measures the paper's TD3 configuration instead.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import argparse
 import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import get_args
 
@@ -33,23 +36,30 @@ START = 1_000
 WARMUP = START + 300
 
 
-def sb3(steps: int) -> float:
+@dataclass(frozen=True)
+class Shape:
+    hidden: list[int]
+    batch_size: int
+
+
+def sb3(steps: int, shape: Shape) -> float:
     import gymnasium
     from stable_baselines3 import TD3
     from stable_baselines3.common.noise import NormalActionNoise
 
     env = gymnasium.make(TASK)
     model = TD3("MlpPolicy", env, learning_rate=1e-3, buffer_size=steps, learning_starts=START,
-                batch_size=256, tau=0.005, gamma=0.99, train_freq=1, gradient_steps=1,
+                batch_size=shape.batch_size, tau=0.005, gamma=0.99, train_freq=1, gradient_steps=1,
                 action_noise=NormalActionNoise(np.zeros(2), 0.1 * np.ones(2)), policy_delay=2,
-                policy_kwargs={"net_arch": [256, 256]}, seed=0, device="cpu", verbose=0)
+                policy_kwargs={"net_arch": shape.hidden}, seed=0, device="cpu", verbose=0)
     start = time.perf_counter()
     model.learn(total_timesteps=steps)
     return steps / (time.perf_counter() - start)
 
 
-def ours(steps: int, algo: str, precision: str) -> float:
-    config = TD3Config(hidden=[256, 256], batch_size=256, start_steps=START, buffer_size=steps,
+def ours(steps: int, shape: Shape, algo: str, precision: str) -> float:
+    config = TD3Config(hidden=shape.hidden, batch_size=shape.batch_size, start_steps=START,
+                       buffer_size=steps,
                        eval_every=10**9, eval_episodes=1, checkpoint_every=10**9,
                        precision=precision)
     embedding = None
@@ -66,25 +76,29 @@ def ours(steps: int, algo: str, precision: str) -> float:
         return steps / (time.perf_counter() - start)
 
 
-def warm(learner: Callable[..., float], steps: int, *args: str) -> float:
+def warm(learner: Callable[..., float], steps: int, shape: Shape, *args: str) -> float:
     """Steps/s of ``learner`` after an untimed short run (imports, first calls, kernel choices)."""
-    learner(WARMUP, *args)
-    return learner(steps, *args)
+    learner(WARMUP, shape, *args)
+    return learner(steps, shape, *args)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=6_000)
     parser.add_argument("--precision", choices=[*PRECISIONS, "all"], default="all")
+    parser.add_argument("--hidden", default="256,256", help="hidden widths, comma-separated")
+    parser.add_argument("--batch-size", type=int, default=256)
     args = parser.parse_args()
+    shape = Shape([int(width) for width in args.hidden.split(",")], args.batch_size)
     torch.set_num_threads(1)
-    reference = warm(sb3, args.steps)
-    print(f"{TASK}, {args.steps} steps, 1 thread, batch 256, 256-256 networks")
+    reference = warm(sb3, args.steps, shape)
+    print(f"{TASK}, {args.steps} steps, 1 thread, batch {shape.batch_size}, "
+          f"{'-'.join(map(str, shape.hidden))} networks")
     print(f"stable-baselines3 TD3        {reference:7.0f} steps/s   1.00x")
     precisions = PRECISIONS if args.precision == "all" else [args.precision]
     for precision in precisions:
-        td3 = warm(ours, args.steps, "td3", precision)
-        ede = warm(ours, args.steps, "ede-td3", precision)
+        td3 = warm(ours, args.steps, shape, "td3", precision)
+        ede = warm(ours, args.steps, shape, "ede-td3", precision)
         print(f"ours TD3, {precision:<12}     {td3:7.0f} steps/s   {td3 / reference:.2f}x")
         print(f"ours EDE-TD3, {precision:<12} {ede:7.0f} steps/s   {ede / reference:.2f}x"
               f"  ({ede / td3:.2f}x our TD3)")
