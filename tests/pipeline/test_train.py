@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -103,13 +104,24 @@ def test_both_algorithms_clearly_beat_a_random_policy(in_workdir: Path, algo: st
     assert not (out / "checkpoint").exists()  # removed once the run is complete
 
 
-def test_a_run_killed_midway_resumes_to_the_same_returns(in_workdir: Path) -> None:
-    reference = in_workdir / "reference"
+@pytest.fixture(params=["fp32", "bf16-matmul"])
+def precision(request: pytest.FixtureRequest, in_workdir: Path) -> Iterator[str]:
+    """The work directory's params with ``td3.precision`` set, restored afterwards."""
+    params = in_workdir / "params.yaml"
+    text = params.read_text()
+    assert "precision: fp32" in text
+    params.write_text(text.replace("precision: fp32", f"precision: {request.param}"))
+    yield request.param
+    params.write_text(text)
+
+
+def test_a_run_killed_midway_resumes_to_the_same_returns(in_workdir: Path, precision: str) -> None:
+    reference = in_workdir / f"reference-{precision}"
     result = run("train", "--task", "ede/Point-v0", "--algo", "ede-td3", "--seed", "1",
                  "--out", str(reference))
     assert result.exit_code == 0, result.output
 
-    killed = in_workdir / "killed"
+    killed = in_workdir / f"killed-{precision}"
     command = [sys.executable, "-m", "ede_pipeline", "train", "--task", "ede/Point-v0",
                "--algo", "ede-td3", "--seed", "1", "--out", str(killed)]
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -129,6 +141,7 @@ def test_a_run_killed_midway_resumes_to_the_same_returns(in_workdir: Path) -> No
     assert returns_of(killed) == returns_of(reference)
     metrics = json.loads((killed / "metrics.json").read_text())
     assert metrics["resumed_from_step"] == state["step"]
+    assert metrics["params"]["td3"]["precision"] == precision
 
 
 def test_a_checkpoint_of_other_params_is_not_resumed(in_workdir: Path, write_params) -> None:
