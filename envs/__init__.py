@@ -20,7 +20,7 @@ class Task:
     """One registered task: its gymnasium id, where its class lives and its episode length."""
 
     id: str
-    entry_point: str | None  # None: registered by gymnasium itself (Pusher-v5)
+    entry_point: str
     max_episode_steps: int
 
 
@@ -43,7 +43,7 @@ TASKS: dict[str, Task] = {
         Task("ede/ReacherVertical-v0", "ede_envs.reacher_vertical:ReacherVerticalEnv", 100),
         Task("ede/ReacherTurn-v0", "ede_envs.reacher_turn:ReacherTurnEnv", 100),
         Task("ede/ReacherPush-v0", "ede_envs.reacher_push:ReacherPushEnv", 100),
-        Task("Pusher-v5", None, 100),
+        Task("ede/Pusher-v0", "ede_envs.pusher:PusherEnv", 100),
         Task("ede/Striker-v0", "ede_envs.striker:StrikerEnv", 100),
         Task("ede/Point-v0", "ede_envs.point:PointEnv", 100),
         Task("ede/PointMass-v0", "ede_envs.point_mass:PointMassEnv", 100),
@@ -54,7 +54,7 @@ FAMILIES: dict[str, Family] = {
     family.name: family
     for family in (
         Family("reacher", "ede/ReacherVertical-v0", ("ede/ReacherTurn-v0", "ede/ReacherPush-v0")),
-        Family("sevendof", "Pusher-v5", ("ede/Striker-v0",)),
+        Family("sevendof", "ede/Pusher-v0", ("ede/Striker-v0",)),
         Family("point", "ede/Point-v0", ()),
         Family("pointmass", "ede/PointMass-v0", ()),
     )
@@ -78,7 +78,7 @@ def register_envs() -> None:
     from gymnasium.envs.registration import register, registry
 
     for task in TASKS.values():
-        if task.entry_point is None or task.id in registry:
+        if task.id in registry:
             continue
         register(
             id=task.id, entry_point=task.entry_point, max_episode_steps=task.max_episode_steps

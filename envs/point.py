@@ -12,6 +12,8 @@ from gymnasium.envs.mujoco import MujocoEnv
 from gymnasium.spaces import Box
 from numpy.typing import NDArray
 
+from ede_envs._numerics import norm
+
 XML_FILE: Final[Path] = Path(__file__).parent / "assets" / "point.xml"
 # Nothing is integrated: dt = the model's timestep (0.05) only sets the render rate.
 FRAME_SKIP: Final[int] = 1
@@ -152,7 +154,7 @@ class PointEnv(MujocoEnv, utils.EzPickle):
         del action  # the reward does not depend on the action
         position = self.data.qpos.copy()
         goal = self._goal()
-        distance = float(np.linalg.norm(position - goal))
+        distance = norm(position - goal)
         reward_dist = -distance
         reward_info = {
             "reward_dist": reward_dist,

@@ -11,6 +11,8 @@ from gymnasium.envs.mujoco import MujocoEnv
 from gymnasium.spaces import Box
 from numpy.typing import NDArray
 
+from ede_envs._numerics import norm, sum_of_squares
+
 XML_FILE: Final[Path] = Path(__file__).parent / "assets" / "point_mass.xml"
 # The dynamics live in the MJCF: mass 1 kg, damping 10 N s/m, gear 8, timestep 0.01 s. With frame
 # skip 5 a step lasts 0.05 s, the velocity's time constant m/b = 0.1 s is two steps and the terminal
@@ -164,8 +166,8 @@ class PointMassEnv(MujocoEnv, utils.EzPickle):
     def _get_rew(self, action: NDArray[np.float32]) -> tuple[float, dict[str, Any]]:
         position = self.data.qpos.copy()
         goal = self._goal()
-        distance = float(np.linalg.norm(position - goal))
-        action_norm_sq = float(np.square(action).sum())
+        distance = norm(position - goal)
+        action_norm_sq = sum_of_squares(action)
 
         reward_dist = -self._reward_dist_weight * distance
         reward_ctrl = -self._reward_control_weight * action_norm_sq

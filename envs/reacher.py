@@ -18,6 +18,8 @@ from gymnasium.envs.mujoco import MujocoEnv
 from gymnasium.spaces import Box
 from numpy.typing import NDArray
 
+from ede_envs._numerics import cos_sin, sum_of_squares
+
 __all__ = ["ASSETS_DIR", "DEFAULT_CAMERA_CONFIG", "FRAME_SKIP", "ReacherFamilyEnv", "control_cost"]
 
 ASSETS_DIR: Final[Path] = Path(__file__).resolve().parent / "assets"
@@ -184,7 +186,7 @@ class ReacherFamilyEnv(MujocoEnv, utils.EzPickle):
     def _arm_angle_features(self) -> NDArray[np.float64]:
         """cos(joint0), cos(joint1), sin(joint0), sin(joint1)."""
         angles = self.data.qpos[self._arm_qpos_ids]
-        return np.concatenate([np.cos(angles), np.sin(angles)])
+        return cos_sin(angles)
 
     @property
     def fingertip_xz(self) -> NDArray[np.float64]:
@@ -200,4 +202,4 @@ class ReacherFamilyEnv(MujocoEnv, utils.EzPickle):
 
 def control_cost(action: NDArray[np.float64]) -> float:
     """``‖a‖²``, the squared norm that every task's control term is a multiple of."""
-    return float(np.sum(np.square(action)))
+    return sum_of_squares(action)

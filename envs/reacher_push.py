@@ -10,6 +10,7 @@ import numpy as np
 from gymnasium import utils
 from numpy.typing import NDArray
 
+from ede_envs._numerics import norm
 from ede_envs.reacher import ASSETS_DIR, ReacherFamilyEnv, control_cost
 
 __all__ = ["ReacherPushEnv"]
@@ -155,8 +156,8 @@ class ReacherPushEnv(ReacherFamilyEnv):
 
     def _get_rew(self, action: NDArray[np.float64]) -> tuple[float, dict[str, Any]]:
         box_xz, fingertip_xz, target_xz = self.box_xz, self.fingertip_xz, self.target_xz
-        distance = float(np.linalg.norm(box_xz - target_xz))
-        near_distance = float(np.linalg.norm(fingertip_xz - box_xz))
+        distance = norm(box_xz - target_xz)
+        near_distance = norm(fingertip_xz - box_xz)
         action_norm_sq = control_cost(action)
         reward_dist = -self._reward_dist_weight * distance
         reward_near = -self._reward_near_weight * near_distance

@@ -9,6 +9,7 @@ import numpy as np
 from gymnasium import utils
 from numpy.typing import NDArray
 
+from ede_envs._numerics import cos_sin, norm
 from ede_envs.reacher import ASSETS_DIR, ReacherFamilyEnv, control_cost
 
 __all__ = ["ReacherTurnEnv"]
@@ -116,7 +117,7 @@ class ReacherTurnEnv(ReacherFamilyEnv):
         )
         qvel[spinner.dofadr[0]] = 0.0
         target_angle = self.np_random.uniform(-np.pi, np.pi)
-        direction = np.array([np.cos(target_angle), np.sin(target_angle)])
+        direction = cos_sin([target_angle])
         self._set_target(SPINNER_HINGE_XZ + TARGET_RADIUS * direction)
 
     @property
@@ -130,7 +131,7 @@ class ReacherTurnEnv(ReacherFamilyEnv):
 
     def _get_rew(self, action: NDArray[np.float64]) -> tuple[float, dict[str, Any]]:
         tip_xz, target_xz = self.tip_xz, self.target_xz
-        distance = float(np.linalg.norm(tip_xz - target_xz))
+        distance = norm(tip_xz - target_xz)
         action_norm_sq = control_cost(action)
         reward_dist = -self._reward_dist_weight * distance
         reward_ctrl = -self._reward_control_weight * action_norm_sq

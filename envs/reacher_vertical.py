@@ -9,6 +9,7 @@ import numpy as np
 from gymnasium import utils
 from numpy.typing import NDArray
 
+from ede_envs._numerics import norm
 from ede_envs.reacher import ASSETS_DIR, ReacherFamilyEnv, control_cost
 
 __all__ = ["ReacherVerticalEnv"]
@@ -124,7 +125,7 @@ class ReacherVerticalEnv(ReacherFamilyEnv):
 
     def _get_rew(self, action: NDArray[np.float64]) -> tuple[float, dict[str, Any]]:
         fingertip_xz, target_xz = self.fingertip_xz, self.target_xz
-        distance = float(np.linalg.norm(fingertip_xz - target_xz))
+        distance = norm(fingertip_xz - target_xz)
         action_norm_sq = control_cost(action)
         reward_dist = -self._reward_dist_weight * distance
         reward_ctrl = -self._reward_control_weight * action_norm_sq

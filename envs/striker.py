@@ -11,6 +11,8 @@ from gymnasium.envs.mujoco import MujocoEnv
 from gymnasium.spaces import Box
 from numpy.typing import NDArray
 
+from ede_envs._numerics import norm, sum_of_squares
+
 XML_FILE: Final[Path] = Path(__file__).parent / "assets" / "striker.xml"
 FRAME_SKIP: Final[int] = 5
 # No "human": offscreen modes only, so nothing (check_env included) ever needs a display;
@@ -210,18 +212,18 @@ class StrikerEnv(MujocoEnv, utils.EzPickle):
         ball = self.get_body_com("object").copy()
         goal = self.get_body_com("goal").copy()
 
-        distance_ball_goal = float(np.linalg.norm(ball - goal))
-        distance_tip_ball = float(np.linalg.norm(ball - tip))
+        distance_ball_goal = norm(ball - goal)
+        distance_tip_ball = norm(ball - tip)
         self._closest_distance = min(self._closest_distance, distance_ball_goal)
         if not self._struck and distance_tip_ball < STRIKE_THRESHOLD:
             self._struck = True
             self._strike_position = tip
         near_reference = self._strike_position.copy() if self._struck else tip
-        action_norm_sq = float(np.square(action).sum())
+        action_norm_sq = sum_of_squares(action)
 
         reward_dist = -self._reward_dist_weight * self._closest_distance
         reward_ctrl = -self._reward_control_weight * action_norm_sq
-        reward_near = -self._reward_near_weight * float(np.linalg.norm(ball - near_reference))
+        reward_near = -self._reward_near_weight * norm(ball - near_reference)
         reward = reward_dist + reward_ctrl + reward_near
 
         reward_info = {
@@ -248,7 +250,7 @@ class StrikerEnv(MujocoEnv, utils.EzPickle):
         ball = np.asarray(BALL_START)
         while True:
             goal = self.np_random.uniform(low=GOAL_LOW, high=GOAL_HIGH)
-            if np.linalg.norm(ball - goal) >= MIN_GOAL_BALL_DISTANCE:
+            if norm(ball - goal) >= MIN_GOAL_BALL_DISTANCE:
                 break
 
         qpos = self.init_qpos.copy()

@@ -21,7 +21,7 @@ def test_committed_params_hold_the_papers_configuration() -> None:
         "ede/ReacherVertical-v0": 50_000,
         "ede/ReacherTurn-v0": 1_000_000,
         "ede/ReacherPush-v0": 2_000_000,
-        "Pusher-v5": 2_000_000,
+        "ede/Pusher-v0": 2_000_000,
         "ede/Striker-v0": 4_000_000,
     }
     td3 = params.td3
@@ -31,7 +31,7 @@ def test_committed_params_hold_the_papers_configuration() -> None:
     assert (td3.policy_noise, td3.noise_clip, td3.policy_delay, td3.exploration_noise) == (
         0.2, 0.5, 2, 0.1
     )
-    assert params.families["sevendof"].source == "Pusher-v5"
+    assert params.families["sevendof"].source == "ede/Pusher-v0"
     assert params.family_of("ede/Striker-v0") == "sevendof"
 
 
@@ -56,12 +56,12 @@ def test_defaults_in_the_model_match_the_committed_file() -> None:
     [
         (lambda p: p.update(surprise=1), "surprise: unknown key"),
         (lambda p: p["td3"].update(batch_size="many"), "td3.batch_size: got 'many'"),
-        (lambda p: p["runs"]["budgets"].update({"Pusher-v5": -5}), "runs.budgets.Pusher-v5: got -5"),
+        (lambda p: p["runs"]["budgets"].update({"ede/Pusher-v0": -5}), "runs.budgets.ede/Pusher-v0: got -5"),
         (lambda p: p["embedding"].update(k=0), "embedding.k: got 0"),
         (lambda p: p["runs"]["tasks"]["reacher"].append("ede/Nope-v0"),
          "runs.tasks.reacher.3: got 'ede/Nope-v0'"),
-        (lambda p: p["runs"]["tasks"]["reacher"].append("Pusher-v5"),
-         "runs.tasks.reacher: 'Pusher-v5' is not a task of that family"),
+        (lambda p: p["runs"]["tasks"]["reacher"].append("ede/Pusher-v0"),
+         "runs.tasks.reacher: 'ede/Pusher-v0' is not a task of that family"),
         (lambda p: p["families"]["reacher"].pop("source"), "families.reacher.source: missing"),
         (lambda p: p["td3"].update(discount=1.5), "td3.discount: got 1.5"),
         (lambda p: p["runs"]["budgets"].pop("ede/Striker-v0"), "no budget for ede/Striker-v0"),

@@ -39,7 +39,7 @@ def rollout(task: str, seed: int, steps: int = 30) -> tuple[np.ndarray, np.ndarr
 def test_every_shipped_task_is_in_exactly_one_family() -> None:
     assert len(ALL_TASKS) == len(set(ALL_TASKS)) == 7
     assert set(OUR_TASKS) == {t for t in ede_envs.TASKS if t.startswith("ede/")}
-    assert ede_envs.FAMILIES["sevendof"].source == "Pusher-v5"
+    assert ede_envs.FAMILIES["sevendof"].source == "ede/Pusher-v0"
     for task in ALL_TASKS:
         assert task in ede_envs.FAMILIES[ede_envs.family_of(task).name].tasks
 

@@ -43,9 +43,9 @@ def test_envs_lists_every_task_with_its_family_and_shapes() -> None:
     assert lines[0].split()[:3] == ["task", "family", "role"]
     rows = {line.split()[0]: line.split() for line in lines[1:]}
     assert set(rows) == set(ede_envs.TASKS)
-    assert rows["Pusher-v5"][1:3] == ["sevendof", "source"]
-    assert rows["Pusher-v5"][3] == "(23,)" and rows["Pusher-v5"][4] == "Box[-2,2]^7"
-    assert rows["ede/Striker-v0"][4] == rows["Pusher-v5"][4]
+    assert rows["ede/Pusher-v0"][1:3] == ["sevendof", "source"]
+    assert rows["ede/Pusher-v0"][3] == "(23,)" and rows["ede/Pusher-v0"][4] == "Box[-2,2]^7"
+    assert rows["ede/Striker-v0"][4] == rows["ede/Pusher-v0"][4]
     assert rows["ede/ReacherTurn-v0"][4] == "Box[-1,1]^2"
     assert all(row[-1] == "100" for row in rows.values())
 
@@ -54,7 +54,7 @@ def test_set_params_turns_an_override_file_into_dvc_set_param_arguments(tmp_path
     overrides = tmp_path / "quick.yaml"
     overrides.write_text("td3:\n  start_steps: 5\nruns:\n  seeds: [0, 1]\n"
                          "  budgets: {ede/ReacherVertical-v0: 10, ede/ReacherTurn-v0: 10,\n"
-                         "            ede/ReacherPush-v0: 10, Pusher-v5: 10, ede/Striker-v0: 10}\n")
+                         "            ede/ReacherPush-v0: 10, ede/Pusher-v0: 10, ede/Striker-v0: 10}\n")
     result = CliRunner().invoke(main, ["set-params", str(overrides), "--params",
                                        str(REPO / "params.yaml")])
     assert result.exit_code == 0, result.output
@@ -64,7 +64,7 @@ def test_set_params_turns_an_override_file_into_dvc_set_param_arguments(tmp_path
         "td3.start_steps=5",
         "runs.seeds=[0, 1]",
         "runs.budgets={ede/ReacherVertical-v0: 10, ede/ReacherTurn-v0: 10, "
-        "ede/ReacherPush-v0: 10, Pusher-v5: 10, ede/Striker-v0: 10}",
+        "ede/ReacherPush-v0: 10, ede/Pusher-v0: 10, ede/Striker-v0: 10}",
     ]
 
 

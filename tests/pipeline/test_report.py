@@ -19,7 +19,7 @@ from ede.embedding import train_decoder, train_encoder
 from ede.rollouts import Rollouts, collect, write_store
 from ede_pipeline.cli import main
 
-TASKS = {"reacher": ["ede/ReacherVertical-v0"], "sevendof": ["Pusher-v5"]}
+TASKS = {"reacher": ["ede/ReacherVertical-v0"], "sevendof": ["ede/Pusher-v0"]}
 
 
 def fake_run(root: Path, task: str, algo: str, seed: int, returns: list[float]) -> None:
@@ -63,7 +63,7 @@ def embeddings(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def project(tmp_path: Path, write_params, monkeypatch: pytest.MonkeyPatch) -> Path:
     def edit(params: dict) -> None:
         params["runs"].update(tasks=TASKS, seeds=[0, 1, 2], budgets={"ede/ReacherVertical-v0": 2000,
-                                                                     "Pusher-v5": 2000})
+                                                                     "ede/Pusher-v0": 2000})
         params["report"].update(thresholds={"ede/ReacherVertical-v0": -5.0}, bootstrap_samples=200)
 
     write_params(edit)
@@ -93,26 +93,26 @@ def test_every_section_with_runs_missing_and_of_unequal_length(project: Path, em
     assert page.count("data:image/png;base64,") == 4  # self-contained
     # 12 runs expected (2 tasks x 2 algos x 3 seeds); 5 exist.
     assert "7 of 12 runs have no results" in page
-    assert "data/runs/Pusher-v5/td3/seed0" in page and "data/runs/ede/ReacherVertical-v0/td3/seed2" in page
+    assert "data/runs/ede/Pusher-v0/td3/seed0" in page and "data/runs/ede/ReacherVertical-v0/td3/seed2" in page
     metrics = json.loads((project / "data/report-metrics.json").read_text())
     assert metrics["missing_runs"] == 7
     assert metrics["ede/ReacherVertical-v0"]["td3"] == {"final_return": -9.0, "auc": pytest.approx(
         np.mean([(-20 + -12) / 2 * 0.5 + (-12 + -8) / 2 * 0.5, (-21 + -10) / 2])), "seeds": 2}
     assert metrics["ede/ReacherVertical-v0"]["ede-td3"]["final_return"] == -3.0
-    assert metrics["Pusher-v5"]["td3"]["seeds"] == 0
+    assert metrics["ede/Pusher-v0"]["td3"]["seeds"] == 0
     curve = (project / "data/report-curves/ede_ReacherVertical-v0.csv").read_text().splitlines()
     assert curve[0] == "step,td3,ede-td3" and curve[1] == "0,-20.5,-19"
     assert curve[3] == "2000,-8,-3"  # the short run no longer counts at step 2000
 
 
 def test_one_seed_and_no_embeddings_still_render(project: Path) -> None:
-    fake_run(project, "Pusher-v5", "ede-td3", 0, [-50, -40])
+    fake_run(project, "ede/Pusher-v0", "ede-td3", 0, [-50, -40])
     _, page = report(project)
     assert "missing: the point family's embedding" in page
     assert "missing: the pointmass family's embedding" in page
     assert "EDE-TD3 (1 seeds)" not in page  # the legend is in the picture, not the text
     metrics = json.loads((project / "data/report-metrics.json").read_text())
-    assert metrics["Pusher-v5"]["ede-td3"] == {"final_return": -40.0, "auc": -45.0, "seeds": 1}
+    assert metrics["ede/Pusher-v0"]["ede-td3"] == {"final_return": -40.0, "auc": -45.0, "seeds": 1}
 
 
 @pytest.mark.skipif(shutil.which("chromium") is None, reason="Debian's chromium is not installed")
