@@ -10,11 +10,20 @@ own), for SB3's TD3 (the reference, measured in the same run), our TD3 and our E
 embedding of Reacher-v5's actions; its weights do not matter for speed), in each ``td3.precision``.
 Prints each and its ratio to SB3. Goals: our TD3 >= 1.5x SB3; EDE-TD3 >= 0.9x our TD3.
 ``--hidden 400,300 --batch-size 100`` measures the paper's TD3 configuration instead.
+
+What ``bf16-matmul`` and ``bf16`` compute and buy depends on the CPU, so the benchmark first
+prints the machine: the CPU model and its bf16-related flags, and for each precision the error
+of a product against float64 (``ede.nets.product_error``) and the oneDNN kernel that computed it
+(from ``ONEDNN_VERBOSE``; none means torch's own BLAS path). Read its ratios only for that CPU.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import platform
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -27,6 +36,7 @@ import torch
 
 from ede.config import EdeTD3Config, Precision, TD3Config
 from ede.embedding import ActionDecoder, ActionEmbedding, Encoder
+from ede.nets import product_error
 from ede.rollouts import Whitening
 from ede.training import RunSpec, train_run
 
@@ -82,6 +92,47 @@ def warm(learner: Callable[..., float], steps: int, shape: Shape, *args: str) ->
     return learner(steps, shape, *args)
 
 
+def cpu_model() -> tuple[str, list[str]]:
+    """The CPU's model name and which of the flags that decide bf16 paths it has."""
+    model, flags = platform.processor() or platform.machine(), set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name":
+                model = value.strip()
+            elif key.strip() == "flags":
+                flags = set(value.split())
+                break
+    except OSError:
+        pass
+    wanted = ["avx2", "avx512f", "avx512_bf16", "amx_bf16", "amx_tile"]
+    return model, [flag for flag in wanted if flag in flags]
+
+
+def onednn_kernels(precision: str) -> str:
+    """The oneDNN kernels of one product under ``precision``, from a fresh interpreter."""
+    code = f"import torch; torch.set_num_threads(1); from ede.nets import product_error; product_error({precision!r})"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            env={**os.environ, "ONEDNN_VERBOSE": "1"}, check=True)
+    kernels = set()
+    for line in result.stdout.splitlines():
+        fields = line.split(",")
+        if fields[0] == "onednn_verbose" and "exec" in fields:
+            at = fields.index("exec")
+            kernels.add(f"{fields[at + 2]}:{fields[at + 3]}")
+    return ", ".join(sorted(kernels)) or "none (torch's BLAS path)"
+
+
+def describe_machine(precisions: list[str]) -> None:
+    model, flags = cpu_model()
+    print(f"CPU: {model}; flags: {' '.join(flags) or '-'}; torch {torch.__version__}, "
+          f"CPU capability {torch.backends.cpu.get_cpu_capability()}")
+    for precision in precisions:
+        error = product_error(precision)
+        kind = "fp32-accurate" if error < 1e-4 else "bf16-rounded inputs"
+        print(f"  {precision:<12} product error {error:.1e} ({kind}); oneDNN: {onednn_kernels(precision)}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=6_000)
@@ -91,11 +142,12 @@ def main() -> None:
     args = parser.parse_args()
     shape = Shape([int(width) for width in args.hidden.split(",")], args.batch_size)
     torch.set_num_threads(1)
+    precisions = PRECISIONS if args.precision == "all" else [args.precision]
+    describe_machine(precisions)
     reference = warm(sb3, args.steps, shape)
     print(f"{TASK}, {args.steps} steps, 1 thread, batch {shape.batch_size}, "
           f"{'-'.join(map(str, shape.hidden))} networks")
     print(f"stable-baselines3 TD3        {reference:7.0f} steps/s   1.00x")
-    precisions = PRECISIONS if args.precision == "all" else [args.precision]
     for precision in precisions:
         td3 = warm(ours, args.steps, shape, "td3", precision)
         ede = warm(ours, args.steps, shape, "ede-td3", precision)

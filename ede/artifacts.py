@@ -20,6 +20,7 @@ from torch import nn
 
 from ede.atomic import write_atomically
 from ede.embedding import ActionDecoder, ActionEmbedding, Encoder, EncoderResult, Predictor
+from ede.provenance import software_versions
 from ede.rollouts import Whitening
 
 __all__ = [
@@ -77,6 +78,7 @@ class EncoderMeta(_Meta):
     train_episodes: list[int]
     holdout_episodes: list[int]
     params: dict[str, Any] = Field(description="the params sections that made it")
+    software: dict[str, str] = Field(description="the versions that made it (ede.provenance)")
     data_fingerprint: str
     weights_sha256: str
 
@@ -91,6 +93,7 @@ class DecoderMeta(_Meta):
     bound: float = Field(gt=0, description="largest whitened |z| seen: the EDE actor's bound")
     code_whitening: WhiteningMeta
     params: dict[str, Any]
+    software: dict[str, str] = Field(description="the versions that made it (ede.provenance)")
     data_fingerprint: str
     encoder_sha256: str = Field(description="the encoder weights this decoder inverts")
     weights_sha256: str
@@ -108,7 +111,9 @@ def _save(path: Path, modules: dict[str, nn.Module], meta: dict[str, Any], model
             for key, value in module.state_dict().items()
         }
         save_file(tensors, tmp / WEIGHTS)
-        validated = model.model_validate({**meta, "weights_sha256": _sha256(tmp / WEIGHTS)})
+        validated = model.model_validate(
+            {**meta, "software": software_versions(), "weights_sha256": _sha256(tmp / WEIGHTS)}
+        )
         (tmp / META).write_text(validated.model_dump_json(indent=2) + "\n")
 
     write_atomically(Path(path), write)

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
+from functools import cache
 
 import torch
 from torch import nn
 
-__all__ = ["matmul_precision", "mlp", "pick_device"]
+__all__ = ["matmul_precision", "mlp", "pick_device", "product_error"]
 
 
 def mlp(
@@ -40,9 +41,10 @@ def pick_device(name: str) -> torch.device:
 def matmul_precision(precision: str) -> Iterator[None]:
     """Within the block, fp32 matrix products follow ``precision`` (a ``td3.precision`` value).
 
-    ``bf16-matmul`` is torch's "medium" float32 matmul precision: fp32 tensors whose products
-    take bf16-rounded inputs with fp32 accumulation on CPUs with AMX or AVX-512-BF16 (TF32 on
-    CUDA); ``fp32`` and ``bf16`` (autocast, which casts explicitly) keep full fp32 products.
+    ``bf16-matmul`` is torch's "medium" float32 matmul precision: what it computes depends on
+    the machine (TF32 on CUDA; on CPUs, bf16-rounded inputs with fp32 accumulation where oneDNN
+    uses AMX, fp32-accurate products elsewhere — :func:`product_error` tells which). ``fp32`` and
+    ``bf16`` (autocast, which casts explicitly) keep torch's full fp32 products.
     The process-wide setting is restored on leaving.
     """
     before = torch.get_float32_matmul_precision()
@@ -51,3 +53,36 @@ def matmul_precision(precision: str) -> Iterator[None]:
         yield
     finally:
         torch.set_float32_matmul_precision(before)
+
+
+@cache
+def product_error(precision: str, device: str = "cpu") -> float:
+    """The relative error of a product as an update under ``precision`` computes it, here.
+
+    What ``bf16-matmul`` computes is a property of the machine, not of a flag (see
+    :func:`matmul_precision`), so it is observed: a fixed (100, 400) x (400, 300) fp32 product —
+    the paper's batch and first hidden layer — under ``precision`` (and autocast for ``bf16``),
+    against the same product in float64. About 3e-7 means fp32-accurate; about 3e-3 means the
+    inputs were rounded to bf16.
+
+    Args:
+        precision: a ``td3.precision`` value.
+        device: where to multiply.
+
+    Returns:
+        max |computed - exact| / max |exact|.
+    """
+    generator = torch.Generator().manual_seed(12345)
+    x = torch.randn(100, 400, generator=generator)
+    w = torch.randn(300, 400, generator=generator)
+    exact = torch.nn.functional.linear(x.double(), w.double())
+    x, w = x.to(device), w.to(device)
+    autocast = (
+        torch.autocast(torch.device(device).type, dtype=torch.bfloat16)
+        if precision == "bf16"
+        else nullcontext()
+    )
+    with matmul_precision(precision), autocast:
+        computed = torch.nn.functional.linear(x, w)
+    computed = computed.double().cpu()
+    return ((computed - exact).abs().max() / exact.abs().max()).item()

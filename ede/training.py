@@ -4,8 +4,8 @@ A run is determined by its task, algorithm, seed, budget, params and (for EDE-TD
 writes, into its directory:
 
 * ``eval.csv``: ``step, episode, mean_return, std_return, wall_seconds`` after every evaluation;
-* ``metrics.json``: final and best return, area under the curve, steps per second, and the run's
-  identity (task, algo, seed, budget, params);
+* ``metrics.json``: final and best return, area under the curve, steps per second, the run's
+  identity (task, algo, seed, budget, params) and the versions of the software that made it;
 * ``policy/``: the final actor as safetensors beside its JSON metadata;
 * ``checkpoint/`` while it runs: everything needed to continue exactly (networks, optimisers,
   replay buffer, generator states, counters, the evaluation history, and the current episode as
@@ -36,6 +36,7 @@ from ede.atomic import write_atomically, write_json, write_text
 from ede.config import EdeTD3Config, TD3Config
 from ede.embedding import ActionEmbedding
 from ede.envs import make
+from ede.provenance import software_versions
 from ede.stats import area_under_curve
 from ede.td3 import ActionAdapter, Agent, EmbeddingAdapter, IdentityAdapter, ReplayBuffer
 
@@ -336,6 +337,7 @@ def train_run(
         "episodes": run.episodes,
         "resumed_from_step": steps_at_start if resumed else None,
         **spec.identity(),
+        "software": software_versions(),
     }
     save_policy(out / "policy", run.agent, spec, run.adapter)
     write_json(out / "metrics.json", metrics)

@@ -11,6 +11,7 @@ import numpy as np
 
 from ede.config import Params
 from ede.envs import make
+from ede.provenance import software_versions
 from ede.rollouts import Rollouts, RolloutsError, write_store
 from ede.rollouts import collect as collect_steps
 from ede_pipeline.common import BadInput, check_family, family_option, params_option, rollouts_path
@@ -61,6 +62,7 @@ def store_attrs(
         "num_envs": num_envs,
         "spaces": spaces,
         "params": {"collect": params.collect.model_dump(mode="json")},
+        "software": software_versions(),
     }
 
 

@@ -18,6 +18,7 @@ from matplotlib.figure import Figure
 from ede.artifacts import ArtifactError, load_action_embedding
 from ede.atomic import write_atomically, write_json
 from ede.config import Params
+from ede.provenance import describe_software, software_versions
 from ede.report import (
     ALGO_STYLE,
     Curve,
@@ -29,7 +30,7 @@ from ede.report import (
     read_curve,
     summarise_task,
 )
-from ede_pipeline.common import params_option
+from ede_pipeline.common import params_option, rollouts_path
 from ede_pipeline.pretrain import embedding_dir
 from ede_pipeline.train import run_dir
 
@@ -203,9 +204,15 @@ def _curve_csv(task: str, algos: list[str], curves: dict, config: Any, rng: np.r
     return "\n".join(lines) + "\n"
 
 
+def _row(what: str, sha256: str, software: dict[str, str] | None) -> str:
+    return (f"<tr><td>{html.escape(what)}</td><td><code>{sha256}</code></td>"
+            f"<td>{html.escape(describe_software(software))}</td></tr>")
+
+
 def _provenance(params: Params, params_text: str) -> str:
-    rows = [f"<tr><td>params.yaml</td><td><code>{hashlib.sha256(params_text.encode()).hexdigest()}"
-            "</code></td></tr>"]
+    """The SHA-256 of every input beside the versions of the software that made it."""
+    rows = [_row("params.yaml; this report", hashlib.sha256(params_text.encode()).hexdigest(),
+                 software_versions())]
     for family in params.families:
         folder = embedding_dir(family)
         for name in ("encoder", "decoder"):
@@ -213,12 +220,25 @@ def _provenance(params: Params, params_text: str) -> str:
             if meta.is_file():
                 data = json.loads(meta.read_text())
                 if name == "encoder":
-                    rows.append(f"<tr><td>{family} rollouts</td><td><code>{data['data_fingerprint']}"
-                                "</code></td></tr>")
-                rows.append(f"<tr><td>{family} {name} weights</td><td><code>"
-                            f"{data['weights_sha256']}</code></td></tr>")
+                    store = rollouts_path(family) / "zarr.json"
+                    attrs = json.loads(store.read_text()).get("attributes", {}) if store.is_file() else {}
+                    rows.append(_row(f"{family} rollouts", data["data_fingerprint"],
+                                     attrs.get("software")))
+                rows.append(_row(f"{family} {name} weights", data["weights_sha256"],
+                                 data.get("software")))
+    runs: dict[str, int] = {}  # the runs' software, described, and how many runs each
+    for task in params.runs.all_tasks:
+        for algo in params.runs.algos:
+            for seed in params.runs.seeds:
+                metrics_file = run_dir(task, algo, seed) / "metrics.json"
+                if metrics_file.is_file():
+                    software = describe_software(json.loads(metrics_file.read_text()).get("software"))
+                    runs[software] = runs.get(software, 0) + 1
+    rows += [f"<tr><td>{count} training run{'s' * (count > 1)}</td><td></td>"
+             f"<td>{html.escape(software)}</td></tr>" for software, count in runs.items()]
     params_html = html.escape(json.dumps(params.model_dump(mode="json"), indent=1))
-    return ("<table><tr><th>input</th><th>SHA-256</th></tr>" + "".join(rows) + "</table>"
+    return ("<table><tr><th>input</th><th>SHA-256</th><th>software</th></tr>" + "".join(rows)
+            + "</table>"
             f"<details><summary>the params</summary><pre>{params_html}</pre></details>")
 
 

@@ -7,37 +7,53 @@ import pytest
 import torch
 
 from ede.config import TD3Config
-from ede.nets import matmul_precision
+from ede.nets import matmul_precision, product_error
 from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
 
 PRECISIONS = ["fp32", "bf16-matmul", "bf16"]
 
 
-def bf16_units() -> bool:
-    """Whether this CPU multiplies bf16 natively (AVX-512-BF16 or AMX); else oneDNN stays fp32."""
-    return torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported()
+# Between fp32-accurate products (~3e-7) and products of bf16-rounded inputs (~3e-3).
+ROUNDED = 1e-4
+
+
+def medium_rounds_to_bf16() -> bool:
+    """Whether this machine's "medium" products round their inputs to bf16, as observed.
+
+    Where oneDNN multiplies with AMX they do; on CPUs without AMX (AVX-512-BF16 or not) torch's
+    "medium" products were found fp32-accurate — so this is measured, never read off a flag.
+    """
+    return product_error("bf16-matmul") > ROUNDED
 
 
 def relative_error(a: torch.Tensor, b: torch.Tensor) -> float:
     return ((a - b).abs().max() / b.abs().max()).item()
 
 
-def test_bf16_matmul_rounds_product_inputs_to_bf16_inside_its_block_only() -> None:
-    generator = torch.Generator().manual_seed(0)
-    x, w = torch.randn(64, 256, generator=generator), torch.randn(256, 256, generator=generator)
+@pytest.mark.parametrize("rows", [64, 100, 256])
+def test_bf16_matmul_is_either_fp32_or_exactly_bf16_inputs_and_only_inside_its_block(rows: int) -> None:
+    generator = torch.Generator().manual_seed(rows)
+    x, w = torch.randn(rows, 256, generator=generator), torch.randn(256, 256, generator=generator)
     exact = x.double() @ w.double()
     rounded = x.bfloat16().double() @ w.bfloat16().double()  # bf16 inputs, exact accumulation
     before = torch.get_float32_matmul_precision()
     with matmul_precision("bf16-matmul"):
         inside = (x @ w).double()
+        inside_linear = torch.nn.functional.linear(x, w.T).double()
     outside = (x @ w).double()
     assert torch.get_float32_matmul_precision() == before
     assert relative_error(outside, exact) < 1e-5
-    if bf16_units():
-        # fp32 accumulation of bf16-rounded inputs: ~1e-2 away from the fp32 product
-        assert relative_error(inside, rounded) < 1e-5 < 1e-3 < relative_error(inside, exact)
-    else:
-        assert relative_error(inside, exact) < 1e-5
+    for product in (inside, inside_linear):
+        if medium_rounds_to_bf16():
+            # fp32 accumulation of bf16-rounded inputs: ~3e-3 away from the fp32 product
+            assert relative_error(product, rounded) < 1e-5 < 1e-3 < relative_error(product, exact)
+        else:
+            assert relative_error(product, exact) < 1e-5
+
+
+def test_autocast_bf16_rounds_products_on_every_machine_and_fp32_never_does() -> None:
+    assert product_error("fp32") < 1e-5
+    assert 1e-3 < product_error("bf16") < 2e-2
 
 
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
@@ -88,5 +104,7 @@ def test_reduced_precisions_change_the_updates_only_slightly(precision: str) -> 
     reduced = actor_weights(trained_agent(precision))
     errors = [relative_error(r, f) for r, f in zip(reduced, reference)]
     assert max(errors) < 0.05, errors
-    if precision == "bf16" or bf16_units():
+    if precision == "bf16" or medium_rounds_to_bf16():
         assert max(errors) > 0, "the setting had no effect"
+    else:  # "medium" products are fp32-accurate here, if perhaps summed in another order
+        assert max(errors) < 1e-4

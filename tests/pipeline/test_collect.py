@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from ede.provenance import software_versions
 from ede.rollouts import Rollouts, RolloutsError
 from ede_pipeline.cli import main
 
@@ -38,6 +39,8 @@ def test_collect_writes_a_store_the_reader_accepts(tmp_path: Path, write_params)
     assert attrs["params"]["collect"] == {"steps": 400, "num_envs": 2, "seed": 0}
     assert attrs["spaces"]["action_low"] == [-1.0, -1.0]
     assert len(attrs["fingerprint"]) == 64
+    assert attrs["software"] == software_versions()  # what made it: Python, numpy, torch, ...
+    assert set(attrs["software"]) == {"python", "numpy", "torch", "mujoco", "gymnasium"}
     # Quiet in logs: no bar redraws, a handful of lines.
     assert "\r" not in result.stderr and len(result.stderr.splitlines()) <= 11
 

@@ -9,6 +9,7 @@ import pytest
 from click.testing import CliRunner, Result
 
 from ede.artifacts import load_action_embedding
+from ede.provenance import software_versions
 from ede_pipeline.cli import main
 
 
@@ -47,6 +48,9 @@ def test_encoder_then_decoder_write_artifacts_metrics_and_curves(collected: Path
     assert len((folder / "decoder_history.csv").read_text().splitlines()) == 3  # header + 2 epochs
     meta, embedding = load_action_embedding(folder / "encoder", folder / "decoder")
     assert meta.family == "point" and meta.params["embedding"]["epochs"] == 2
+    for name in ("encoder", "decoder"):
+        recorded = json.loads((folder / name / "meta.json").read_text())["software"]
+        assert recorded == software_versions() and recorded["mujoco"] != "not installed"
     assert embedding.k == 4 and embedding.dim == 2
 
 

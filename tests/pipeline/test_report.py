@@ -16,6 +16,7 @@ from click.testing import CliRunner, Result
 from ede.artifacts import save_decoder, save_encoder
 from ede.config import DecoderConfig, EmbeddingConfig
 from ede.embedding import train_decoder, train_encoder
+from ede.provenance import describe_software, software_versions
 from ede.rollouts import Rollouts, collect, write_store
 from ede_pipeline.cli import main
 
@@ -29,7 +30,8 @@ def fake_run(root: Path, task: str, algo: str, seed: int, returns: list[float]) 
     lines = ["step,episode,mean_return,std_return,wall_seconds"]
     lines += [f"{1000 * i},{10 * i},{r},1.0,{i}" for i, r in enumerate(returns)]
     (out / "eval.csv").write_text("\n".join(lines) + "\n")
-    (out / "metrics.json").write_text(json.dumps({"final_return": returns[-1]}))
+    (out / "metrics.json").write_text(json.dumps({"final_return": returns[-1],
+                                                  "software": {**software_versions(), "torch": "9.9"}}))
 
 
 def embedding(root: Path, family: str, env_id: str) -> None:
@@ -93,6 +95,12 @@ def test_every_section_with_runs_missing_and_of_unequal_length(project: Path, em
     assert page.count("data:image/png;base64,") == 4  # self-contained
     # 12 runs expected (2 tasks x 2 algos x 3 seeds); 5 exist.
     assert "7 of 12 runs have no results" in page
+    # provenance: each input's SHA-256 beside the versions that made it
+    here = describe_software(software_versions())
+    meta = json.loads((project / "data/point/embedding/encoder/meta.json").read_text())
+    assert f"<td>point encoder weights</td><td><code>{meta['weights_sha256']}</code></td><td>{here}</td>" in page
+    assert "<td>5 training runs</td><td></td><td>" + here.replace(
+        software_versions()["torch"], "9.9") in page
     assert "data/runs/ede/Pusher-v0/td3/seed0" in page and "data/runs/ede/ReacherVertical-v0/td3/seed2" in page
     metrics = json.loads((project / "data/report-metrics.json").read_text())
     assert metrics["missing_runs"] == 7
