@@ -1,0 +1,110 @@
+"""Our TD3 update pinned to a peer: stable-baselines3's ``TD3.train`` on the same everything.
+
+At k = 1 (the identity adapter) an :class:`ede.td3.Agent` must be TD3: given the same initial
+weights, the same replay batches and the same target-smoothing noise, several updates — critic
+steps, delayed actor steps and target moves — must leave the same gradients and weights as
+stable-baselines3's. The only arithmetic difference is Adam: ours is torch's fused kernel, SB3's
+the for-each one, which round differently in the last bits (~1e-8 per step), hence the tolerance.
+"""
+
+from __future__ import annotations
+
+import gymnasium
+import numpy as np
+import pytest
+import torch
+
+from ede.config import TD3Config
+from ede.td3 import Agent, IdentityAdapter, ReplayBatch
+
+sb3 = pytest.importorskip("stable_baselines3")  # a dev dependency: present wherever tests run
+from stable_baselines3.common.logger import configure  # noqa: E402
+from stable_baselines3.common.type_aliases import ReplayBufferSamples  # noqa: E402
+
+HIDDEN, BATCH, UPDATES, SEED = [64, 48], 32, 8, 3
+TOLERANCE = {"rtol": 1e-5, "atol": 1e-6}
+
+
+class FixedBatches:
+    """Stands in for SB3's replay buffer: hands out the batches we prepared, in order."""
+
+    def __init__(self, batches: list[ReplayBufferSamples]) -> None:
+        self.batches = iter(batches)
+
+    def sample(self, batch_size: int, env: object = None) -> ReplayBufferSamples:
+        return next(self.batches)
+
+
+def linears(module: torch.nn.Module) -> list[torch.nn.Linear]:
+    return [m for m in module.modules() if isinstance(m, torch.nn.Linear)]
+
+
+def copy_weights(source: torch.nn.Module, target: torch.nn.Module) -> None:
+    for a, b in zip(linears(source), linears(target), strict=True):
+        b.weight.data.copy_(a.weight.data)
+        b.bias.data.copy_(a.bias.data)
+
+
+def assert_same(ours: torch.nn.Module, theirs: torch.nn.Module, what: str, grads: bool = False) -> None:
+    for index, (a, b) in enumerate(zip(linears(ours), linears(theirs), strict=True)):
+        for name in ("weight", "bias"):
+            x, y = getattr(a, name), getattr(b, name)
+            if grads:
+                x, y = x.grad, y.grad
+            torch.testing.assert_close(x, y, **TOLERANCE, msg=lambda m: f"{what} layer {index} {name}: {m}")
+
+
+def test_k1_updates_equal_stable_baselines3_td3() -> None:
+    env = gymnasium.make("Reacher-v5")
+    obs_size, act_size = env.observation_space.shape[0], env.action_space.shape[0]
+    config = TD3Config(hidden=HIDDEN, batch_size=BATCH)
+    torch.set_num_threads(1)
+    theirs = sb3.TD3("MlpPolicy", env, learning_rate=config.lr, batch_size=BATCH, tau=config.tau,
+                     gamma=config.discount, policy_delay=config.policy_delay,
+                     target_policy_noise=config.policy_noise, target_noise_clip=config.noise_clip,
+                     policy_kwargs={"net_arch": HIDDEN}, seed=SEED, device="cpu")
+    theirs.set_logger(configure(None, []))
+    adapter = IdentityAdapter(env.action_space.low, env.action_space.high, torch.device("cpu"))
+    ours = Agent(obs_size, adapter, config, torch.device("cpu"), seed=SEED)
+    # Same weights everywhere: SB3's critic is q_networks[0] and [1], ours q1 and q2.
+    copy_weights(theirs.actor.mu, ours.actor.net)
+    copy_weights(theirs.actor_target.mu, ours.actor_target.net)
+    for j, q in enumerate(("q1", "q2")):
+        copy_weights(theirs.critic.q_networks[j], getattr(ours.critic, q))
+        copy_weights(theirs.critic_target.q_networks[j], getattr(ours.critic_target, q))
+
+    rng = np.random.default_rng(0)
+    ours_batches, their_batches = [], []
+    for _ in range(UPDATES):
+        obs = torch.as_tensor(rng.normal(size=(BATCH, obs_size)), dtype=torch.float32)
+        actions = torch.as_tensor(rng.uniform(-1, 1, size=(BATCH, act_size)), dtype=torch.float32)
+        rewards = torch.as_tensor(rng.normal(size=(BATCH, 1)), dtype=torch.float32)
+        terminated = torch.as_tensor(rng.random((BATCH, 1)) < 0.2)
+        next_obs = torch.as_tensor(rng.normal(size=(BATCH, obs_size)), dtype=torch.float32)
+        ours_batches.append(ReplayBatch(obs, actions, torch.zeros(BATCH, dtype=torch.int64), rewards,
+                                        terminated, torch.zeros_like(terminated), next_obs[:, None]))
+        their_batches.append(ReplayBufferSamples(obs, actions, next_obs, terminated.float(), rewards))
+    theirs.replay_buffer = FixedBatches(their_batches)
+
+    for step, batch in enumerate(ours_batches, start=1):
+        # The same target-smoothing noise: both draw one (B, A) standard normal per update, ours
+        # from the agent's generator, SB3's from torch's global one; seed both alike.
+        ours.generator.manual_seed(100 + step)
+        torch.manual_seed(100 + step)
+        ours.update(batch)
+        theirs.train(gradient_steps=1, batch_size=BATCH)
+        actor_step = step % config.policy_delay == 0
+        for j, q in enumerate(("q1", "q2")):
+            if not actor_step:  # SB3's actor loss adds into the critic's gradients; ours spares them
+                assert_same(getattr(ours.critic, q), theirs.critic.q_networks[j],
+                            f"update {step} critic {q} grad", grads=True)
+            assert_same(getattr(ours.critic, q), theirs.critic.q_networks[j], f"update {step} critic {q}")
+            assert_same(getattr(ours.critic_target, q), theirs.critic_target.q_networks[j], f"update {step} target {q}")
+        assert_same(ours.actor.net, theirs.actor.mu, f"update {step} actor")
+        assert_same(ours.actor_target.net, theirs.actor_target.mu, f"update {step} actor target")
+        if actor_step:  # its gradients too
+            assert_same(ours.actor.net, theirs.actor.mu, f"update {step} actor grad", grads=True)
+    # The updates did move the weights (the comparison above is not between untouched copies).
+    first = linears(ours.actor.net)[0].weight
+    assert not torch.equal(first, linears(sb3.TD3("MlpPolicy", env, policy_kwargs={"net_arch": HIDDEN},
+                                                 seed=SEED, device="cpu").actor.mu)[0].weight)
