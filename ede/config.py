@@ -129,9 +129,13 @@ class TD3Config(_Section):
     noise_clip: float = Field(0.5, ge=0, description="clip of the target noise, × action scale")
     policy_delay: PositiveInt = Field(2, description="critic updates per actor update")
     exploration_noise: float = Field(0.1, ge=0, description="behaviour noise, × action scale")
-    start_steps: int = Field(10_000, ge=0, description="uniform random steps before the policy")
+    start_steps: int = Field(
+        0, ge=0, description="uniform random steps before the policy acts and updates start; 0 (the "
+        "authors' code): the actor plus exploration noise acts from the first step, and updates "
+        "start as soon as a batch can be sampled"
+    )
     buffer_size: PositiveInt = 1_000_000
-    eval_every: PositiveInt = 5_000
+    eval_every: PositiveInt = Field(1_000, description="steps between evaluations (the authors' code)")
     eval_episodes: PositiveInt = 10
     checkpoint_every: PositiveInt = 50_000
     precision: Precision = Field(
@@ -193,6 +197,11 @@ class ReportConfig(_Section):
         default_factory=dict, description="return that counts as solved, per task"
     )
     seed: Seed = 0
+    bin_steps: PositiveInt | None = Field(
+        2_500, description="average each run's evaluations in bins of this many steps before the "
+        "mean over seeds, as the authors' figures (2,500 for ReacherVertical); null: no binning. "
+        "The report's curve CSVs (DVC plots) keep every evaluation"
+    )
 
 
 class Params(_Section):

@@ -25,6 +25,7 @@ from ede.stats import (  # noqa: E402
     Interval,
     align_curves,
     area_under_curve,
+    bin_curve,
     bootstrap_mean,
     steps_to_threshold,
 )
@@ -108,16 +109,25 @@ def summarise_task(
 
 
 def curve_band(
-    curves: list[Curve], confidence: float, samples: int, rng: np.random.Generator
+    curves: list[Curve],
+    confidence: float,
+    samples: int,
+    rng: np.random.Generator,
+    bin_steps: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Mean over seeds with a bootstrap band at every evaluated step.
+    """Mean over seeds with a bootstrap band at every evaluated step, or every bin.
 
-    Runs of unequal length count where they have data; ``n`` says how many seeds each point has.
+    With ``bin_steps``, each run's evaluations are first averaged per bin (:func:`bin_curve`), so
+    the points are the bins' right edges, as in the paper's figures. Runs of unequal length count
+    where they have data; ``n`` says how many seeds each point has.
 
     Returns:
         steps, mean, low, high, n — each (T,).
     """
-    steps, table = align_curves([(c.steps, c.returns) for c in curves])
+    pairs = [(c.steps, c.returns) for c in curves]
+    if bin_steps is not None:
+        pairs = [bin_curve(s, r, bin_steps) for s, r in pairs]
+    steps, table = align_curves(pairs)
     mean, low, high, n = (np.full(len(steps), np.nan) for _ in range(4))
     for t in range(len(steps)):
         values = table[:, t][~np.isnan(table[:, t])]
@@ -133,15 +143,19 @@ def learning_curve_figure(
     confidence: float,
     samples: int,
     rng: np.random.Generator,
+    bin_steps: int | None = None,
 ) -> Figure:
-    """One panel per task of a family: each algorithm's mean return with its bootstrap band."""
+    """One panel per task of a family: each algorithm's mean return with its bootstrap band.
+
+    With ``bin_steps`` the curves are binned as the paper's figures (:func:`curve_band`).
+    """
     figure, axes = plt.subplots(1, len(tasks), figsize=(4.2 * len(tasks), 3.4), squeeze=False)
     for ax, task in zip(axes[0], tasks):
         for algo, (label, colour) in ALGO_STYLE.items():
             runs = curves.get((task, algo), [])
             if not runs:
                 continue
-            steps, mean, low, high, _ = curve_band(runs, confidence, samples, rng)
+            steps, mean, low, high, _ = curve_band(runs, confidence, samples, rng, bin_steps)
             ax.plot(steps, mean, color=colour, label=f"{label} ({len(runs)} seeds)")
             ax.fill_between(steps, low, high, color=colour, alpha=0.2, linewidth=0)
         ax.set_title(task)
@@ -152,7 +166,9 @@ def learning_curve_figure(
         else:
             ax.text(0.5, 0.5, "no finished runs", ha="center", va="center", transform=ax.transAxes)
     axes[0][0].set_ylabel("evaluation return")
-    figure.suptitle(f"{family} family: mean over seeds, {100 * confidence:.0f}% bootstrap band")
+    binned = f"evaluations averaged per {bin_steps:,} steps, " if bin_steps else ""
+    figure.suptitle(f"{family} family: {binned}mean over seeds, "
+                    f"{100 * confidence:.0f}% bootstrap band")
     figure.tight_layout()
     return figure
 

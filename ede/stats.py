@@ -6,7 +6,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Interval", "align_curves", "area_under_curve", "bootstrap_mean", "steps_to_threshold"]
+__all__ = [
+    "Interval",
+    "align_curves",
+    "area_under_curve",
+    "bin_curve",
+    "bootstrap_mean",
+    "steps_to_threshold",
+]
 
 
 def area_under_curve(steps: np.ndarray, returns: np.ndarray) -> float:
@@ -67,6 +74,22 @@ def bootstrap_mean(
     alpha = (1 - confidence) / 2
     low, high = np.quantile(resamples, [alpha, 1 - alpha], method="inverted_cdf")
     return Interval(float(values.mean()), float(low), float(high), n)
+
+
+def bin_curve(steps: np.ndarray, returns: np.ndarray, width: float) -> tuple[np.ndarray, np.ndarray]:
+    """One run's evaluations averaged in bins of ``width`` steps, as the authors' figures were.
+
+    Bins are right-closed — ``((b - 1)·width, b·width]`` — and the first one also holds step 0
+    (the untrained policy), as pandas' ``cut`` makes them in the authors' ``rl_plots.ipynb``.
+
+    Returns:
+        each non-empty bin's right edge ``b·width`` and the mean return of its evaluations.
+    """
+    steps, returns = np.asarray(steps, dtype=float), np.asarray(returns, dtype=float)
+    bins = np.maximum(np.ceil(steps / width), 1).astype(np.int64)  # (T,) bin of each evaluation
+    edges, where = np.unique(bins, return_inverse=True)
+    means = np.bincount(where, weights=returns) / np.bincount(where)
+    return edges * float(width), means
 
 
 def align_curves(curves: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:

@@ -147,7 +147,8 @@ def build(params: Params, params_text: str) -> tuple[Page, dict[str, Any], dict[
         source = params.families[family].source
         page.add(f"<h3>{family} family (embedding learned on {source})</h3>")
         page.figure(f"curves-{family}", learning_curve_figure(
-            family, tasks, curves, config.confidence, config.bootstrap_samples, rng),
+            family, tasks, curves, config.confidence, config.bootstrap_samples, rng,
+            config.bin_steps),
             f"learning curves of the {family} family")
         for task in tasks:
             threshold = config.thresholds.get(task)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from ede.stats import align_curves, area_under_curve, bootstrap_mean, steps_to_threshold
+from ede.stats import align_curves, area_under_curve, bin_curve, bootstrap_mean, steps_to_threshold
 
 
 def test_area_under_curve_is_the_trapezoidal_mean_return() -> None:
@@ -69,3 +69,32 @@ def test_curves_of_unequal_length_align_on_the_union_of_steps() -> None:
                                  (np.array([0, 10]), np.array([4.0, 5.0]))])
     np.testing.assert_array_equal(steps, [0, 10, 20])
     np.testing.assert_array_equal(table, [[1.0, 2.0, 3.0], [4.0, 5.0, np.nan]])
+
+
+def test_bins_are_right_closed_with_step_zero_in_the_first_as_the_authors_notebook() -> None:
+    # Evaluations every 1,000 steps in 2,500-step bins: {0, 1000, 2000}, {3000, 4000, 5000},
+    # {6000, 7000}, ... as pandas' cut((-50, 2500], (2500, 5000], ...) groups them.
+    steps = np.arange(0, 10_001, 1000)
+    returns = steps / 1000.0  # 0, 1, ..., 10
+    edges, means = bin_curve(steps, returns, 2500)
+    assert edges.tolist() == [2500, 5000, 7500, 10000]
+    assert means.tolist() == [1.0, 4.0, 6.5, 9.0]  # (0+1+2)/3, (3+4+5)/3, (6+7)/2, (8+9+10)/3
+
+
+def test_a_bin_without_evaluations_is_left_out_and_uneven_steps_bin_by_value() -> None:
+    edges, means = bin_curve(np.array([0, 600, 3100]), np.array([-4.0, -2.0, 5.0]), 1000)
+    assert edges.tolist() == [1000, 4000] and means.tolist() == [-3.0, 5.0]
+
+
+def test_binned_band_is_the_mean_over_seeds_of_each_seeds_bin_means() -> None:
+    from ede.report import Curve, curve_band
+
+    steps = np.array([0, 1000, 2000, 3000, 4000, 5000])
+    curves = [Curve(0, steps, np.array([0.0, 1, 2, 3, 4, 5])), Curve(1, steps, np.array([2.0, 2, 2, 9, 9, 9]))]
+    rng = np.random.default_rng(0)
+    binned, mean, low, high, n = curve_band(curves, 0.95, 200, rng, bin_steps=2500)
+    assert binned.tolist() == [2500, 5000] and n.tolist() == [2, 2]
+    assert mean.tolist() == [(1.0 + 2.0) / 2, (4.0 + 9.0) / 2]
+    assert low[1] == 4.0 and high[1] == 9.0  # two seeds: the band spans their bin means
+    raw = curve_band(curves, 0.95, 200, rng)
+    assert raw[0].tolist() == steps.tolist()

@@ -1,0 +1,146 @@
+"""Learning curves: our TD3 against stable-baselines3's TD3, same settings, same evaluation.
+
+    python benchmarks/td3_vs_sb3.py run --learner ours|sb3 --seeds 0-7 [--steps 30000] --out DIR
+    python benchmarks/td3_vs_sb3.py summarise --out DIR
+
+On gymnasium's ``Reacher-v5`` at the paper's TD3 settings (400-300 networks, batch 100, lr 1e-3,
+gamma 0.99, tau 0.005, target noise 0.2 clipped at 0.5, policy delay 2, exploration noise 0.1,
+1,000 uniform random start steps, then one update per environment step), each learner trains one
+run per seed on one torch thread. Both are evaluated by the same protocol: every 1,000 steps, 10
+deterministic episodes whose starts are the ones our runs use for that seed (``reset(seed=b + e)``
+with ``b = EVAL_SEED_OFFSET * (seed + 1)``), so evaluation starts cannot separate the two.
+
+Each finished (learner, seed) writes ``DIR/<learner>-seed<N>.json`` (runs already there are
+skipped, so a killed batch resumes by seed); ``summarise`` prints the mean curve of each learner
+with its 95% percentile bootstrap band over seeds, and at which evaluations our mean lies outside
+stable-baselines3's band.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import torch
+
+from ede.config import EdeTD3Config, TD3Config
+from ede.stats import bootstrap_mean
+from ede.training import EVAL_SEED_OFFSET, RunSpec, train_run
+
+TASK = "Reacher-v5"
+START = 1_000
+EVAL_EVERY = 1_000
+EVAL_EPISODES = 10
+
+
+def evaluate_sb3(model, seed: int) -> float:
+    env = gymnasium.make(TASK)
+    base = EVAL_SEED_OFFSET * (seed + 1)
+    returns = []
+    for e in range(EVAL_EPISODES):
+        obs, _ = env.reset(seed=base + e)
+        done, total = False, 0.0
+        while not done:
+            action, _ = model.predict(obs, deterministic=True)
+            obs, reward, terminated, truncated, _ = env.step(action)
+            total += float(reward)
+            done = terminated or truncated
+        returns.append(total)
+    return float(np.mean(returns))
+
+
+def run_sb3(seed: int, steps: int) -> list[tuple[int, float]]:
+    from stable_baselines3 import TD3
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.noise import NormalActionNoise
+
+    env = gymnasium.make(TASK)
+    model = TD3("MlpPolicy", env, learning_rate=1e-3, buffer_size=1_000_000, learning_starts=START,
+                batch_size=100, tau=0.005, gamma=0.99, train_freq=1, gradient_steps=1,
+                action_noise=NormalActionNoise(np.zeros(2), 0.1 * np.ones(2)), policy_delay=2,
+                target_policy_noise=0.2, target_noise_clip=0.5,
+                policy_kwargs={"net_arch": [400, 300]}, seed=seed, device="cpu", verbose=0)
+    curve = [(0, evaluate_sb3(model, seed))]
+
+    class Evaluate(BaseCallback):
+        def _on_step(self) -> bool:
+            if self.num_timesteps % EVAL_EVERY == 0:
+                curve.append((self.num_timesteps, evaluate_sb3(self.model, seed)))
+            return True
+
+    model.learn(total_timesteps=steps, callback=Evaluate())
+    return curve
+
+
+def run_ours(seed: int, steps: int, out: Path) -> list[tuple[int, float]]:
+    config = TD3Config(hidden=[400, 300], batch_size=100, start_steps=START, eval_every=EVAL_EVERY,
+                       eval_episodes=EVAL_EPISODES, checkpoint_every=5_000)
+    spec = RunSpec(TASK, "td3", seed, steps, config, EdeTD3Config())
+    train_run(spec, out / f"ours-seed{seed}-run", None)
+    lines = (out / f"ours-seed{seed}-run" / "eval.csv").read_text().splitlines()[1:]
+    return [(int(float(line.split(",")[0])), float(line.split(",")[2])) for line in lines]
+
+
+def summarise(out: Path, confidence: float = 0.95) -> None:
+    curves = {}
+    for learner in ("sb3", "ours"):
+        runs = [json.loads(p.read_text()) for p in sorted(out.glob(f"{learner}-seed*.json"))]
+        if runs:
+            curves[learner] = ({row[0] for run in runs for row in run["curve"]}, runs)
+    rng = np.random.default_rng(0)
+    steps = sorted(set.intersection(*(s for s, _ in curves.values())))
+    print(f"{TASK}: mean evaluation return over seeds [{100 * confidence:.0f}% bootstrap band]")
+    print("step    " + "".join(f"{name} ({len(runs)} seeds)".ljust(34) for name, (_, runs) in curves.items()))
+    outside = []
+    for step in steps:
+        cells, bands = [], {}
+        for name, (_, runs) in curves.items():
+            values = np.array([dict(map(tuple, run["curve"]))[step] for run in runs])
+            band = bootstrap_mean(values, confidence, 2_000, rng)
+            bands[name] = (band.mean, band)
+            cells.append(f"{values.mean():8.2f} [{band.low:7.2f}, {band.high:7.2f}]".ljust(34))
+        print(f"{step:<8d}" + "".join(cells))
+        if "ours" in bands and "sb3" in bands:
+            mean, (low, high) = bands["ours"][0], (bands["sb3"][1].low, bands["sb3"][1].high)
+            if not low - 1e-9 <= mean <= high + 1e-9:
+                outside.append((step, "above" if mean > high else "below"))
+    print(f"our mean outside stable-baselines3's band at {len(outside)} of {len(steps)} evaluations:",
+          ", ".join(f"{s} ({side})" for s, side in outside) or "none")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run")
+    run.add_argument("--learner", choices=["ours", "sb3"], required=True)
+    run.add_argument("--seeds", default="0-7", help="e.g. 0-7 or 0,2,5")
+    run.add_argument("--steps", type=int, default=30_000)
+    run.add_argument("--out", type=Path, required=True)
+    show = sub.add_parser("summarise")
+    show.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    if args.command == "summarise":
+        summarise(args.out)
+        return
+    torch.set_num_threads(1)
+    first, _, last = args.seeds.partition("-")
+    seeds = range(int(first), int(last) + 1) if last else [int(s) for s in args.seeds.split(",")]
+    args.out.mkdir(parents=True, exist_ok=True)
+    for seed in seeds:
+        result = args.out / f"{args.learner}-seed{seed}.json"
+        if result.exists():
+            continue
+        start = time.perf_counter()
+        curve = run_sb3(seed, args.steps) if args.learner == "sb3" else run_ours(seed, args.steps, args.out)
+        result.write_text(json.dumps({"learner": args.learner, "seed": seed, "steps": args.steps,
+                                      "seconds": time.perf_counter() - start, "curve": curve}))
+        print(f"{args.learner} seed {seed}: final {curve[-1][1]:.2f} in {time.perf_counter() - start:.0f}s",
+              flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,50 @@
+"""The training loop's schedule: when the policy starts to act and when updates start."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from ede.config import EdeTD3Config, TD3Config
+from ede.training import RunSpec, _Run
+
+
+def schedule(start_steps: int, steps: int, monkeypatch: pytest.MonkeyPatch) -> tuple[list, list]:
+    """Which behaviour chose each step's code, and at which steps updates ran."""
+    config = TD3Config(hidden=[16, 16], batch_size=8, start_steps=start_steps)
+    run = _Run(RunSpec("ede/Point-v0", "td3", 0, 1_000, config, EdeTD3Config()), None, torch.device("cpu"))
+    chosen_by, updated_at = [], []
+    act, random_code, update = run.agent.act, run.agent.random_code, run.agent.update
+
+    def recording_act(obs, explore):
+        chosen_by.append("actor+noise" if explore else "actor")
+        return act(obs, explore)
+
+    def recording_random():
+        chosen_by.append("uniform")
+        return random_code()
+
+    def recording_update(batch):
+        updated_at.append(run.step)
+        return update(batch)
+
+    monkeypatch.setattr(run.agent, "act", recording_act)
+    monkeypatch.setattr(run.agent, "random_code", recording_random)
+    monkeypatch.setattr(run.agent, "update", recording_update)
+    for _ in range(steps):
+        run.env_step()
+    return chosen_by, updated_at
+
+
+def test_with_no_start_steps_the_actor_acts_first_and_updates_start_with_the_first_batch(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    chosen_by, updated_at = schedule(0, 12, monkeypatch)
+    assert chosen_by == ["actor+noise"] * 12
+    assert updated_at == [8, 9, 10, 11, 12]  # a batch of 8 can be sampled from step 8 on
+
+
+def test_start_steps_are_uniform_and_without_updates(monkeypatch: pytest.MonkeyPatch) -> None:
+    chosen_by, updated_at = schedule(10, 12, monkeypatch)
+    assert chosen_by == ["uniform"] * 10 + ["actor+noise"] * 2
+    assert updated_at == [10, 11, 12]
