@@ -102,7 +102,10 @@ class EmbeddingConfig(_Section):
 class DecoderConfig(_Section):
     """Stage 3: the decoder D, the minimum-norm one-sided inverse of E (Section 2.3)."""
 
-    lam: float = Field(1e-4, ge=0, description="weight λ of the norm penalty: Σ over batch and k steps of ‖a‖ (the authors' weighting; README, Stages 2 and 3)")
+    lam: float = Field(
+        1e-4, ge=0, description="weight λ of the norm penalty: the sum over the batch and the k "
+        "steps of ‖a‖, the authors' weighting (README, Stages 2 and 3)"
+    )
     z_source: Literal["prior", "marginal"] = Field(
         "marginal",
         description="where training z are drawn: N(0, I) as the paper writes, or E's whitened "
