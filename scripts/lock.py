@@ -104,6 +104,11 @@ def main(argv: list[str] | None = None) -> None:
 
     entries = read(args.lock)
     if args.command == "select":
+        compiled = re.search(r"pip-compile with Python (\d+\.\d+)", Path(args.lock).read_text())
+        running = f"{sys.version_info[0]}.{sys.version_info[1]}"
+        if compiled and compiled[1] != running:
+            print(f"lock.py: warning: {args.lock} was compiled for Python {compiled[1]}, this is "
+                  f"{running}; if the install fails, `make lock` with this Python", file=sys.stderr)
         sys.stdout.write(select(entries, args.only, args.without))
     elif args.command == "version":
         name = normalize(args.name)
