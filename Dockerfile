@@ -6,8 +6,8 @@
 #   docker build -t ede .                                     # CPU torch (default)
 #   docker build -t ede:cuda --build-arg TORCH_INDEX_URL=https://download.pytorch.org/whl/cu126 .
 #
-# Layers go from the slowest-changing to the fastest: system packages, torch, the dependencies
-# listed in pyproject.toml, then the code. Editing code rebuilds only the last, small layer.
+# Layers go from the slowest-changing to the fastest: system packages, torch, the other packages
+# of requirements.lock, then the code. Editing code rebuilds only the last, small layer.
 FROM docker.io/library/debian:bookworm-slim
 
 # Debian's python3 (3.11 on bookworm) in a venv; git for DVC; Mesa's software EGL and OSMesa so
@@ -28,29 +28,30 @@ ENV VIRTUAL_ENV=/opt/venv \
     MUJOCO_GL=egl \
     PYOPENGL_PLATFORM=egl
 
-RUN python3 -m venv "$VIRTUAL_ENV" \
-    && pip install --upgrade "pip>=24" "setuptools>=69" wheel
+# Debian's pip; setuptools and wheel come at their locked versions with the rest of the lock.
+RUN python3 -m venv "$VIRTUAL_ENV"
 
 # torch alone first: the largest layer, changed only by the build arguments. It comes from
 # TORCH_INDEX_URL, PyTorch's CPU-only index by default (a plain `pip install torch` pulls GBs of
 # CUDA libraries; a CUDA index gives a CUDA build, to run with `--gpus all`) — unless a torch wheel
 # sits in docker/wheels/ (git-ignored, mounted for this step only), which is then used as it is.
+# TORCH_VERSION is requirements.lock's (tests/test_lock.py checks it); the build is the index's.
 ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
 ARG TORCH_VERSION=2.13.0
 RUN --mount=type=bind,source=docker/wheels,target=/wheels \
     if ls /wheels/torch-"$TORCH_VERSION"*.whl >/dev/null 2>&1; \
-    then pip install --find-links /wheels "torch==$TORCH_VERSION"; \
+    then pip install --no-deps --find-links /wheels "torch==$TORCH_VERSION"; \
     else pip install --index-url "$TORCH_INDEX_URL" --extra-index-url https://pypi.org/simple \
         "torch==$TORCH_VERSION"; \
     fi
 
-# The project's dependencies, read from pyproject.toml (torch is already satisfied), and dvc-s3
-# for S3-compatible remotes. Only a change of pyproject.toml reruns this.
-COPY pyproject.toml /tmp/ede/pyproject.toml
-RUN python3 -c "import tomllib; print('\n'.join(tomllib.load(open('/tmp/ede/pyproject.toml', 'rb'))['project']['dependencies']))" \
-        > /tmp/requirements.txt \
-    && pip install -r /tmp/requirements.txt "dvc-s3>=3" \
-    && rm -rf /tmp/ede /tmp/requirements.txt
+# Every other package of requirements.lock, the same set `make install` puts in .venv (every extra:
+# dvc-s3 for S3 stores, Ray for Ray nodes), each at its locked version and checked against its
+# locked hashes. Only a change of the lock reruns this.
+COPY requirements.lock scripts/lock.py /tmp/lock/
+RUN python3 /tmp/lock/lock.py select /tmp/lock/requirements.lock --without torch > /tmp/lock/rest.lock \
+    && pip install --require-hashes --no-deps -r /tmp/lock/rest.lock \
+    && rm -rf /tmp/lock
 
 # The code (a regular install, with the ede_envs start-up hook) and the batch-job script.
 COPY pyproject.toml setup.py README.md /tmp/ede/
@@ -59,6 +60,7 @@ COPY envs /tmp/ede/envs
 COPY pipeline /tmp/ede/pipeline
 COPY scripts/batch-job.sh /tmp/ede/scripts/
 RUN pip install --no-deps --no-build-isolation /tmp/ede \
+    && pip check \
     && install -m 755 /tmp/ede/scripts/batch-job.sh /usr/local/bin/batch-job \
     && rm -rf /tmp/ede
 

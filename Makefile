@@ -1,10 +1,24 @@
 # The two commands of the README: `make repro` and `make test`. Both create .venv when missing
-# and (re)install the project into it when pyproject.toml or setup.py changed.
+# and (re)install the project into it when requirements.lock, pyproject.toml or setup.py changed;
+# `make lock` refreshes requirements.lock from pyproject.toml.
 
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
+PIP := $(BIN)/python -m pip --disable-pip-version-check
 STAMP := $(VENV)/.installed
+# Every package the venv and the image install, pinned with its hashes (`make lock` writes it),
+# and the simulator's pins from it, which the stages that step an environment depend on.
+LOCK := requirements.lock
+SIMULATOR_LOCK := simulator.lock
+# torch is installed first, by itself. Empty: from pip's own configuration (on our machines the
+# local CPU wheel), checked against the lock's hash. Elsewhere name PyTorch's index, e.g.
+# https://download.pytorch.org/whl/cpu (or a CUDA one): the locked version, in that index's build.
+TORCH_INDEX_URL ?=
+# `make lock` keeps every pin pyproject.toml still allows; LOCK_UPGRADE=all re-resolves everything
+# at today's versions, LOCK_UPGRADE="mujoco gymnasium" just those.
+LOCK_UPGRADE ?=
+PIP_TOOLS := pip-tools==7.6.2
 # MuJoCo renders headless through EGL (Mesa's software EGL works with no GPU); set MUJOCO_GL=osmesa
 # to use OSMesa instead.
 export MUJOCO_GL ?= egl
@@ -12,16 +26,38 @@ PYTEST_ARGS ?=
 # Stages call `ede-pipeline` and `dvc` by name.
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: install repro quick test container-test clean-venv
+.PHONY: install lock repro quick test container-test clean-venv
 
 install: $(STAMP)
 
-$(STAMP): pyproject.toml setup.py
+$(STAMP): $(LOCK) pyproject.toml setup.py scripts/lock.py
 	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 11))' \
 		|| { echo "error: $(PYTHON) is older than 3.11; set PYTHON=python3.11 or newer" >&2; exit 2; }
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[dev]'
+	$(BIN)/python scripts/lock.py select $(LOCK) --only torch >$(VENV)/torch.lock
+	$(BIN)/python scripts/lock.py select $(LOCK) --without torch >$(VENV)/rest.lock
+ifeq ($(TORCH_INDEX_URL),)
+	$(PIP) install --quiet --require-hashes --no-deps -r $(VENV)/torch.lock \
+		|| { echo "error: no torch wheel with the locked hash here; set TORCH_INDEX_URL" >&2; exit 2; }
+else
+	$(PIP) install --quiet --extra-index-url $(TORCH_INDEX_URL) \
+		"torch==$$($(BIN)/python scripts/lock.py version $(LOCK) torch | cut -d+ -f1)"
+endif
+	$(PIP) install --quiet --require-hashes --no-deps -r $(VENV)/rest.lock
+	$(PIP) install --quiet --no-deps --no-build-isolation -e .
+	$(PIP) check
 	touch $(STAMP)
+
+# Re-resolve pyproject.toml (every extra, the build requirements) into requirements.lock with
+# pip-tools, and copy the simulator's pins out of it. Review the diff; commit both files.
+lock:
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(PIP) install --quiet $(PIP_TOOLS)
+	CUSTOM_COMPILE_COMMAND="make lock" $(BIN)/pip-compile --quiet --all-extras --all-build-deps \
+		--generate-hashes --strip-extras --allow-unsafe --no-emit-index-url --no-emit-find-links \
+		$(if $(filter all,$(LOCK_UPGRADE)),--upgrade,$(addprefix --upgrade-package=,$(LOCK_UPGRADE))) \
+		--output-file $(LOCK) pyproject.toml
+	$(BIN)/python scripts/lock.py simulator $(LOCK) $(SIMULATOR_LOCK)
 
 repro: install
 	$(BIN)/dvc repro

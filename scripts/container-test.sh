@@ -62,10 +62,12 @@ if ! pm image exists "$base"; then
     rm -rf "$rootfs"
 fi
 
-step "torch wheel for the image: the local CPU build, into docker/wheels/"
-if ! ls docker/wheels/torch-*.whl >/dev/null 2>&1; then
-    "$python" -m pip download --quiet --no-deps --dest docker/wheels "torch==$("$python" -c \
-        'import torch; print(torch.__version__.split("+")[0])')"
+step "torch wheel for the image: the locked CPU build (its hash checked), into docker/wheels/"
+if ! ls docker/wheels/torch-"$("$python" scripts/lock.py version requirements.lock torch)"-*.whl \
+        >/dev/null 2>&1; then
+    "$python" scripts/lock.py select requirements.lock --only torch >"$state/torch.lock"
+    "$python" -m pip download --quiet --no-deps --require-hashes --dest docker/wheels \
+        -r "$state/torch.lock"
 fi
 
 step "build (podman, host CA for the build's HTTPS)"
