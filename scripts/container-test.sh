@@ -139,10 +139,29 @@ ls "$work/podman/ede-store/files/md5" >/dev/null || fail "nothing pushed to ../e
 (cd "$work/podman/repo" && PATH=$repo/$venv/bin:$PATH dvc status --quiet collect@point) || fail "dvc status not clean"
 copy_repo "$work/host/repo"
 (cd "$work/host/repo" && PATH=$repo/$venv/bin:$PATH dvc repro --quiet collect@point)
-out_hash() { "$python" -c 'import sys, yaml; print(yaml.safe_load(open(sys.argv[1]))["stages"]["collect@point"]["outs"][0]["md5"])' "$1/dvc.lock"; }
-[[ $(out_hash "$work/podman/repo") == $(out_hash "$work/host/repo") ]] \
-    || fail "the container's store differs from the host's dvc repro"
-echo "container batch job == host dvc repro: $(out_hash "$work/host/repo")"
+# The same store: every array byte for byte and every attribute, except the recorded software
+# versions, which name what made each (Debian's Python in the image, the host's Python here).
+same_store() {  # same_store REPO_A REPO_B
+    "$python" - "$1/data/point/rollouts.zarr" "$2/data/point/rollouts.zarr" <<'PY'
+import sys
+from ede.provenance import describe_software
+from ede.rollouts import Rollouts
+a, b = (Rollouts.open(path) for path in sys.argv[1:3])
+arrays_a, arrays_b = a.arrays(), b.arrays()
+assert arrays_a.keys() == arrays_b.keys(), (sorted(arrays_a), sorted(arrays_b))
+for name, array in arrays_a.items():
+    other = arrays_b[name]
+    assert array.dtype == other.dtype and array.shape == other.shape and array.tobytes() == other.tobytes(), \
+        f"array {name} differs"
+attrs_a, attrs_b = ({k: v for k, v in r.attrs.items() if k != "software"} for r in (a, b))
+assert attrs_a == attrs_b, {k: (attrs_a.get(k), attrs_b.get(k)) for k in attrs_a.keys() | attrs_b.keys()
+                            if attrs_a.get(k) != attrs_b.get(k)}
+print(f"byte-identical arrays and attributes, fingerprint {a.attrs['fingerprint'][:16]}")
+for path, r in zip(sys.argv[1:3], (a, b)):
+    print(f"  made with {describe_software(r.attrs.get('software'))}: {path}")
+PY
+}
+same_store "$work/podman/repo" "$work/host/repo" || fail "the container's store differs from the host's dvc repro"
 
 step "docker client against podman's socket: the README's lines as written"
 socket=$state/podman.sock
@@ -166,7 +185,7 @@ docker run --rm --user "$(id -u):$(id -g)" -v "$PWD":/work -v "$PWD/../ede-store
     --entrypoint batch-job ede collect@point
 # ---
 check_store "$PWD"
-[[ $(out_hash "$PWD") == $(out_hash "$work/host/repo") ]] || fail "docker batch job differs from dvc repro"
+same_store "$PWD" "$work/host/repo" || fail "docker batch job differs from dvc repro"
 PATH=$repo/$venv/bin:$PATH dvc status --quiet collect@point || fail "dvc status not clean after the docker batch job"
 cd "$repo"
 
