@@ -93,6 +93,16 @@ class EmbeddingConfig(_Section):
     lr: float = Field(1e-4, gt=0)
     batch_size: PositiveInt = 128
     epochs: PositiveInt = Field(10, description="passes over the training windows")
+    window_stride: PositiveInt = Field(
+        1, description="training windows start every this many steps of an episode: 1 uses every "
+        "window (overlapping); k gives non-overlapping windows, as the authors' code (which also "
+        "collects 400K steps for its 100K windows: collect.steps 400000)"
+    )
+    predictor_state: bool = Field(
+        True, description="whether P sees the state s_t; false feeds it a constant, as the "
+        "authors' code does in effect (its delta-encoded first row is always zero), so P predicts "
+        "the change from the code alone"
+    )
     holdout: float = Field(0.1, gt=0, lt=1, description="fraction of episodes never trained on")
     seed: Seed = 0
     device: Device = "cpu"

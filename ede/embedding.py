@@ -131,6 +131,7 @@ def _windows(
     k: int,
     whitening: tuple[Whitening, Whitening],
     device: torch.device,
+    predictor_state: bool = True,
 ) -> _Windows:
     state, actions, later = rollouts.windows(starts, k)
     state_white, delta_white = whitening
@@ -138,9 +139,13 @@ def _windows(
     def tensor(x: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(x, dtype=torch.float32, device=device)
 
-    return _Windows(
-        tensor(state_white.apply(state)), tensor(actions), tensor(delta_white.apply(later - state))
-    )
+    seen = state_white.apply(state) if predictor_state else np.zeros_like(state)
+    return _Windows(tensor(seen), tensor(actions), tensor(delta_white.apply(later - state)))
+
+
+def strided(rollouts: Rollouts, starts: np.ndarray, stride: int) -> np.ndarray:
+    """The window starts at every ``stride``-th step of their episode (step 0, stride, ...)."""
+    return starts[rollouts.t[starts] % stride == 0]
 
 
 @dataclass
@@ -180,13 +185,13 @@ def train_encoder(
     """
     k = config.k
     train_eps, held_eps = split_episodes(rollouts.num_episodes, config.holdout, config.seed)
-    train_starts = rollouts.window_starts(k, train_eps)
-    held_starts = rollouts.window_starts(k, held_eps)
+    train_starts = strided(rollouts, rollouts.window_starts(k, train_eps), config.window_stride)
+    held_starts = strided(rollouts, rollouts.window_starts(k, held_eps), config.window_stride)
     if len(train_starts) == 0 or len(held_starts) == 0:
         raise ValueError(f"{rollouts.path}: episodes are too short for windows of k={k}")
     whitening = rollouts.whitening(k, train_starts)
-    train = _windows(rollouts, train_starts, k, whitening, device)
-    held = _windows(rollouts, held_starts, k, whitening, device)
+    train = _windows(rollouts, train_starts, k, whitening, device, config.predictor_state)
+    held = _windows(rollouts, held_starts, k, whitening, device, config.predictor_state)
 
     torch.manual_seed(config.seed)  # initial weights
     generator = torch.Generator().manual_seed(config.seed)

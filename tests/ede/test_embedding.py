@@ -168,3 +168,35 @@ def test_a_decoder_of_another_encoder_is_refused(saved: tuple[Path, Path], tmp_p
                  high=HIGH, params={}, data_fingerprint="x")
     with pytest.raises(ArtifactError, match="another encoder"):
         load_action_embedding(tmp_path / "other", saved[1])
+
+
+def test_a_window_stride_of_k_keeps_non_overlapping_windows_from_each_episodes_start(point: Rollouts) -> None:
+    from ede.embedding import strided
+
+    every = point.window_starts(4)
+    starts = strided(point, every, 4)
+    # 0, 4, ..., 92: a window needs the state k steps on, and an episode stores its 100 pre-step states
+    assert set(point.t[starts]) == set(range(0, 96, 4))
+    assert len(starts) == point.num_episodes * 24 and set(starts) <= set(every)
+    assert np.array_equal(strided(point, every, 1), every)
+
+
+def test_without_the_state_the_predictor_learns_nothing_from_it(point: Rollouts) -> None:
+    from ede.embedding import Encoder, Predictor
+
+    torch.set_num_threads(1)
+    config = EmbeddingConfig(epochs=2, predictor_state=False, **SMALL)
+    result = train_encoder(point, config)
+    torch.manual_seed(config.seed)  # the initial weights train_encoder starts from
+    Encoder(4, 2, 2, SMALL["hidden"])
+    initial = Predictor(point.state.shape[1], 2, SMALL["hidden"])
+    first, start = linear_layers(result.predictor)[0].weight, linear_layers(initial)[0].weight
+    state_size = point.state.shape[1]
+    # The state's input weights never moved (their gradient is zero); the code's did.
+    assert torch.equal(first[:, :state_size], start[:, :state_size])
+    assert not torch.equal(first[:, state_size:], start[:, state_size:])
+    assert result.metrics["prediction_ratio"] < 1.0
+
+
+def linear_layers(module: torch.nn.Module) -> list[torch.nn.Linear]:
+    return [m for m in module.modules() if isinstance(m, torch.nn.Linear)]
