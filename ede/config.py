@@ -147,6 +147,11 @@ class TD3Config(_Section):
         "authors' code): the actor plus exploration noise acts from the first step, and updates "
         "start as soon as a batch can be sampled"
     )
+    update_schedule: Literal["step", "episode"] = Field(
+        "step", description="step: one update after every environment step (the paper's text); "
+        "episode: at each episode's end as many updates as it had steps, the policy fixed while "
+        "it collects (the authors' code; docs/fidelity.md, row 2)"
+    )
     buffer_size: PositiveInt = 1_000_000
     eval_every: PositiveInt = Field(1_000, description="steps between evaluations (the authors' code)")
     eval_episodes: PositiveInt = 10

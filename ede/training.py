@@ -254,7 +254,11 @@ class _Run:
         return row
 
     def env_step(self) -> None:
-        """One environment step and one update (Section 3: learn from every step)."""
+        """One environment step and its updates (Section 3: learn from every step).
+
+        With ``td3.update_schedule: step``, one update after the step; with ``episode``, none
+        until the episode ends, then one per step of it.
+        """
         config = self.spec.td3
         if self.i == 0:
             if self.step < config.start_steps:
@@ -269,14 +273,18 @@ class _Run:
         self.episode.ret += float(reward)
         self.step += 1
         self.i = (self.i + 1) % self.adapter.k
+        updates = 1 if config.update_schedule == "step" else 0
         if terminated or truncated:
+            if config.update_schedule == "episode":
+                updates = len(self.episode.actions)  # one per step of the episode just ended
             self.episodes += 1
             self.i = 0
             self.obs, self.episode = _reset(self.env, None)
         else:
             self.obs = next_obs
         if self.step >= config.start_steps and self.buffer.sampleable >= config.batch_size:
-            self.agent.update(self.buffer.sample(config.batch_size, self.agent.generator))
+            for _ in range(updates):
+                self.agent.update(self.buffer.sample(config.batch_size, self.agent.generator))
 
 
 def train_run(

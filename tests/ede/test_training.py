@@ -48,3 +48,16 @@ def test_start_steps_are_uniform_and_without_updates(monkeypatch: pytest.MonkeyP
     chosen_by, updated_at = schedule(10, 12, monkeypatch)
     assert chosen_by == ["uniform"] * 10 + ["actor+noise"] * 2
     assert updated_at == [10, 11, 12]
+
+
+def test_the_episode_schedule_updates_once_per_step_when_an_episode_ends(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    config = TD3Config(hidden=[16, 16], batch_size=8, start_steps=0, update_schedule="episode")
+    run = _Run(RunSpec("ede/Point-v0", "td3", 0, 1_000, config, EdeTD3Config()), None, torch.device("cpu"))
+    updated_at = []
+    update = run.agent.update
+    monkeypatch.setattr(run.agent, "update", lambda batch: (updated_at.append(run.step), update(batch)))
+    for _ in range(150):
+        run.env_step()
+    assert run.episodes == 1 and updated_at == [100] * 100  # Point-v0's episodes are 100 steps
