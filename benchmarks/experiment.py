@@ -1,0 +1,148 @@
+"""One task's experiment outside DVC: variants of params, both algorithms, many seeds, a table.
+
+    python benchmarks/experiment.py --out DIR [--task ede/ReacherVertical-v0] [--seeds 0-7]
+        [--algos td3,ede-td3] [--jobs 2] [--variant NAME:key=value,key=value ...] [--summarise]
+
+Each variant is the committed ``params.yaml`` restricted to the task's family and the task, with
+its overrides applied (dotted keys, YAML values: ``embedding.predictor_state=false``); no
+variant means the committed params alone (``default``). For each variant, in ``DIR/<variant>/``:
+the family's rollouts and embedding (``ede-pipeline collect`` and ``pretrain``, skipped when
+present), then one ``ede-pipeline train`` per algorithm and seed, ``--jobs`` at a time, each a
+separate process that resumes from its checkpoint when the batch is run again; finished runs are
+kept. Then, per variant and algorithm, over seeds with 95% bootstrap intervals: final return,
+area under the curve, steps to -15 and -10, and the binned mean curve (``report.bin_steps``).
+
+The paper's ReacherVertical experiment at the committed defaults is
+``--out DIR --seeds 0-7``; the embedding-recipe ablation of docs/fidelity.md (rows 4 and 5) is
+``--algos ede-td3 --seeds 0-3 --variant state: --variant constant:embedding.predictor_state=false
+--variant windows400k:collect.steps=400000,embedding.window_stride=4``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from ede.config import load_params
+from ede.report import curve_band, read_curve, summarise_task
+
+REPO = Path(__file__).resolve().parents[1]
+THRESHOLDS = (-15.0, -10.0)
+
+
+def variant_params(task: str, overrides: str) -> dict:
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    family = next(name for name, f in params["runs"]["tasks"].items() if task in f)
+    params["families"] = {family: params["families"][family]}
+    params["runs"]["tasks"] = {family: [task]}
+    params["runs"]["budgets"] = {task: params["runs"]["budgets"][task]}
+    for assignment in filter(None, overrides.split(",")):
+        key, _, value = assignment.partition("=")
+        *path, last = key.split(".")
+        section = params
+        for part in path:
+            section = section[part]
+        section[last] = yaml.safe_load(value)
+    return params
+
+
+def ede_pipeline(workdir: Path, *args: str) -> None:
+    log = workdir / "log.txt"
+    with open(log, "a") as handle:
+        result = subprocess.run([sys.executable, "-m", "ede_pipeline", *args], cwd=workdir,
+                                stdout=handle, stderr=subprocess.STDOUT)
+    if result.returncode:
+        raise SystemExit(f"{workdir}: ede-pipeline {' '.join(args)} failed; see {log}")
+
+
+def prepare(workdir: Path, task: str, overrides: str) -> str:
+    """The variant's params file, rollouts and embedding; returns the family."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    params = variant_params(task, overrides)
+    (workdir / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    load_params(workdir / "params.yaml")  # a bad override stops here, with its key named
+    family = next(iter(params["families"]))
+    data = f"data/{family}"
+    if not (workdir / data / "rollouts.zarr").exists():
+        ede_pipeline(workdir, "collect", "--family", family, "--out", f"{data}/rollouts.zarr")
+    for part in ("encoder", "decoder"):
+        if not (workdir / data / "embedding" / part / "meta.json").exists():
+            extra = ["--encoder", f"{data}/embedding/encoder"] if part == "decoder" else []
+            ede_pipeline(workdir, "pretrain", part, "--family", family,
+                         "--rollouts", f"{data}/rollouts.zarr", *extra,
+                         "--out", f"{data}/embedding/{part}",
+                         "--metrics", f"{data}/embedding/{part}_metrics.json",
+                         "--plots", f"{data}/embedding/{part}_history.csv")
+    return family
+
+
+def run_dir(workdir: Path, task: str, algo: str, seed: int) -> Path:
+    return workdir / "data/runs" / task / algo / f"seed{seed}"
+
+
+def train(workdir: Path, family: str, task: str, algo: str, seed: int) -> None:
+    out = run_dir(workdir, task, algo, seed)
+    if (out / "metrics.json").exists():
+        return
+    data = f"data/{family}/embedding"
+    ede_pipeline(workdir, "train", "--task", task, "--algo", algo, "--seed", str(seed),
+                 "--out", str(out.relative_to(workdir)),
+                 "--encoder", f"{data}/encoder", "--decoder", f"{data}/decoder")
+    print(f"{workdir.name}: {algo} seed {seed} done", flush=True)
+
+
+def summarise(workdir: Path, task: str, algos: list[str], seeds: list[int]) -> None:
+    params = load_params(workdir / "params.yaml")
+    rng = np.random.default_rng(0)
+    print(f"\n== {workdir.name}")
+    bands = {}
+    for algo in algos:
+        curves = [c for s in seeds if (c := read_curve(run_dir(workdir, task, algo, s), s))]
+        if not curves:
+            continue
+        rows = [summarise_task(task, algo, curves, [], t, 0.95, 2_000, rng) for t in THRESHOLDS]
+        print(f"{algo:8s} seeds {len(curves)}: final {rows[0].final}; AUC {rows[0].auc}; "
+              + "; ".join(f"to {t:g}: {r.to_threshold}" for t, r in zip(THRESHOLDS, rows)))
+        bands[algo] = curve_band(curves, 0.95, 2_000, rng, params.report.bin_steps)
+    if bands:
+        steps = next(iter(bands.values()))[0]
+        print("bin end  " + "".join(f"{a:>28s}" for a in bands))
+        for j, step in enumerate(steps):
+            print(f"{int(step):7d}  " + "".join(
+                f"{b[1][j]:9.2f} [{b[2][j]:7.2f}, {b[3][j]:7.2f}]" for b in bands.values()))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--task", default="ede/ReacherVertical-v0")
+    parser.add_argument("--algos", default="td3,ede-td3")
+    parser.add_argument("--seeds", default="0-7", help="e.g. 0-7 or 0,2,5")
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--variant", action="append", default=[], help="NAME:key=value,...")
+    parser.add_argument("--summarise", action="store_true", help="only print the tables")
+    args = parser.parse_args()
+    first, _, last = args.seeds.partition("-")
+    seeds = list(range(int(first), int(last) + 1)) if last else [int(s) for s in args.seeds.split(",")]
+    algos = args.algos.split(",")
+    variants = [v.partition(":")[::2] for v in args.variant] or [("default", "")]
+    if not args.summarise:
+        for name, overrides in variants:
+            family = prepare(args.out / name, args.task, overrides)
+            # Interleaved so that a batch cut short holds both algorithms for the same seeds.
+            jobs = [(name, algo, seed) for seed in seeds for algo in algos]
+            with ThreadPoolExecutor(args.jobs) as pool:
+                for result in [pool.submit(train, args.out / n, family, args.task, a, s) for n, a, s in jobs]:
+                    result.result()
+    for name, _ in variants:
+        summarise(args.out / name, args.task, algos, seeds)
+
+
+if __name__ == "__main__":
+    main()
