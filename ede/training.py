@@ -45,6 +45,7 @@ __all__ = ["RunSpec", "evaluate", "train_run"]
 CHECKPOINT_VERSION = 1
 EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes are seeded apart from training ones
 EVAL_COLUMNS = ("step", "episode", "mean_return", "std_return", "wall_seconds")
+RESOURCES = {"threads", "device", "checkpoint_every"}  # td3 settings that leave results alone
 
 
 @dataclass(frozen=True)
@@ -65,8 +66,8 @@ class RunSpec:
             "algo": self.algo,
             "seed": self.seed,
             "budget": self.budget,
-            "params": {
-                "td3": self.td3.model_dump(mode="json"),
+            "params": {  # what changes the result: not where or how fast it runs
+                "td3": self.td3.model_dump(mode="json", exclude=RESOURCES),
                 "ede_td3": self.ede_td3.model_dump(mode="json"),
             },
             "embedding": self.embedding_id,

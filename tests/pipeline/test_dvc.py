@@ -54,6 +54,14 @@ def test_dvc_collect_stage_writes_the_store_and_is_then_up_to_date(repo_copy: Pa
     assert lock["stages"]["collect@point"]["params"]["params.yaml"]["collect"]["steps"] == 200
 
 
+def stale(copy: Path) -> set[str]:
+    """The stages ``dvc status`` reports out of date."""
+    result = dvc(copy, "status")
+    assert result.returncode == 0, result.stdout + result.stderr
+    return {line[:-1] for line in result.stdout.splitlines() if line and not line[0].isspace()
+            and line.endswith(":")}
+
+
 def tiny_pipeline(params: dict) -> None:
     """Every stage at the smallest size that still exercises it."""
     params["collect"].update(steps=200, num_envs=1)
@@ -83,6 +91,17 @@ def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
     assert "None: every run the params name is here." in page
     assert page.count("data:image/png;base64,") == 4
 
+    # Where and how fast runs go changes no result: nothing is stale.
+    faster = {**params, "td3": {**params["td3"], "threads": 2, "checkpoint_every": 50}}
+    params_file.write_text(yaml.safe_dump(faster, sort_keys=False))
+    assert stale(repo_copy) == set()
+    # One task's budget: that task's runs and the report, nothing else.
+    longer = {**params, "runs": {**params["runs"], "budgets": {**params["runs"]["budgets"],
+                                                               "ede/ReacherTurn-v0": 300}}}
+    params_file.write_text(yaml.safe_dump(longer, sort_keys=False))
+    assert stale(repo_copy) == {"report"} | {
+        f"train_reacher@ede/ReacherTurn-v0-{algo}-0" for algo in params["runs"]["algos"]}
+
     params["td3"]["tau"] = 0.01
     params_file.write_text(yaml.safe_dump(params, sort_keys=False))
     second = dvc(repo_copy, "repro")
@@ -91,3 +110,23 @@ def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
     runs = sum(len(tasks) for tasks in params["runs"]["tasks"].values()) * 2
     assert len(ran) == runs + 1 and "report" in ran, sorted(ran)
     assert all(stage.startswith("train_") for stage in ran - {"report"}), sorted(ran)
+
+
+# Settings that change how fast or where a stage runs, never its result: DVC does not track them.
+UNTRACKED = {"td3.threads", "td3.device", "td3.checkpoint_every", "embedding.threads",
+             "embedding.device", "decoder.threads", "decoder.device"}
+
+
+def test_every_param_that_changes_a_result_is_tracked_by_key() -> None:
+    from ede.config import Params
+
+    stages = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
+    tracked = {key for stage in stages.values() for key in stage.get("do", stage).get("params", [])}
+    for section in ("embedding", "decoder", "td3", "ede_td3"):
+        model = Params.model_fields[section].annotation
+        for field in model.model_fields:
+            key = f"{section}.{field}"
+            if key in UNTRACKED:
+                assert key not in tracked, f"{key} changes no result but dvc.yaml tracks it"
+            else:
+                assert key in tracked or section in tracked, f"dvc.yaml does not track {key}"
