@@ -4,8 +4,10 @@ A run is determined by its task, algorithm, seed, budget, params and (for EDE-TD
 writes, into its directory:
 
 * ``eval.csv``: ``step, episode, mean_return, std_return, wall_seconds`` after every evaluation;
-* ``metrics.json``: final and best return, area under the curve, steps per second, the run's
-  identity (task, algo, seed, budget, params) and the versions of the software that made it;
+* ``run.json``: what made the run — its identity (task, algo, seed, budget, the params that
+  change its result, the embedding's checksum) and the versions of the software;
+* ``metrics.json``: final and best return, area under the curve, steps per second, episodes;
+  written last, so a run with ``metrics.json`` is complete;
 * ``policy/``: the final actor as safetensors beside its JSON metadata;
 * ``checkpoint/`` while it runs: everything needed to continue exactly (networks, optimisers,
   replay buffer, generator states, counters, the evaluation history, and the current episode as
@@ -345,11 +347,10 @@ def train_run(
         "steps_per_second": session_steps / session_seconds if session_steps else None,
         "episodes": run.episodes,
         "resumed_from_step": steps_at_start if resumed else None,
-        **spec.identity(),
-        "software": software_versions(),
     }
     save_policy(out / "policy", run.agent, spec, run.adapter)
-    write_json(out / "metrics.json", metrics)
+    write_json(out / "run.json", {**spec.identity(), "software": software_versions()})
+    write_json(out / "metrics.json", metrics)  # last: a run with metrics.json is complete
     if not keep_checkpoint:
         shutil.rmtree(checkpoint, ignore_errors=True)
     return metrics

@@ -231,9 +231,9 @@ def _provenance(params: Params, params_text: str) -> str:
     for task in params.runs.all_tasks:
         for algo in params.runs.algos:
             for seed in params.runs.seeds:
-                metrics_file = run_dir(task, algo, seed) / "metrics.json"
-                if metrics_file.is_file():
-                    software = describe_software(json.loads(metrics_file.read_text()).get("software"))
+                run_file = run_dir(task, algo, seed) / "run.json"
+                if run_file.is_file():
+                    software = describe_software(json.loads(run_file.read_text()).get("software"))
                     runs[software] = runs.get(software, 0) + 1
     rows += [f"<tr><td>{count} training run{'s' * (count > 1)}</td><td></td>"
              f"<td>{html.escape(software)}</td></tr>" for software, count in runs.items()]

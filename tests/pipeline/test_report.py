@@ -30,8 +30,8 @@ def fake_run(root: Path, task: str, algo: str, seed: int, returns: list[float]) 
     lines = ["step,episode,mean_return,std_return,wall_seconds"]
     lines += [f"{1000 * i},{10 * i},{r},1.0,{i}" for i, r in enumerate(returns)]
     (out / "eval.csv").write_text("\n".join(lines) + "\n")
-    (out / "metrics.json").write_text(json.dumps({"final_return": returns[-1],
-                                                  "software": {**software_versions(), "torch": "9.9"}}))
+    (out / "metrics.json").write_text(json.dumps({"final_return": returns[-1]}))
+    (out / "run.json").write_text(json.dumps({"software": {**software_versions(), "torch": "9.9"}}))
 
 
 def embedding(root: Path, family: str, env_id: str) -> None:
