@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ede.envs import make
+from ede.tasks import make
 from ede.rollouts import collect, write_store
 
 

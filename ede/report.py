@@ -20,7 +20,7 @@ import torch  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
 from ede.embedding import ActionEmbedding  # noqa: E402
-from ede.envs import make  # noqa: E402
+from ede.tasks import make  # noqa: E402
 from ede.stats import (  # noqa: E402
     Interval,
     align_curves,

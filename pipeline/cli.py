@@ -71,7 +71,7 @@ def _hydra(value: Any) -> str:
 @main.command()
 def envs() -> None:
     """List every task this package provides: family, spaces and episode length."""
-    from ede.envs import describe_tasks
+    from ede.tasks import describe_tasks
 
     rows = [("task", "family", "role", "observation", "action", "steps")]
     rows += [

@@ -10,7 +10,7 @@ import click
 import numpy as np
 
 from ede.config import Params
-from ede.envs import make
+from ede.tasks import make
 from ede.provenance import software_versions
 from ede.rollouts import Rollouts, RolloutsError, write_store
 from ede.rollouts import collect as collect_steps

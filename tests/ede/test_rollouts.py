@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import zarr
 
-from ede.envs import make
+from ede.tasks import make
 from ede.rollouts import (
     ARRAYS,
     Rollouts,

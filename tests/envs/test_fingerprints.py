@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import ede_envs
-from ede.envs import make
+from ede.tasks import make
 from ede_envs._numerics import cos_sin, norm, sum_of_squares
 
 STEPS = 250  # two and a half episodes: resets inside the rollout are covered

@@ -12,7 +12,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import ede_envs
-from ede.envs import make
+from ede.tasks import make
 
 ALL_TASKS = [task for family in ede_envs.FAMILIES.values() for task in family.tasks]
 OUR_TASKS = [task for task in ALL_TASKS if task.startswith("ede/")]
