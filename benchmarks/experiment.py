@@ -31,6 +31,7 @@ import yaml
 
 from ede.config import load_params
 from ede.report import curve_band, read_curve, summarise_task
+from ede_pipeline import layout
 
 REPO = Path(__file__).resolve().parents[1]
 THRESHOLDS = (-15.0, -10.0)
@@ -83,7 +84,7 @@ def prepare(workdir: Path, task: str, overrides: str) -> str:
 
 
 def run_dir(workdir: Path, task: str, algo: str, seed: int) -> Path:
-    return workdir / "data/runs" / task / algo / f"seed{seed}"
+    return workdir / layout.run(task, algo, seed)
 
 
 def train(workdir: Path, family: str, task: str, algo: str, seed: int) -> None:

@@ -34,10 +34,13 @@ __all__ = [
     "ALGO_STYLE",
     "Curve",
     "TaskRow",
+    "curve_band",
+    "diagnostics_figure",
     "effect_space",
     "exploration",
     "learning_curve_figure",
     "read_curve",
+    "read_diagnostics",
     "summarise_task",
 ]
 
@@ -169,6 +172,47 @@ def learning_curve_figure(
     binned = f"evaluations averaged per {bin_steps:,} steps, " if bin_steps else ""
     figure.suptitle(f"{family} family: {binned}mean over seeds, "
                     f"{100 * confidence:.0f}% bootstrap band")
+    figure.tight_layout()
+    return figure
+
+
+def read_diagnostics(run_dir: Path) -> dict[str, np.ndarray] | None:
+    """A run's ``diagnostics.csv`` as columns, or None if it has none."""
+    path = run_dir / "diagnostics.csv"
+    if not path.is_file():
+        return None
+    with open(path) as handle:
+        rows = list(csv.DictReader(handle))
+    if not rows:
+        return None
+    return {name: np.array([float(row[name]) for row in rows]) for name in rows[0]}
+
+
+def diagnostics_figure(
+    family: str, tasks: list[str], runs: dict[tuple[str, str], list[dict[str, np.ndarray]]]
+) -> Figure:
+    """Per task, the mean over seeds of Q(s, μ(s)) (top) and of the critic loss (bottom, log)."""
+    figure, axes = plt.subplots(2, len(tasks), figsize=(4.2 * len(tasks), 4.4), squeeze=False,
+                                sharex="col")
+    for column, task in enumerate(tasks):
+        for algo, (label, colour) in ALGO_STYLE.items():
+            found = runs.get((task, algo), [])
+            if not found:
+                continue
+            for row, name in enumerate(("mean_q", "critic_loss")):
+                steps, table = align_curves([(d["step"], d[name]) for d in found])
+                axes[row][column].plot(steps, np.nanmean(table, axis=0), color=colour,
+                                       label=f"{label} ({len(found)} seeds)")
+        axes[0][column].set_title(task)
+        axes[1][column].set_yscale("log")
+        axes[1][column].set_xlabel("environment steps")
+        for ax in axes[:, column]:
+            ax.grid(alpha=0.3)
+        if axes[0][column].lines:
+            axes[0][column].legend(fontsize=8)
+    axes[0][0].set_ylabel("mean Q(s, μ(s))")
+    axes[1][0].set_ylabel("critic loss")
+    figure.suptitle(f"{family} family: training diagnostics, mean over seeds per evaluation interval")
     figure.tight_layout()
     return figure
 

@@ -309,6 +309,9 @@ class Agent:
             (list(self.actor_target.parameters()), self._actor_params),
         ]
         self.autocast = config.precision == "bf16"
+        # Sums since the last take_diagnostics(), kept on the device so that no update waits for
+        # the host: critic loss, critic steps, actor loss (−mean Q(s, μ(s), 0)), actor steps.
+        self.loss_sums = torch.zeros(4, device=device)
 
     def _noise(self, shape: torch.Size, std: float, scale: torch.Tensor) -> torch.Tensor:
         return torch.randn(shape, generator=self.generator, device=self.device) * std * scale
@@ -347,7 +350,7 @@ class Agent:
             q1, q2 = self.critic_target(parts.bootstrap_obs, next_code, parts.next_i)
             return parts.returns + parts.discount * torch.minimum(q1, q2).float()
 
-    def update(self, batch: ReplayBatch) -> dict[str, float]:
+    def update(self, batch: ReplayBatch) -> None:
         """One critic step, and every ``policy_delay`` steps an actor step and target moves.
 
         Its matrix products follow ``td3.precision`` (see :func:`ede.nets.matmul_precision`).
@@ -355,7 +358,7 @@ class Agent:
         with matmul_precision(self.config.precision):
             return self._update(batch)
 
-    def _update(self, batch: ReplayBatch) -> dict[str, float]:
+    def _update(self, batch: ReplayBatch) -> None:
         c = self.config
         target = self.target(batch)
         with self._autocast():
@@ -364,9 +367,11 @@ class Agent:
         _clear_grads(self._critic_params)
         critic_loss.backward()
         self.critic_optimizer.step()
+        self.loss_sums[0] += critic_loss.detach()
+        self.loss_sums[1] += 1
         self.updates += 1
         if self.updates % c.policy_delay:
-            return {}
+            return
         # The actor follows ∇_c Q_1(s, c, 0) (Equation 2); Q's own weights get no gradient here,
         # which also spares the backward pass their weight products.
         for p in self._critic_params:
@@ -379,9 +384,27 @@ class Agent:
         self.actor_optimizer.step()
         for p in self._critic_params:
             p.requires_grad_(True)
+        self.loss_sums[2] += actor_loss.detach()
+        self.loss_sums[3] += 1
         for target, source in self._polyak_pairs:
             polyak(target, source, c.tau)
-        return {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item()}
+
+    def take_diagnostics(self) -> dict[str, float]:
+        """Means over the updates since the last call (one host synchronisation), then reset.
+
+        Returns:
+            ``updates`` (critic steps), ``critic_loss``, ``actor_loss`` and ``mean_q``, the mean
+            of Q_1(s, μ(s), 0) over the actor steps' batches (NaN where there was no step).
+        """
+        critic, critic_steps, actor, actor_steps = self.loss_sums.tolist()
+        self.loss_sums.zero_()
+        nan = float("nan")
+        return {
+            "updates": int(critic_steps),
+            "critic_loss": critic / critic_steps if critic_steps else nan,
+            "actor_loss": actor / actor_steps if actor_steps else nan,
+            "mean_q": -actor / actor_steps if actor_steps else nan,
+        }
 
     # Checkpoints -------------------------------------------------------------------------
 

@@ -6,6 +6,8 @@ writes, into its directory:
 * ``eval.csv``: ``step, episode, mean_return, std_return, wall_seconds`` after every evaluation;
 * ``run.json``: what made the run — its identity (task, algo, seed, budget, the params that
   change its result, the embedding's checksum) and the versions of the software;
+* ``diagnostics.csv``: ``step, updates, critic_loss, actor_loss, mean_q``, the means over the
+  updates since the previous evaluation (mean_q: Q_1(s, μ(s), 0) on the actor's batches);
 * ``metrics.json``: final and best return, area under the curve, steps per second, episodes;
   written last, so a run with ``metrics.json`` is complete;
 * ``policy/``: the final actor as safetensors beside its JSON metadata;
@@ -44,9 +46,10 @@ from ede.td3 import ActionAdapter, Agent, EmbeddingAdapter, IdentityAdapter, Rep
 
 __all__ = ["RunSpec", "evaluate", "train_run"]
 
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2  # 2: training diagnostics
 EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes are seeded apart from training ones
 EVAL_COLUMNS = ("step", "episode", "mean_return", "std_return", "wall_seconds")
+DIAGNOSTIC_COLUMNS = ("step", "updates", "critic_loss", "actor_loss", "mean_q")
 RESOURCES = {"threads", "device", "checkpoint_every"}  # td3 settings that leave results alone
 
 
@@ -130,9 +133,9 @@ def _replay(env: gymnasium.Env, episode: _Episode) -> np.ndarray:
     return obs
 
 
-def _csv(rows: list[dict[str, float]]) -> str:
+def _csv(rows: list[dict[str, float]], columns: tuple[str, ...] = EVAL_COLUMNS) -> str:
     out = io.StringIO()
-    writer = csv.DictWriter(out, fieldnames=EVAL_COLUMNS, lineterminator="\n")
+    writer = csv.DictWriter(out, fieldnames=columns, lineterminator="\n")
     writer.writeheader()
     writer.writerows(rows)
     return out.getvalue()
@@ -164,6 +167,7 @@ class _Run:
         self.code = torch.zeros(self.adapter.code_size, device=device)
         self.plan = np.zeros((self.adapter.k, space.shape[0]), dtype=space.dtype)
         self.history: list[dict[str, float]] = []
+        self.diagnostics: list[dict[str, float]] = []  # training's means between evaluations
         self.wall = 0.0  # seconds spent, over every session of this run
         self.obs, self.episode = _reset(self.env, spec.seed)
 
@@ -187,6 +191,7 @@ class _Run:
             np.array(self.episode.actions, dtype=self.plan.dtype).reshape(-1, self.plan.shape[1])
         )
         tensors["obs"] = torch.as_tensor(np.asarray(self.obs))
+        tensors["loss_sums"] = self.agent.loss_sums
         state = {
             "version": CHECKPOINT_VERSION,
             "fingerprint": self.spec.fingerprint(),
@@ -199,6 +204,7 @@ class _Run:
             "episode_start": self.episode.start,
             "episode_return": self.episode.ret,
             "history": self.history,
+            "diagnostics": self.diagnostics,
         }
 
         def write(tmp: Path) -> None:
@@ -237,6 +243,8 @@ class _Run:
         self.plan = tensors["plan"].cpu().numpy()
         self.step, self.episodes, self.i = state["step"], state["episodes"], state["i"]
         self.wall, self.history = state["wall_seconds"], state["history"]
+        self.diagnostics = state["diagnostics"]
+        self.agent.loss_sums.copy_(tensors["loss_sums"])
         self.episode = _Episode(
             state["episode_start"], list(tensors["episode_actions"].cpu().numpy()),
             state["episode_return"],
@@ -254,6 +262,9 @@ class _Run:
         row = {"step": self.step, "episode": self.episodes, "mean_return": float(returns.mean()),
                "std_return": float(returns.std()), "wall_seconds": round(self.wall, 3)}
         self.history.append(row)
+        trained = self.agent.take_diagnostics()
+        if trained["updates"]:
+            self.diagnostics.append({"step": self.step, **trained})
         return row
 
     def env_step(self) -> None:
@@ -290,6 +301,11 @@ class _Run:
                 self.agent.update(self.buffer.sample(config.batch_size, self.agent.generator))
 
 
+def _write_curves(out: Path, run: _Run) -> None:
+    write_text(out / "diagnostics.csv", _csv(run.diagnostics, DIAGNOSTIC_COLUMNS))
+    write_text(out / "eval.csv", _csv(run.history))
+
+
 def train_run(
     spec: RunSpec,
     out: Path,
@@ -322,7 +338,7 @@ def train_run(
 
     if not run.history:
         run.evaluate()
-        write_text(out / "eval.csv", _csv(run.history))
+        _write_curves(out, run)
     while run.step < spec.budget:
         run.env_step()
         if progress is not None:
@@ -330,12 +346,12 @@ def train_run(
         if run.step % config.eval_every == 0 or run.step == spec.budget:
             clock()
             run.evaluate()
-            write_text(out / "eval.csv", _csv(run.history))
+            _write_curves(out, run)
         if run.step % config.checkpoint_every == 0 and run.step < spec.budget:
             clock()
             run.save(checkpoint)
     clock()
-    write_text(out / "eval.csv", _csv(run.history))
+    _write_curves(out, run)
     steps = np.array([row["step"] for row in run.history], dtype=float)
     returns = np.array([row["mean_return"] for row in run.history])
     session_steps = run.step - steps_at_start

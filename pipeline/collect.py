@@ -14,7 +14,8 @@ from ede.tasks import make
 from ede.provenance import software_versions
 from ede.rollouts import Rollouts, RolloutsError, write_store
 from ede.rollouts import collect as collect_steps
-from ede_pipeline.common import BadInput, check_family, family_option, params_option, rollouts_path
+from ede_pipeline import layout
+from ede_pipeline.common import BadInput, check_family, family_option, params_option
 from ede_pipeline.progress import progress
 
 
@@ -31,7 +32,7 @@ from ede_pipeline.progress import progress
 def collect(params: Params, family: str, out: Path | None, workers: int | None) -> None:
     """Stage 1: uniform random steps of a family's source task into a Zarr store."""
     check_family(params, family)
-    out = out or rollouts_path(family)
+    out = out or layout.rollouts(family)
     env_id = params.families[family].source
     config = params.collect
     num_envs = config.num_envs or os.cpu_count() or 1
@@ -69,7 +70,7 @@ def store_attrs(
 def open_rollouts(params: Params, family: str, path: Path | None) -> Any:
     """Open a family's store, turning every problem with it into one line of bad input."""
     try:
-        return Rollouts.open(path or rollouts_path(family), env_id=params.families[family].source)
+        return Rollouts.open(path or layout.rollouts(family), env_id=params.families[family].source)
     except RolloutsError as error:
         raise BadInput(str(error)) from None
 

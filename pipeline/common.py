@@ -12,12 +12,6 @@ import click
 from ede.config import Params, ParamsError, load_params
 
 DEFAULT_PARAMS = Path("params.yaml")
-DATA = Path("data")
-
-
-def rollouts_path(family: str) -> Path:
-    """Where a family's rollouts live unless ``--out``/``--rollouts`` says otherwise."""
-    return DATA / family / "rollouts.zarr"
 
 
 class BadInput(click.ClickException):

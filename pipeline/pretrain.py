@@ -16,13 +16,10 @@ from ede.atomic import write_json, write_text
 from ede.config import Params
 from ede.embedding import train_decoder, train_encoder
 from ede.nets import pick_device
+from ede_pipeline import layout
 from ede_pipeline.collect import open_rollouts
 from ede_pipeline.common import BadInput, check_family, family_option, params_option
 from ede_pipeline.progress import progress
-
-
-def embedding_dir(family: str) -> Path:
-    return Path("data") / family / "embedding"
 
 
 def _csv(rows: list[dict[str, float]]) -> str:
@@ -88,7 +85,7 @@ def encoder(
     data = open_rollouts(params, family, rollouts)
     if len(data.window_starts(config.k)) == 0:
         raise BadInput(f"{data.path}: no episode is longer than k={config.k} steps")
-    folder = embedding_dir(family)
+    folder = layout.embedding(family)
     with progress(config.epochs, f"encoder {family}", unit="epoch") as advance:
         result = train_encoder(data, config, device, on_epoch=lambda row: advance(1))
     low, high = (np.asarray(data.attrs["spaces"][key]) for key in ("action_low", "action_high"))
@@ -128,7 +125,7 @@ def decoder(
     device = _device(config.device)
     torch.set_num_threads(config.threads)
     data = open_rollouts(params, family, rollouts)
-    folder = embedding_dir(family)
+    folder = layout.embedding(family)
     encoder_path = encoder_path or folder / "encoder"
     try:
         meta, encoded = load_encoder(encoder_path, device)

@@ -24,15 +24,16 @@ from ede.report import (
     Curve,
     TaskRow,
     curve_band,
+    diagnostics_figure,
     effect_space,
     exploration,
     learning_curve_figure,
     read_curve,
+    read_diagnostics,
     summarise_task,
 )
-from ede_pipeline.common import params_option, rollouts_path
-from ede_pipeline.pretrain import embedding_dir
-from ede_pipeline.train import run_dir
+from ede_pipeline import layout
+from ede_pipeline.common import params_option
 
 STYLE = """
 body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }
@@ -95,7 +96,7 @@ def _table(rows: list[TaskRow]) -> str:
 
 def _embedding(params: Params, family: str, page: Page) -> tuple[Any, Any] | None:
     """A family's embedding, or None with the reason on the page."""
-    folder = embedding_dir(family)
+    folder = layout.embedding(family)
     try:
         if family not in params.families:
             raise ArtifactError(f"no family {family!r} in the params")
@@ -123,17 +124,21 @@ def build(params: Params, params_text: str) -> tuple[Page, dict[str, Any], dict[
     page.add("<h2>Learning curves</h2>")
     for family, tasks in params.runs.tasks.items():
         curves: dict[tuple[str, str], list[Curve]] = {}
+        diagnostics: dict[tuple[str, str], list[dict[str, np.ndarray]]] = {}
         rows: dict[str, list[TaskRow]] = {}
         for task in tasks:
             for algo in params.runs.algos:
                 found, missing = [], []
                 for seed in params.runs.seeds:
-                    curve = read_curve(run_dir(task, algo, seed), seed)
+                    curve = read_curve(layout.run(task, algo, seed), seed)
                     if curve is None:
                         missing.append(seed)
-                        missing_runs.append(str(run_dir(task, algo, seed)))
+                        missing_runs.append(str(layout.run(task, algo, seed)))
                     else:
                         found.append(curve)
+                        trained = read_diagnostics(layout.run(task, algo, seed))
+                        if trained is not None:
+                            diagnostics.setdefault((task, algo), []).append(trained)
                 curves[(task, algo)] = found
                 row = summarise_task(task, algo, found, missing, config.thresholds.get(task),
                                      config.confidence, config.bootstrap_samples, rng)
@@ -150,6 +155,9 @@ def build(params: Params, params_text: str) -> tuple[Page, dict[str, Any], dict[
             family, tasks, curves, config.confidence, config.bootstrap_samples, rng,
             config.bin_steps),
             f"learning curves of the {family} family")
+        if diagnostics:
+            page.figure(f"diagnostics-{family}", diagnostics_figure(family, tasks, diagnostics),
+                        f"training diagnostics of the {family} family")
         for task in tasks:
             threshold = config.thresholds.get(task)
             note = f" (threshold {threshold:g})" if threshold is not None else ""
@@ -215,13 +223,13 @@ def _provenance(params: Params, params_text: str) -> str:
     rows = [_row("params.yaml; this report", hashlib.sha256(params_text.encode()).hexdigest(),
                  software_versions())]
     for family in params.families:
-        folder = embedding_dir(family)
+        folder = layout.embedding(family)
         for name in ("encoder", "decoder"):
             meta = folder / name / "meta.json"
             if meta.is_file():
                 data = json.loads(meta.read_text())
                 if name == "encoder":
-                    store = rollouts_path(family) / "zarr.json"
+                    store = layout.rollouts(family) / "zarr.json"
                     attrs = json.loads(store.read_text()).get("attributes", {}) if store.is_file() else {}
                     rows.append(_row(f"{family} rollouts", data["data_fingerprint"],
                                      attrs.get("software")))
@@ -231,7 +239,7 @@ def _provenance(params: Params, params_text: str) -> str:
     for task in params.runs.all_tasks:
         for algo in params.runs.algos:
             for seed in params.runs.seeds:
-                run_file = run_dir(task, algo, seed) / "run.json"
+                run_file = layout.run(task, algo, seed) / "run.json"
                 if run_file.is_file():
                     software = describe_software(json.loads(run_file.read_text()).get("software"))
                     runs[software] = runs.get(software, 0) + 1
@@ -244,13 +252,13 @@ def _provenance(params: Params, params_text: str) -> str:
 
 
 @click.command()
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("data/report"),
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=layout.REPORT,
               show_default=True, help="Report directory: index.html and its PNG figures.")
 @click.option("--metrics", type=click.Path(dir_okay=False, path_type=Path),
-              default=Path("data/report-metrics.json"), show_default=True,
+              default=layout.REPORT_METRICS, show_default=True,
               help="Summary metrics (DVC metrics): mean final return and AUC per task and algorithm.")
 @click.option("--curves", type=click.Path(file_okay=False, path_type=Path),
-              default=Path("data/report-curves"), show_default=True,
+              default=layout.REPORT_CURVES, show_default=True,
               help="Mean learning curve per task, one CSV each (DVC plots).")
 @params_option
 def report(params: Params, out: Path, metrics: Path, curves: Path) -> None:

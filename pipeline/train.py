@@ -11,13 +11,9 @@ from ede.artifacts import ArtifactError, load_action_embedding
 from ede.config import ALGOS, Params
 from ede.nets import pick_device
 from ede.training import RunSpec, train_run
+from ede_pipeline import layout
 from ede_pipeline.common import BadInput, params_option
-from ede_pipeline.pretrain import embedding_dir
 from ede_pipeline.progress import progress
-
-
-def run_dir(task: str, algo: str, seed: int) -> Path:
-    return Path("data") / "runs" / task / algo / f"seed{seed}"
 
 
 @click.command()
@@ -54,7 +50,7 @@ def train(
         raise BadInput(str(error)) from None
     embedding, embedding_id = None, ""
     if algo == "ede-td3":
-        folder = embedding_dir(family)
+        folder = layout.embedding(family)
         try:
             meta, embedding = load_action_embedding(
                 encoder or folder / "encoder", decoder or folder / "decoder", device
@@ -67,7 +63,7 @@ def train(
         embedding_id = meta.weights_sha256
     torch.set_num_threads(config.threads)
     spec = RunSpec(task, algo, seed, params.runs.budgets[task], config, params.ede_td3, embedding_id)
-    out = out or run_dir(task, algo, seed)
+    out = out or layout.run(task, algo, seed)
     with progress(spec.budget, f"{algo} {task} seed {seed}") as advance:
         metrics = train_run(spec, out, embedding, device, advance, keep_checkpoint)
     click.echo(f"{out}: final return {metrics['final_return']:.2f}, best {metrics['best_return']:.2f}, "

@@ -61,3 +61,25 @@ def test_the_episode_schedule_updates_once_per_step_when_an_episode_ends(
     for _ in range(150):
         run.env_step()
     assert run.episodes == 1 and updated_at == [100] * 100  # Point-v0's episodes are 100 steps
+
+
+def test_diagnostics_are_the_means_of_the_updates_since_the_last_evaluation(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    config = TD3Config(hidden=[16, 16], batch_size=8, start_steps=0, eval_episodes=1)
+    run = _Run(RunSpec("ede/Point-v0", "td3", 0, 1_000, config, EdeTD3Config()), None, torch.device("cpu"))
+    losses = []  # what each step added to the sums
+
+    for _ in range(20):
+        before = run.agent.loss_sums.clone()
+        run.env_step()
+        losses.append((run.agent.loss_sums - before).tolist())
+    run.evaluate()
+    (row,) = run.diagnostics
+    steps = [l for l in losses if l[1]]  # the updates (from step 8 on)
+    assert row["step"] == 20 and row["updates"] == len(steps) == 13
+    assert row["critic_loss"] == pytest.approx(sum(l[0] for l in steps) / 13)
+    actor = [l[2] for l in steps if l[3]]
+    assert len(actor) == 6 and row["mean_q"] == pytest.approx(-sum(actor) / 6)
+    assert row["actor_loss"] == pytest.approx(-row["mean_q"])
+    assert run.agent.loss_sums.abs().sum() == 0  # taken: the next interval starts from zero

@@ -89,7 +89,8 @@ def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
     for section in ("Learning curves", "Figure 6", "Figure 7", "Missing runs", "Provenance"):
         assert section in page
     assert "None: every run the params name is here." in page
-    assert page.count("data:image/png;base64,") == 4
+    assert page.count("data:image/png;base64,") == 6  # curves and diagnostics per family, Figures 6, 7
+    assert "diagnostics-reacher" in page and "diagnostics-sevendof" in page
 
     # Where and how fast runs go changes no result: nothing is stale.
     faster = {**params, "td3": {**params["td3"], "threads": 2, "checkpoint_every": 50}}

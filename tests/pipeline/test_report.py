@@ -32,6 +32,10 @@ def fake_run(root: Path, task: str, algo: str, seed: int, returns: list[float]) 
     (out / "eval.csv").write_text("\n".join(lines) + "\n")
     (out / "metrics.json").write_text(json.dumps({"final_return": returns[-1]}))
     (out / "run.json").write_text(json.dumps({"software": {**software_versions(), "torch": "9.9"}}))
+    if task.startswith("ede/"):  # training diagnostics, as train writes them
+        lines = ["step,updates,critic_loss,actor_loss,mean_q"]
+        lines += [f"{1000 * i},1000,{1.0 / i},{-r},{r}" for i, r in enumerate(returns[1:], start=1)]
+        (out / "diagnostics.csv").write_text("\n".join(lines) + "\n")
 
 
 def embedding(root: Path, family: str, env_id: str) -> None:
@@ -90,9 +94,11 @@ def test_every_section_with_runs_missing_and_of_unequal_length(project: Path, em
     for section in ("Learning curves", "reacher family", "sevendof family", "Figure 6", "R² =",
                     "Figure 7", "of the arena", "Missing runs", "Provenance", "threshold -5"):
         assert section in page, section
-    for image in ("curves-reacher", "curves-sevendof", "effect-space", "exploration"):
+    for image in ("curves-reacher", "curves-sevendof", "diagnostics-reacher", "effect-space",
+                  "exploration"):
         assert f'id="{image}"' in page and (project / f"data/report/{image}.png").is_file()
-    assert page.count("data:image/png;base64,") == 4  # self-contained
+    assert 'id="diagnostics-sevendof"' not in page  # no run of that family has diagnostics
+    assert page.count("data:image/png;base64,") == 5  # self-contained
     # 12 runs expected (2 tasks x 2 algos x 3 seeds); 5 exist.
     assert "7 of 12 runs have no results" in page
     # provenance: each input's SHA-256 beside the versions that made it
@@ -141,4 +147,4 @@ def test_the_page_opens_in_headless_chromium_with_its_figures(project: Path, emb
     assert shot.is_file() and shot.stat().st_size > 20_000
     dom = subprocess.run(["chromium", *flags, "--dump-dom", page.as_uri()], capture_output=True,
                          text=True, timeout=120, env={**os.environ, "HOME": str(project)})
-    assert dom.returncode == 0 and dom.stdout.count("<img") == 4
+    assert dom.returncode == 0 and dom.stdout.count("<img") == 5  # curves x2, diagnostics, Figures 6 and 7

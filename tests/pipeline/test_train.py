@@ -144,6 +144,9 @@ def test_a_run_killed_midway_resumes_to_the_same_returns(in_workdir: Path, preci
                   "--out", str(killed))
     assert resumed.exit_code == 0, resumed.output
     assert returns_of(killed) == returns_of(reference)
+    # and the training diagnostics, interval by interval, to the bit
+    assert (killed / "diagnostics.csv").read_text() == (reference / "diagnostics.csv").read_text()
+    assert len((reference / "diagnostics.csv").read_text().splitlines()) > 2
     metrics = json.loads((killed / "metrics.json").read_text())
     assert metrics["resumed_from_step"] == state["step"]
     assert json.loads((killed / "run.json").read_text())["params"]["td3"]["precision"] == precision
