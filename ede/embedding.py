@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ede.config import DecoderConfig, EmbeddingConfig
-from ede.nets import mlp
+from ede.nets import initial_weights, mlp
 from ede.rollouts import Rollouts, Whitening
 
 __all__ = [
@@ -193,14 +193,14 @@ def train_encoder(
     train = _windows(rollouts, train_starts, k, whitening, device, config.predictor_state)
     held = _windows(rollouts, held_starts, k, whitening, device, config.predictor_state)
 
-    torch.manual_seed(config.seed)  # initial weights
     generator = torch.Generator().manual_seed(config.seed)
     sample_generator = torch.Generator(device=device).manual_seed(config.seed + 1)
     state_size, action_size = train.state.shape[1], train.actions.shape[2]
     dim = config.dim or action_size
-    encoder = Encoder(k, action_size, dim, config.hidden).to(device)
-    predictor = Predictor(state_size, dim, config.hidden).to(device)
-    raw = Predictor(state_size, k * action_size, config.hidden).to(device)
+    with initial_weights(config.seed):
+        encoder = Encoder(k, action_size, dim, config.hidden).to(device)
+        predictor = Predictor(state_size, dim, config.hidden).to(device)
+        raw = Predictor(state_size, k * action_size, config.hidden).to(device)
     params = [*encoder.parameters(), *predictor.parameters(), *raw.parameters()]
     optimizer = torch.optim.Adam(params, lr=config.lr, amsgrad=True)
 
@@ -338,8 +338,8 @@ def train_decoder(
     for p in encoder.parameters():
         p.requires_grad_(False)
     embedding_whitening = encoded.code_whitening
-    torch.manual_seed(config.seed)  # initial weights
-    decoder = ActionDecoder(encoder.dim, k, low, high, config.hidden).to(device)
+    with initial_weights(config.seed):
+        decoder = ActionDecoder(encoder.dim, k, low, high, config.hidden).to(device)
     code_mean = torch.as_tensor(embedding_whitening.mean, dtype=torch.float32, device=device)
     code_std = torch.as_tensor(embedding_whitening.std, dtype=torch.float32, device=device)
 

@@ -9,7 +9,7 @@ from functools import cache
 import torch
 from torch import nn
 
-__all__ = ["matmul_precision", "mlp", "pick_device", "product_error"]
+__all__ = ["initial_weights", "matmul_precision", "mlp", "pick_device", "product_error"]
 
 
 def mlp(
@@ -26,6 +26,19 @@ def mlp(
         layers += [nn.Linear(a, b), activation(inplace=True)]
     layers.append(nn.Linear(sizes[-1], out_size))
     return nn.Sequential(*layers)
+
+
+@contextmanager
+def initial_weights(seed: int) -> Iterator[None]:
+    """Modules built inside the block draw their initial weights from a generator seeded ``seed``.
+
+    ``nn.Module`` constructors draw from torch's global CPU generator; the block seeds it and
+    puts its state back on leaving, so nothing outside (a caller's draws, another run in the
+    process) is reseeded or disturbed.
+    """
+    with torch.random.fork_rng(devices=[]):
+        torch.default_generator.manual_seed(seed)
+        yield
 
 
 def pick_device(name: str) -> torch.device:

@@ -32,7 +32,7 @@ from torch import nn
 
 from ede.config import TD3Config
 from ede.embedding import ActionEmbedding
-from ede.nets import matmul_precision, mlp
+from ede.nets import initial_weights, matmul_precision, mlp
 
 __all__ = [
     "ActionAdapter",
@@ -287,12 +287,12 @@ class Agent:
         seed: int,
     ) -> None:
         self.adapter, self.config, self.device = adapter, config, device
-        torch.manual_seed(seed)  # initial weights
         low, high = adapter.code_low, adapter.code_high
         self.scale = (high - low) / 2  # noise is relative to the half-range of the code box
         self.target_scale = self.scale * adapter.target_noise_scale
-        self.actor = Actor(obs_size, low, high, config.hidden).to(device)
-        self.critic = Critic(obs_size, adapter.code_size, adapter.k, config.hidden).to(device)
+        with initial_weights(seed):
+            self.actor = Actor(obs_size, low, high, config.hidden).to(device)
+            self.critic = Critic(obs_size, adapter.code_size, adapter.k, config.hidden).to(device)
         self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         # One fused kernel per step instead of a Python loop over tensors: a third of an update's

@@ -83,3 +83,21 @@ def test_diagnostics_are_the_means_of_the_updates_since_the_last_evaluation(
     assert len(actor) == 6 and row["mean_q"] == pytest.approx(-sum(actor) / 6)
     assert row["actor_loss"] == pytest.approx(-row["mean_q"])
     assert run.agent.loss_sums.abs().sum() == 0  # taken: the next interval starts from zero
+
+
+def test_building_an_agent_or_an_embedding_reseeds_nothing_outside(point_store) -> None:
+    from ede.config import EmbeddingConfig
+    from ede.embedding import train_encoder
+    from ede.rollouts import Rollouts
+    from ede.td3 import Agent, IdentityAdapter
+
+    torch.manual_seed(1234)
+    expected = torch.rand(3)
+    torch.manual_seed(1234)
+    adapter = IdentityAdapter(-torch.ones(2).numpy(), torch.ones(2).numpy(), torch.device("cpu"))
+    first = Agent(4, adapter, TD3Config(hidden=[8]), torch.device("cpu"), seed=0)
+    train_encoder(Rollouts.open(point_store), EmbeddingConfig(hidden=[8], epochs=1))
+    assert torch.equal(torch.rand(3), expected)  # the caller's stream went on untouched
+    second = Agent(4, adapter, TD3Config(hidden=[8]), torch.device("cpu"), seed=0)
+    for a, b in zip(first.actor.parameters(), second.actor.parameters()):
+        assert torch.equal(a, b)  # and the same seed still gives the same weights
