@@ -170,8 +170,8 @@ def learning_curve_figure(
             ax.text(0.5, 0.5, "no finished runs", ha="center", va="center", transform=ax.transAxes)
     axes[0][0].set_ylabel("evaluation return")
     binned = f"evaluations averaged per {bin_steps:,} steps, " if bin_steps else ""
-    figure.suptitle(f"{family} family: {binned}mean over seeds, "
-                    f"{100 * confidence:.0f}% bootstrap band")
+    figure.suptitle(f"{family} family\n{binned}mean over seeds, "
+                    f"{100 * confidence:.0f}% bootstrap band", fontsize=10)
     figure.tight_layout()
     return figure
 
