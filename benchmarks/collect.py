@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ede.tasks import make
 from ede.rollouts import collect, write_store
+from ede.tasks import make
 
 
 def plain_loop(task: str, steps: int) -> float:

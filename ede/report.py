@@ -20,7 +20,6 @@ import torch  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
 from ede.embedding import ActionEmbedding  # noqa: E402
-from ede.tasks import make  # noqa: E402
 from ede.stats import (  # noqa: E402
     Interval,
     align_curves,
@@ -29,6 +28,7 @@ from ede.stats import (  # noqa: E402
     bootstrap_mean,
     steps_to_threshold,
 )
+from ede.tasks import make  # noqa: E402
 
 __all__ = [
     "ALGO_STYLE",

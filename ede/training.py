@@ -39,9 +39,9 @@ from safetensors.torch import load_file, save_file
 from ede.atomic import write_atomically, write_json, write_text
 from ede.config import EdeTD3Config, TD3Config
 from ede.embedding import ActionEmbedding
-from ede.tasks import make
 from ede.provenance import software_versions
 from ede.stats import area_under_curve
+from ede.tasks import make
 from ede.td3 import ActionAdapter, Agent, EmbeddingAdapter, IdentityAdapter, ReplayBuffer
 
 __all__ = ["RunSpec", "evaluate", "train_run"]

@@ -10,10 +10,10 @@ import click
 import numpy as np
 
 from ede.config import Params
-from ede.tasks import make
 from ede.provenance import software_versions
 from ede.rollouts import Rollouts, RolloutsError, write_store
 from ede.rollouts import collect as collect_steps
+from ede.tasks import make
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, check_family, family_option, params_option
 from ede_pipeline.progress import progress

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import zarr
 
-from ede.tasks import make
 from ede.rollouts import (
     ARRAYS,
     Rollouts,
@@ -17,6 +16,7 @@ from ede.rollouts import (
     physics_state,
     write_store,
 )
+from ede.tasks import make
 
 ATTRS = {
     "env_id": "ede/Point-v0",

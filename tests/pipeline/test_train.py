@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner, Result
 
-from ede.tasks import make
 from ede.provenance import software_versions
+from ede.tasks import make
 from ede.training import EVAL_SEED_OFFSET
 from ede_pipeline.cli import main
 
