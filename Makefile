@@ -26,7 +26,7 @@ PYTEST_ARGS ?=
 # Stages call `ede-pipeline` and `dvc` by name.
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: install lock repro quick test container-test clean-venv
+.PHONY: install lock repro quick experiments test container-test clean-venv
 
 install: $(STAMP)
 
@@ -62,9 +62,20 @@ lock:
 repro: install
 	$(BIN)/dvc repro
 
-# The quick look (params-quick.yaml) as a DVC experiment: params.yaml is left with its values.
+# The quick look (params-quick.yaml) as a DVC experiment named quick-<date>-<time>, run in a
+# temporary copy of the checkout (--temp): the workspace keeps the paper's params.yaml, and
+# `dvc exp apply <name>` brings the experiment's params, dvc.lock and outputs (the report) into it.
+# The arguments go through a file so that bad overrides stop make before DVC runs anything.
 quick: install
-	$(BIN)/ede-pipeline set-params params-quick.yaml | xargs -d '\n' $(BIN)/dvc exp run
+	mkdir -p .dvc/tmp
+	$(BIN)/ede-pipeline set-params params-quick.yaml >.dvc/tmp/quick.args
+	xargs -d '\n' -a .dvc/tmp/quick.args $(BIN)/dvc exp run --temp
+
+# The experiments of this commit, one line each in 80 columns: the name, and the two figures of
+# the report whose names fit (`dvc exp show` in full is far wider; README.md, "Comparing experiments").
+experiments: install
+	$(BIN)/dvc exp show --no-pager --hide-workspace --drop '.*' \
+		--keep '^(Experiment|effect_space_affine_r2|missing_runs)$$'
 
 test: install
 	$(BIN)/pytest $(PYTEST_ARGS)

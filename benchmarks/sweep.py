@@ -2,13 +2,14 @@
 
     python benchmarks/sweep.py [--steps 3000] [--jobs 2]
 
-Two scratch copies of this repo (its tracked files, in a fresh git repository under a temporary
-folder) with small params: one reacher task, TD3 and EDE-TD3, two seeds — four runs of ``--steps``
-environment steps each. The embedding (collect, pretrain) is made once, untimed, and copied to
-both. Then, timed: ``dvc repro train_reacher`` in one copy (one run at a time) and
-``ede-pipeline sweep train_reacher --jobs N`` in the other. Both include their own start-up and
-DVC's hashing and caching. Prints both wall times and the ratio; goal: >= 1.8x with 2 jobs on 2
-cores. Also checks that the two copies agree on every run's returns.
+Two scratch copies of this repo (its files in a fresh git repository under a temporary folder,
+made by ``ede_pipeline.checkout.scratch_copy`` as the tests make theirs) with small params: one
+reacher task, TD3 and EDE-TD3, two seeds — four runs of ``--steps`` environment steps each. The
+embedding (collect, pretrain) is made once, untimed, and copied to both. Then, timed: ``dvc
+repro train_reacher`` in one copy (one run at a time) and ``ede-pipeline sweep train_reacher --jobs
+N`` in the other. Both include their own start-up and DVC's hashing and caching. Prints both wall
+times and the ratio; goal: >= 1.8x with 2 jobs on 2 cores. Also checks that the two copies agree on
+every run's returns.
 """
 
 from __future__ import annotations
@@ -17,47 +18,41 @@ import argparse
 import csv
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
-import yaml
+from ede_pipeline.checkout import BIN, run, scratch_copy
 
-REPO = Path(__file__).resolve().parents[1]
-BIN = Path(sys.executable).parent
 TASK = "ede/ReacherVertical-v0"
 
 
-def scratch_copy(dest: Path, steps: int) -> None:
-    files = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard"],
-                           cwd=REPO, capture_output=True, text=True, check=True).stdout.split()
-    for name in files:
-        if (REPO / name).is_file():
-            (dest / name).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(REPO / name, dest / name)
-    params = yaml.safe_load((dest / "params.yaml").read_text())
-    params["collect"].update(steps=2_000, num_envs=1)
-    small = {"hidden": [64, 64], "epochs": 1, "batch_size": 64}
-    params["embedding"].update(small)
-    params["decoder"].update(small)
-    params["td3"].update(hidden=[64, 64], start_steps=500, eval_every=steps // 4, eval_episodes=2,
-                         checkpoint_every=10 * steps)
-    params["runs"].update(tasks={**params["runs"]["tasks"], "reacher": [TASK]}, seeds=[0, 1],
-                          budgets={task: steps for task in params["runs"]["budgets"]})
-    (dest / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    for command in (["git", "init", "-q"], ["git", "add", "-A"]):
-        subprocess.run(command, cwd=dest, check=True)
+def small_params(steps: int) -> Callable[[dict[str, Any]], None]:
+    """An edit of params.yaml: one reacher task, two seeds, runs of ``steps`` steps, small nets."""
+
+    def edit(params: dict[str, Any]) -> None:
+        params["collect"].update(steps=2_000, num_envs=1)
+        small = {"hidden": [64, 64], "epochs": 1, "batch_size": 64}
+        params["embedding"].update(small)
+        params["decoder"].update(small)
+        params["td3"].update(hidden=[64, 64], start_steps=500, eval_every=steps // 4,
+                             eval_episodes=2, checkpoint_every=10 * steps)
+        params["runs"].update(tasks={**params["runs"]["tasks"], "reacher": [TASK]}, seeds=[0, 1],
+                              budgets={task: steps for task in params["runs"]["budgets"]})
+
+    return edit
 
 
-def timed(copy: Path, *argv: str) -> float:
-    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}"}
+def timed(copy: Path, *argv: str | Path) -> float:
     start = time.perf_counter()
-    result = subprocess.run(argv, cwd=copy, env=env, capture_output=True, text=True)
+    result = run(copy, *argv)
     seconds = time.perf_counter() - start
     if result.returncode != 0:
-        sys.exit(f"{' '.join(argv)} failed:\n{result.stdout[-3000:]}{result.stderr[-3000:]}")
+        command = " ".join(map(str, argv))
+        sys.exit(f"{command} failed:\n{result.stdout[-3000:]}{result.stderr[-3000:]}")
     return seconds
 
 
@@ -76,13 +71,13 @@ def main() -> None:
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="ede-sweep-bench-") as tmp:
         base = Path(tmp) / "base"
-        scratch_copy(base, args.steps)
-        timed(base, str(BIN / "dvc"), "repro", "pretrain_decoder@reacher")
+        scratch_copy(base, small_params(args.steps))
+        timed(base, BIN / "dvc", "repro", "pretrain_decoder@reacher")
         repro, swept = Path(tmp) / "repro", Path(tmp) / "sweep"
         shutil.copytree(base, repro, symlinks=True)
         shutil.copytree(base, swept, symlinks=True)
-        sequential = timed(repro, str(BIN / "dvc"), "repro", "train_reacher")
-        parallel = timed(swept, str(BIN / "ede-pipeline"), "sweep", "train_reacher",
+        sequential = timed(repro, BIN / "dvc", "repro", "train_reacher")
+        parallel = timed(swept, BIN / "ede-pipeline", "sweep", "train_reacher",
                          "--jobs", str(args.jobs))
         if returns(repro) != returns(swept) or len(returns(swept)) != 4:
             sys.exit("the sweep's returns differ from dvc repro's")

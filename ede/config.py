@@ -173,8 +173,9 @@ class EdeTD3Config(_Section):
     )
     target_noise_scale: float = Field(
         0.25, gt=0, description="target smoothing noise and its clip, × td3's values × the bound; "
-        "0.25 = 1/k for k = 4, as the authors' code divides them by k (one code moves the state "
-        "k steps, so the same noise on it perturbs k actions)"
+        "0.25 = 1/k for k = 4: the authors' code divides the noise by k (one code moves the state "
+        "k steps, so the same noise on it perturbs k actions) but keeps the clip at td3's 0.5 in "
+        "code units (docs/fidelity.md, row 8a; equal to ours when the bound is 4)"
     )
 
 
@@ -207,7 +208,7 @@ class RunsConfig(_Section):
 
 
 class ReportConfig(_Section):
-    """Stage 5: statistics of the report."""
+    """Stage 5: the report's statistics, and the families of its two pictures."""
 
     confidence: float = Field(0.95, gt=0, lt=1)
     bootstrap_samples: PositiveInt = 2_000
@@ -219,6 +220,16 @@ class ReportConfig(_Section):
         2_500, description="average each run's evaluations in bins of this many steps before the "
         "mean over seeds, as the authors' figures (2,500 for ReacherVertical); null: no binning. "
         "The report's curve CSVs (DVC plots) keep every evaluation"
+    )
+    effect_space_family: str | None = Field(
+        "point", description="a family of `families` whose embedding is drawn beside the effect "
+        "space on its source task (Figure 6; the task's first two qpos are its position); null: "
+        "no Figure 6"
+    )
+    exploration_family: str | None = Field(
+        "pointmass", description="a family of `families` whose embedding explores its source task "
+        "against uniform random actions (Figure 7; the first two qpos are a position in "
+        "[-1, 1]²); null: no Figure 7"
     )
 
 
@@ -247,6 +258,11 @@ class Params(_Section):
         for task in self.report.thresholds:
             if task not in self.runs.all_tasks:
                 problems.append(f"report.thresholds.{task}: not a task of runs.tasks")
+        for key in ("effect_space_family", "exploration_family"):
+            family = getattr(self.report, key)
+            if family is not None and family not in self.families:
+                problems.append(f"report.{key}: got {family!r}; expected a family of `families` "
+                                f"({', '.join(self.families)}) or null")
         for a, b in itertools.combinations(self.families, 2):
             shared = set(self.families[a].tasks) & set(self.families[b].tasks)
             if shared:

@@ -7,6 +7,7 @@ writing HTML is the pipeline's business.
 from __future__ import annotations
 
 import csv
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,6 +30,7 @@ from ede.stats import (  # noqa: E402
     steps_to_threshold,
 )
 from ede.tasks import make  # noqa: E402
+from ede.td3 import CodeExecutor, EmbeddingAdapter, IdentityAdapter  # noqa: E402
 
 __all__ = [
     "ALGO_STYLE",
@@ -296,7 +298,8 @@ def exploration(
     cells: int = 20,
 ) -> Exploration:
     """Figure 7: positions over ``episodes`` episodes of uniform random raw actions, and of
-    uniform random EDE codes (in [−bound, bound]^D) chosen every k steps and decoded.
+    uniform random EDE codes (in [−bound, bound]^D) chosen every k steps and decoded — executed
+    as training executes codes (:class:`ede.td3.CodeExecutor`; raw actions are codes with k = 1).
 
     Coverage is the fraction of a ``cells`` × ``cells`` grid over the arena
     ([−half_width, half_width]²) that the positions visit.
@@ -304,31 +307,27 @@ def exploration(
     env = make(env_id)
     low, high = env.action_space.low, env.action_space.high  # type: ignore[attr-defined]
     seeds = rng.integers(2**31, size=episodes)
+    device = embedding.device
 
-    def rollout(choose: str) -> list[np.ndarray]:
+    def uniform_action(obs: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(rng.uniform(low, high).astype(np.float32), device=device)
+
+    def uniform_code(obs: np.ndarray) -> torch.Tensor:
+        z = rng.uniform(-embedding.bound, embedding.bound, size=embedding.dim)  # (D,)
+        return torch.as_tensor(z, dtype=torch.float32, device=device)
+
+    def rollout(
+        executor: CodeExecutor, policy: Callable[[np.ndarray], torch.Tensor]
+    ) -> list[np.ndarray]:  # per episode, (T, 2) positions
         paths = []
         for seed in seeds:
-            env.reset(seed=int(seed))
-            path, plan, done, i = [], np.zeros(0), False, 0
-            while not done:
-                if choose == "raw":
-                    action = rng.uniform(low, high).astype(np.float32)
-                else:
-                    if i == 0:
-                        z = rng.uniform(-embedding.bound, embedding.bound, size=(1, embedding.dim))
-                        with torch.no_grad():
-                            plan = embedding.decode(
-                                torch.as_tensor(z, dtype=torch.float32, device=embedding.device)
-                            )[0].cpu().numpy()
-                    action = plan[i]
-                    i = (i + 1) % embedding.k
-                _, _, terminated, truncated, _ = env.step(action)
-                path.append(env.unwrapped.data.qpos[:2].copy())  # type: ignore[attr-defined]
-                done = terminated or truncated
-            paths.append(np.array(path))
+            obs, _ = env.reset(seed=int(seed))
+            paths.append(np.array([env.unwrapped.data.qpos[:2].copy()  # type: ignore[attr-defined]
+                                   for _ in executor.episode(obs, policy)]))
         return paths
 
-    raw, ede = rollout("raw"), rollout("ede")
+    raw = rollout(CodeExecutor(env, IdentityAdapter(low, high, device)), uniform_action)
+    ede = rollout(CodeExecutor(env, EmbeddingAdapter(embedding)), uniform_code)
     env.close()
     raw_cov, ede_cov = _coverage(raw, half_width, cells), _coverage(ede, half_width, cells)
     figure, axes = plt.subplots(1, 2, figsize=(8.4, 4.2))

@@ -16,15 +16,18 @@ of size K (absent when K = 1). Its target is Equation 1, batched over B and K::
 where n ≤ K − i steps remain of the code, fewer if the episode ended first; c' = μ'(s_{t+n}) plus
 clipped smoothing noise and i' = 0 where the next code is chosen; and where a time limit cut the
 code short (truncated, not terminal), the code goes on: c' = c, i' = i + n. The actor follows
-∇_c Q_1(s, c, 0) (Equation 2).
+∇_c Q_1(s, c, 0) (Equation 2). A :class:`CodeExecutor` acts with codes in an environment: the
+one place a code becomes K environment steps, for training, evaluation and the report alike.
 """
 
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import NamedTuple, Protocol
 
+import gymnasium
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -38,6 +41,8 @@ __all__ = [
     "ActionAdapter",
     "Actor",
     "Agent",
+    "CodeExecutor",
+    "CodeStep",
     "Critic",
     "EmbeddingAdapter",
     "IdentityAdapter",
@@ -93,6 +98,62 @@ class EmbeddingAdapter:
     @torch.no_grad()
     def decode(self, codes: torch.Tensor) -> torch.Tensor:
         return self.embedding.decode(codes)  # (B, D) -> (B, K, A)
+
+
+class CodeStep(NamedTuple):
+    """One environment step of a code."""
+
+    code: torch.Tensor  # (C,) the code being executed
+    i: int  # steps of it executed before this one
+    action: np.ndarray  # (A,) its i-th action
+    reward: float
+    next_obs: np.ndarray
+    terminated: bool
+    truncated: bool
+
+    @property
+    def ended(self) -> bool:
+        return self.terminated or self.truncated
+
+
+class CodeExecutor:
+    """Acts in an environment with codes (Section 3), one step at a time.
+
+    When i = 0 the policy chooses a code, which the adapter decodes into K actions; they are
+    executed in order, one per step, and the next code is chosen after the K-th — or at the first
+    step of the next episode, since an episode's end cuts the code short. Its state (the code, its
+    actions, i) is part of a training run's checkpoint.
+    """
+
+    def __init__(self, env: gymnasium.Env, adapter: ActionAdapter) -> None:
+        space = env.action_space
+        self.env, self.adapter = env, adapter
+        self.code = torch.zeros(adapter.code_size, device=adapter.code_low.device)  # (C,)
+        self.plan = np.zeros((adapter.k, *space.shape), dtype=space.dtype)  # (K, A)
+        self.i = 0  # steps of the code executed
+
+    def step(self, obs: np.ndarray, policy: Callable[[np.ndarray], torch.Tensor]) -> CodeStep:
+        """One environment step from ``obs``; ``policy(obs)`` gives a new code when i = 0."""
+        i = self.i
+        if i == 0:
+            self.code = policy(obs)  # (C,)
+            self.plan = self.adapter.decode(self.code[None])[0].cpu().numpy()  # (1, C) -> (K, A)
+        action = self.plan[i]
+        next_obs, reward, terminated, truncated, _ = self.env.step(action)
+        self.i = 0 if terminated or truncated else (i + 1) % self.adapter.k
+        return CodeStep(self.code, i, action, float(reward), next_obs, bool(terminated),
+                        bool(truncated))
+
+    def episode(
+        self, obs: np.ndarray, policy: Callable[[np.ndarray], torch.Tensor]
+    ) -> Iterator[CodeStep]:
+        """Steps from ``obs`` (just after a reset) until the episode ends."""
+        while True:
+            step = self.step(obs, policy)
+            yield step
+            if step.ended:
+                return
+            obs = step.next_obs
 
 
 class Actor(nn.Module):

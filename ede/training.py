@@ -21,6 +21,7 @@ writes, into its directory:
 from __future__ import annotations
 
 import csv
+import functools
 import hashlib
 import io
 import json
@@ -42,7 +43,14 @@ from ede.embedding import ActionEmbedding
 from ede.provenance import software_versions
 from ede.stats import area_under_curve
 from ede.tasks import make
-from ede.td3 import ActionAdapter, Agent, EmbeddingAdapter, IdentityAdapter, ReplayBuffer
+from ede.td3 import (
+    ActionAdapter,
+    Agent,
+    CodeExecutor,
+    EmbeddingAdapter,
+    IdentityAdapter,
+    ReplayBuffer,
+)
 
 __all__ = ["RunSpec", "evaluate", "train_run"]
 
@@ -86,19 +94,12 @@ def evaluate(
     env: gymnasium.Env, agent: Agent, adapter: ActionAdapter, episodes: int, seed: int
 ) -> np.ndarray:
     """Returns of ``episodes`` deterministic episodes; episode e starts from ``reset(seed + e)``."""
+    executor, policy = CodeExecutor(env, adapter), functools.partial(agent.act, explore=False)
     returns = np.zeros(episodes)
     for e in range(episodes):
         obs, _ = env.reset(seed=seed + e)
-        done, i, plan = False, 0, np.zeros(0)
-        while not done:
-            if i == 0:
-                plan = adapter.decode(agent.act(obs, explore=False)[None])[0].cpu().numpy()
-            obs, reward, terminated, truncated, _ = env.step(plan[i])
-            returns[e] += float(reward)
-            i = (i + 1) % adapter.k
-            done = terminated or truncated
-            if done:
-                i = 0
+        for step in executor.episode(obs, policy):
+            returns[e] += step.reward
     return returns
 
 
@@ -161,11 +162,9 @@ class _Run:
         self.agent = Agent(obs_size, self.adapter, spec.td3, device, spec.seed)
         capacity = min(spec.td3.buffer_size, spec.budget)
         self.buffer = ReplayBuffer(capacity, obs_size, self.adapter.code_size, self.adapter.k, device)
+        self.executor = CodeExecutor(self.env, self.adapter)
         self.step = 0
         self.episodes = 0
-        self.i = 0  # steps of the current code executed
-        self.code = torch.zeros(self.adapter.code_size, device=device)
-        self.plan = np.zeros((self.adapter.k, space.shape[0]), dtype=space.dtype)
         self.history: list[dict[str, float]] = []
         self.diagnostics: list[dict[str, float]] = []  # training's means between evaluations
         self.wall = 0.0  # seconds spent, over every session of this run
@@ -185,10 +184,11 @@ class _Run:
         buffer_tensors, buffer_counters = self.buffer.state()
         tensors |= {f"buffer.{key}": value for key, value in buffer_tensors.items()}
         tensors["generator"] = self.agent.generator.get_state()
-        tensors["code"] = self.code
-        tensors["plan"] = torch.as_tensor(self.plan)
+        plan = self.executor.plan
+        tensors["code"] = self.executor.code
+        tensors["plan"] = torch.as_tensor(plan)
         tensors["episode_actions"] = torch.as_tensor(
-            np.array(self.episode.actions, dtype=self.plan.dtype).reshape(-1, self.plan.shape[1])
+            np.array(self.episode.actions, dtype=plan.dtype).reshape(-1, plan.shape[1])
         )
         tensors["obs"] = torch.as_tensor(np.asarray(self.obs))
         tensors["loss_sums"] = self.agent.loss_sums
@@ -197,7 +197,7 @@ class _Run:
             "fingerprint": self.spec.fingerprint(),
             "step": self.step,
             "episodes": self.episodes,
-            "i": self.i,
+            "i": self.executor.i,
             "updates": self.agent.updates,
             "wall_seconds": self.wall,
             "buffer": buffer_counters,
@@ -239,9 +239,10 @@ class _Run:
                           if k.startswith("buffer.")}, state["buffer"])
         self.agent.generator.set_state(tensors["generator"].cpu())
         self.agent.updates = state["updates"]
-        self.code = tensors["code"]
-        self.plan = tensors["plan"].cpu().numpy()
-        self.step, self.episodes, self.i = state["step"], state["episodes"], state["i"]
+        self.executor.code = tensors["code"]
+        self.executor.plan = tensors["plan"].cpu().numpy()
+        self.executor.i = state["i"]
+        self.step, self.episodes = state["step"], state["episodes"]
         self.wall, self.history = state["wall_seconds"], state["history"]
         self.diagnostics = state["diagnostics"]
         self.agent.loss_sums.copy_(tensors["loss_sums"])
@@ -267,6 +268,12 @@ class _Run:
             self.diagnostics.append({"step": self.step, **trained})
         return row
 
+    def _behaviour(self, obs: np.ndarray) -> torch.Tensor:
+        """The code training acts with: uniform for ``td3.start_steps`` steps, then μ(s) + noise."""
+        if self.step < self.spec.td3.start_steps:
+            return self.agent.random_code()
+        return self.agent.act(obs, explore=True)
+
     def env_step(self) -> None:
         """One environment step and its updates (Section 3: learn from every step).
 
@@ -274,28 +281,20 @@ class _Run:
         until the episode ends, then one per step of it.
         """
         config = self.spec.td3
-        if self.i == 0:
-            if self.step < config.start_steps:
-                self.code = self.agent.random_code()
-            else:
-                self.code = self.agent.act(self.obs, explore=True)
-            self.plan = self.adapter.decode(self.code[None])[0].cpu().numpy()  # (K, A)
-        action = self.plan[self.i]
-        next_obs, reward, terminated, truncated, _ = self.env.step(action)
-        self.buffer.add(self.obs, self.code, self.i, float(reward), next_obs, terminated, truncated)
-        self.episode.actions.append(action)
-        self.episode.ret += float(reward)
+        step = self.executor.step(self.obs, self._behaviour)
+        self.buffer.add(self.obs, step.code, step.i, step.reward, step.next_obs, step.terminated,
+                        step.truncated)
+        self.episode.actions.append(step.action)
+        self.episode.ret += step.reward
         self.step += 1
-        self.i = (self.i + 1) % self.adapter.k
         updates = 1 if config.update_schedule == "step" else 0
-        if terminated or truncated:
+        if step.ended:
             if config.update_schedule == "episode":
                 updates = len(self.episode.actions)  # one per step of the episode just ended
             self.episodes += 1
-            self.i = 0
             self.obs, self.episode = _reset(self.env, None)
         else:
-            self.obs = next_obs
+            self.obs = step.next_obs
         if self.step >= config.start_steps and self.buffer.sampleable >= config.batch_size:
             for _ in range(updates):
                 self.agent.update(self.buffer.sample(config.batch_size, self.agent.generator))

@@ -7,6 +7,7 @@ stderr and exit code 2, before anything is written.
 from __future__ import annotations
 
 import json
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +16,7 @@ import yaml
 from pydantic import ValidationError
 
 from ede.config import Params
-from ede_pipeline import collect, pretrain, report, sweep, train
+from ede_pipeline import collect, pretrain, report, sweep, task_code, train
 from ede_pipeline.common import BadInput, params_option
 
 
@@ -36,12 +37,16 @@ def validate(params: Params) -> None:
 
 @main.command("set-params")
 @click.argument("overrides", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--name", help="The experiment's name  [default: the file's name less `params-` "
+              "and `.yaml`, and the time: quick-20250130-141205]")
 @params_option
-def set_params(params: Params, overrides: Path) -> None:
-    """Print ``-S key=value`` arguments for ``dvc exp run`` from a file of overrides.
+def set_params(params: Params, overrides: Path, name: str | None) -> None:
+    """Print ``dvc exp run``'s arguments for a file of overrides: ``--name``, ``-S key=value``.
 
     The file holds params sections with only the keys to change; the result is checked against the
-    params file first. One argument per line, for ``xargs -d '\\n'``.
+    params file first. One argument per line, for ``xargs -d '\\n'``. The default name is new to the
+    second, so that running a file again makes a new experiment: DVC refuses a name it has, unless
+    ``--force``, which also reruns every stage instead of taking unchanged ones from its run cache.
     """
     changes = yaml.safe_load(overrides.read_text()) or {}
     merged = params.model_dump(mode="json")
@@ -54,10 +59,17 @@ def set_params(params: Params, overrides: Path) -> None:
     except ValidationError as error:
         first = error.errors()[0]
         raise BadInput(f"{overrides}: {'.'.join(map(str, first['loc']))}: {first['msg']}") from None
+    click.echo("--name")
+    click.echo(name or experiment_name(overrides, datetime.now()))
     for section, values in changes.items():
         for key, value in values.items():
             click.echo("-S")
             click.echo(f"{section}.{key}={_hydra(value)}")
+
+
+def experiment_name(overrides: Path, now: datetime) -> str:
+    """``params-quick.yaml`` at 14:12:05 on 30 January 2025: ``quick-20250130-141205``."""
+    return f"{overrides.stem.removeprefix('params-')}-{now:%Y%m%d-%H%M%S}"
 
 
 def _hydra(value: Any) -> str:
@@ -83,6 +95,7 @@ def envs() -> None:
         click.echo("  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip())
 
 
+main.add_command(task_code.task_code)
 main.add_command(collect.collect)
 main.add_command(collect.inspect_rollouts)
 main.add_command(pretrain.pretrain)

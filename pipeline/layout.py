@@ -10,15 +10,19 @@ from pathlib import Path
 
 __all__ = [
     "DATA",
+    "DECODER",
+    "ENCODER",
     "REPORT",
     "REPORT_CURVES",
     "REPORT_METRICS",
     "RUNS",
+    "code",
     "decoder",
     "embedding",
     "encoder",
     "rollouts",
     "run",
+    "task_code",
 ]
 
 DATA = Path("data")
@@ -26,6 +30,17 @@ RUNS = DATA / "runs"
 REPORT = DATA / "report"
 REPORT_METRICS = DATA / "report-metrics.json"
 REPORT_CURVES = DATA / "report-curves"
+ENCODER, DECODER = "encoder", "decoder"  # the two artifacts in an embedding's folder
+
+
+def code(family: str) -> Path:
+    """The folder of the family's task records (``ede-pipeline task-code``)."""
+    return DATA / family / "code"
+
+
+def task_code(family: str, task: str) -> Path:
+    """What defines ``task``: its registration and the checksums of the files it runs."""
+    return code(family) / f"{task}.json"
 
 
 def rollouts(family: str) -> Path:
@@ -39,13 +54,13 @@ def embedding(family: str) -> Path:
 
 
 def encoder(family: str) -> Path:
-    return embedding(family) / "encoder"
+    return embedding(family) / ENCODER
 
 
 def decoder(family: str) -> Path:
-    return embedding(family) / "decoder"
+    return embedding(family) / DECODER
 
 
-def run(task: str, algo: str, seed: int) -> Path:
-    """One training run's directory."""
-    return RUNS / task / algo / f"seed{seed}"
+def run(task: str, algo: str, seed: int, runs: Path = RUNS) -> Path:
+    """One training run's directory in the folder of all runs."""
+    return runs / task / algo / f"seed{seed}"

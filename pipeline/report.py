@@ -1,4 +1,8 @@
-"""Stage 5, ``ede-pipeline report``: one self-contained HTML page of every result."""
+"""Stage 5, ``ede-pipeline report``: one self-contained HTML page of every result.
+
+Its inputs come from its command line, as ``dvc.yaml`` writes them: the folder of the runs, and per
+family the embedding and the rollouts store (the families of Figures 6 and 7 from the params).
+"""
 
 from __future__ import annotations
 
@@ -7,6 +11,8 @@ import hashlib
 import html
 import io
 import json
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +24,7 @@ from matplotlib.figure import Figure
 from ede.artifacts import ArtifactError, load_action_embedding
 from ede.atomic import write_atomically, write_json
 from ede.config import Params
+from ede.embedding import ActionEmbedding
 from ede.provenance import describe_software, software_versions
 from ede.report import (
     ALGO_STYLE,
@@ -33,7 +40,7 @@ from ede.report import (
     summarise_task,
 )
 from ede_pipeline import layout
-from ede_pipeline.common import params_option
+from ede_pipeline.common import BadInput, params_option
 
 STYLE = """
 body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }
@@ -94,20 +101,102 @@ def _table(rows: list[TaskRow]) -> str:
     return f"<table>{head}{''.join(body)}</table>"
 
 
-def _embedding(params: Params, family: str, page: Page) -> tuple[Any, Any] | None:
-    """A family's embedding, or None with the reason on the page."""
-    folder = layout.embedding(family)
-    try:
+FIGURE_FAMILIES = {"effect_space_family": "Figure 6", "exploration_family": "Figure 7"}
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """What the report reads, as its command line names it, checked."""
+
+    runs: Path  # the folder of every run: <task>/<algo>/seed<N>/
+    embeddings: dict[str, Path]  # per family, the folder of its encoder and decoder
+    loaded: dict[str, ActionEmbedding]
+    rollouts: dict[str, dict[str, Any]]  # per family, the store's attributes
+
+
+def _by_family(
+    option: str, values: tuple[str, ...], params: Params, default: Callable[[str], Path],
+    default_families: list[str],
+) -> dict[str, Path]:
+    """The ``FAMILY=PATH`` values of a repeatable option; none given, ``default_families`` at
+    their ``default`` paths."""
+    if not values:
+        return {family: default(family) for family in default_families}
+    found: dict[str, Path] = {}
+    for value in values:
+        family, equals, path = value.partition("=")
+        if not (family and equals and path):
+            raise BadInput(f"{option} {value!r}: expected FAMILY=PATH, e.g. "
+                           f"{option} point={default('point')}")
         if family not in params.families:
-            raise ArtifactError(f"no family {family!r} in the params")
-        return load_action_embedding(folder / "encoder", folder / "decoder")
-    except ArtifactError as error:
-        page.add(f'<p class="missing">missing: the {family} family\'s embedding '
-                 f"({html.escape(str(error))}).</p>")
-        return None
+            raise BadInput(f"{option} {value!r}: unknown family {family!r}; params.yaml's families "
+                           f"are {', '.join(params.families)}")
+        if family in found:
+            raise BadInput(f"{option} {value!r}: the {family} family is given twice")
+        found[family] = Path(path)
+    return found
 
 
-def build(params: Params, params_text: str) -> tuple[Page, dict[str, Any], dict[str, str]]:
+def _store_attributes(store: Path) -> dict[str, Any]:
+    """A Zarr v3 store's attributes, read from its header alone; empty if there is none."""
+    try:
+        return json.loads((store / "zarr.json").read_text()).get("attributes", {})
+    except (OSError, ValueError, AttributeError):
+        return {}
+
+
+def read_inputs(
+    params: Params, runs: Path, embeddings: tuple[str, ...], rollouts: tuple[str, ...]
+) -> Inputs:
+    """Check every input before anything is written.
+
+    Raises:
+        BadInput: naming the option (or params key) and what it expects.
+    """
+    if not runs.is_dir():
+        raise BadInput(f"--runs {runs}: no such directory; expected the folder of the runs "
+                       "(<task>/<algo>/seed<N>/, written by `ede-pipeline train`)")
+    figures = {key: getattr(params.report, key) for key in FIGURE_FAMILIES}
+    pictured = list(dict.fromkeys(family for family in figures.values() if family is not None))
+    folders = _by_family("--embedding", embeddings, params, layout.embedding, pictured)
+    stores = _by_family("--rollouts", rollouts, params, layout.rollouts, list(folders))
+    loaded: dict[str, ActionEmbedding] = {}
+    trained_on: dict[str, str] = {}  # per family, the rollouts' fingerprint its embedding learned from
+    for family, folder in folders.items():
+        given = f"--embedding {family}={folder}"
+        if not folder.is_dir():
+            raise BadInput(f"{given}: no such directory; expected the {family} family's embedding "
+                           f"folder ({layout.ENCODER}/ and {layout.DECODER}/, from `ede-pipeline "
+                           "pretrain`)")
+        try:
+            meta, loaded[family] = load_action_embedding(folder / layout.ENCODER,
+                                                         folder / layout.DECODER)
+        except ArtifactError as error:
+            raise BadInput(f"{given}: {error}") from None
+        if meta.family != family:
+            raise BadInput(f"{given}: the embedding of family {meta.family}, not {family}")
+        trained_on[family] = meta.data_fingerprint
+    for key, family in figures.items():
+        if family is not None and family not in folders:
+            raise BadInput(f"report.{key}: {family}, but no --embedding {family}=DIR is given; "
+                           f"{FIGURE_FAMILIES[key]} needs that family's embedding")
+    attributes: dict[str, dict[str, Any]] = {}
+    for family, store in stores.items():
+        given = f"--rollouts {family}={store}"
+        attrs = _store_attributes(store)
+        if "fingerprint" not in attrs:
+            raise BadInput(f"{given}: no rollouts store here; expected the Zarr store that "
+                           "`ede-pipeline collect` writes")
+        if trained_on.get(family, attrs["fingerprint"]) != attrs["fingerprint"]:
+            raise BadInput(f"{given}: rollouts {attrs['fingerprint'][:12]}, but the {family} "
+                           f"embedding was trained on {trained_on[family][:12]}")
+        attributes[family] = attrs
+    return Inputs(runs, folders, loaded, attributes)
+
+
+def build(
+    params: Params, params_text: str, inputs: Inputs
+) -> tuple[Page, dict[str, Any], dict[str, str]]:
     """The page, the DVC metrics and the curve CSVs of the report."""
     config = params.report
     rng = np.random.default_rng(config.seed)
@@ -130,13 +219,14 @@ def build(params: Params, params_text: str) -> tuple[Page, dict[str, Any], dict[
             for algo in params.runs.algos:
                 found, missing = [], []
                 for seed in params.runs.seeds:
-                    curve = read_curve(layout.run(task, algo, seed), seed)
+                    run = layout.run(task, algo, seed, inputs.runs)
+                    curve = read_curve(run, seed)
                     if curve is None:
                         missing.append(seed)
-                        missing_runs.append(str(layout.run(task, algo, seed)))
+                        missing_runs.append(str(run))
                     else:
                         found.append(curve)
-                        trained = read_diagnostics(layout.run(task, algo, seed))
+                        trained = read_diagnostics(run)
                         if trained is not None:
                             diagnostics.setdefault((task, algo), []).append(trained)
                 curves[(task, algo)] = found
@@ -164,25 +254,31 @@ def build(params: Params, params_text: str) -> tuple[Page, dict[str, Any], dict[
             page.add(f"<h4>{task}{note}</h4>" + _table(rows[task]))
 
     page.add("<h2>The EDE space against the effect space (Figure 6)</h2>")
-    loaded = _embedding(params, "point", page)
-    if loaded is not None:
-        space = effect_space(loaded[1], rng)
+    family = config.effect_space_family
+    if family is None:
+        page.add("<p>Not drawn: <code>report.effect_space_family</code> is null.</p>")
+    else:
+        embedding, task = inputs.loaded[family], params.families[family].source
+        space = effect_space(embedding, rng, env_id=task)
         metrics["effect_space_affine_r2"] = space.r_squared
-        page.add(f"<p>Effects s[t+{loaded[1].k}] − s[t] of {len(space.effects)} random "
-                 f"{loaded[1].k}-step sequences on ede/Point-v0 (left) and their codes E(a) "
-                 f"(right), coloured by effect. Best affine map effect → code: "
-                 f"<b>R² = {space.r_squared:.4f}</b>.</p>")
+        page.add(f"<p>Effects s[t+{embedding.k}] − s[t] of {len(space.effects)} random "
+                 f"{embedding.k}-step sequences on {task} (left) and their codes E(a) under the "
+                 f"{family} family's embedding (right), coloured by effect. Best affine map "
+                 f"effect → code: <b>R² = {space.r_squared:.4f}</b>.</p>")
         page.figure("effect-space", space.figure, "effect space beside EDE space")
 
     page.add("<h2>Exploration (Figure 7)</h2>")
-    loaded = _embedding(params, "pointmass", page)
-    if loaded is not None:
-        explored = exploration(loaded[1], rng)
+    family = config.exploration_family
+    if family is None:
+        page.add("<p>Not drawn: <code>report.exploration_family</code> is null.</p>")
+    else:
+        embedding, task = inputs.loaded[family], params.families[family].source
+        explored = exploration(embedding, rng, env_id=task)
         metrics["coverage"] = {"raw": explored.raw_coverage, "ede": explored.ede_coverage}
-        page.add(f"<p>Positions over ten episodes on ede/PointMass-v0: uniform random actions "
+        page.add(f"<p>Positions over ten episodes on {task}: uniform random actions "
                  f"every step cover <b>{100 * explored.raw_coverage:.1f}%</b> of the arena (a 20×20 "
-                 f"grid); uniform random EDE actions chosen every {loaded[1].k} steps cover "
-                 f"<b>{100 * explored.ede_coverage:.1f}%</b>.</p>")
+                 f"grid); uniform random EDE actions of the {family} family's embedding, chosen "
+                 f"every {embedding.k} steps, cover <b>{100 * explored.ede_coverage:.1f}%</b>.</p>")
         page.figure("exploration", explored.figure, "exploration with raw and EDE actions")
 
     page.add("<h2>Missing runs</h2>")
@@ -194,7 +290,7 @@ def build(params: Params, params_text: str) -> tuple[Page, dict[str, Any], dict[
         page.add("<p>None: every run the params name is here.</p>")
     metrics["missing_runs"] = len(missing_runs)
 
-    page.add("<h2>Provenance</h2>" + _provenance(params, params_text))
+    page.add("<h2>Provenance</h2>" + _provenance(params, params_text, inputs))
     return page, metrics, curve_files
 
 
@@ -218,28 +314,24 @@ def _row(what: str, sha256: str, software: dict[str, str] | None) -> str:
             f"<td>{html.escape(describe_software(software))}</td></tr>")
 
 
-def _provenance(params: Params, params_text: str) -> str:
+def _provenance(params: Params, params_text: str, inputs: Inputs) -> str:
     """The SHA-256 of every input beside the versions of the software that made it."""
     rows = [_row("params.yaml; this report", hashlib.sha256(params_text.encode()).hexdigest(),
                  software_versions())]
     for family in params.families:
-        folder = layout.embedding(family)
-        for name in ("encoder", "decoder"):
-            meta = folder / name / "meta.json"
-            if meta.is_file():
-                data = json.loads(meta.read_text())
-                if name == "encoder":
-                    store = layout.rollouts(family) / "zarr.json"
-                    attrs = json.loads(store.read_text()).get("attributes", {}) if store.is_file() else {}
-                    rows.append(_row(f"{family} rollouts", data["data_fingerprint"],
-                                     attrs.get("software")))
+        if family in inputs.rollouts:
+            attrs = inputs.rollouts[family]
+            rows.append(_row(f"{family} rollouts", attrs["fingerprint"], attrs.get("software")))
+        if family in inputs.embeddings:
+            for name in (layout.ENCODER, layout.DECODER):
+                data = json.loads((inputs.embeddings[family] / name / "meta.json").read_text())
                 rows.append(_row(f"{family} {name} weights", data["weights_sha256"],
                                  data.get("software")))
     runs: dict[str, int] = {}  # the runs' software, described, and how many runs each
     for task in params.runs.all_tasks:
         for algo in params.runs.algos:
             for seed in params.runs.seeds:
-                run_file = layout.run(task, algo, seed) / "run.json"
+                run_file = layout.run(task, algo, seed, inputs.runs) / "run.json"
                 if run_file.is_file():
                     software = describe_software(json.loads(run_file.read_text()).get("software"))
                     runs[software] = runs.get(software, 0) + 1
@@ -252,6 +344,15 @@ def _provenance(params: Params, params_text: str) -> str:
 
 
 @click.command()
+@click.option("--runs", type=click.Path(path_type=Path), default=layout.RUNS, show_default=True,
+              help="The folder of the runs (<task>/<algo>/seed<N>/); the params say which to read.")
+@click.option("--embedding", "embeddings", metavar="FAMILY=DIR", multiple=True,
+              help="A family's embedding folder (encoder/ and decoder/), once per family: "
+              "Figures 6 and 7 draw report.effect_space_family's and report.exploration_family's, "
+              "the provenance lists each  [default: data/<family>/embedding for those two]")
+@click.option("--rollouts", metavar="FAMILY=STORE", multiple=True,
+              help="A family's rollouts store, once per family, for the provenance  "
+              "[default: data/<family>/rollouts.zarr for each family of --embedding]")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=layout.REPORT,
               show_default=True, help="Report directory: index.html and its PNG figures.")
 @click.option("--metrics", type=click.Path(dir_okay=False, path_type=Path),
@@ -261,12 +362,16 @@ def _provenance(params: Params, params_text: str) -> str:
               default=layout.REPORT_CURVES, show_default=True,
               help="Mean learning curve per task, one CSV each (DVC plots).")
 @params_option
-def report(params: Params, out: Path, metrics: Path, curves: Path) -> None:
+def report(
+    params: Params, runs: Path, embeddings: tuple[str, ...], rollouts: tuple[str, ...], out: Path,
+    metrics: Path, curves: Path,
+) -> None:
     """Stage 5: learning curves, tables, the EDE pictures and provenance in one HTML page."""
     torch.set_num_threads(params.embedding.threads)  # it only encodes and decodes small batches
+    inputs = read_inputs(params, runs, embeddings, rollouts)
     params_path = Path(click.get_current_context().params.get("params_path") or "params.yaml")
     params_text = params_path.read_text() if params_path.is_file() else ""
-    page, summary, curve_files = build(params, params_text)
+    page, summary, curve_files = build(params, params_text, inputs)
 
     def write_page(tmp: Path) -> None:
         (tmp / "index.html").write_text(page.html("EDE report"))

@@ -3,12 +3,13 @@
 # `ede-pipeline` command, push what it made back. The same on the host and in the image, where it
 # is installed as `batch-job`:
 #
-#   scripts/batch-job.sh STAGE
+#   scripts/batch-job.sh STAGE [STAGE ...]
 #   docker run --rm --user "$(id -u):$(id -g)" -v "$PWD":/work -v "$PWD/../ede-store":/ede-store \
 #       --entrypoint batch-job ede train_reacher@ede/ReacherTurn-v0-td3-0
 #
 # STAGE is a name from `dvc stage list` (e.g. collect@reacher, pretrain_encoder@reacher,
-# train_reacher@<task>-<algo>-<seed>). The store is DVC's default remote: ../ede-store as
+# train_reacher@<task>-<algo>-<seed>); several are run one after the other, each as below (e.g.
+# `task_code@reacher collect@reacher`: a stage's upstream stages must have run, here or in the store). The store is DVC's default remote: ../ede-store as
 # committed in .dvc/config, or whatever `dvc remote default --local NAME` chose for this checkout.
 # Run from the repository root (the container's /work).
 #
@@ -24,11 +25,12 @@
 # its own checkout or all in one (DVC locks the paths each stage writes).
 set -euo pipefail
 
-[[ $# -eq 1 && $1 != -* ]] || { echo "usage: $(basename "$0") STAGE" >&2; exit 2; }
-stage=$1
+[[ $# -ge 1 && $1 != -* ]] || { echo "usage: $(basename "$0") STAGE [STAGE ...]" >&2; exit 2; }
 
 [[ -f dvc.yaml ]] || { echo "error: run from the repository root (no dvc.yaml in $PWD)" >&2; exit 2; }
 
-echo "batch-job: $stage: pull, run, push" >&2
-dvc repro --pull --single-item "$stage"
-dvc push --run-cache "$stage"
+for stage in "$@"; do
+    echo "batch-job: $stage: pull, run, push" >&2
+    dvc repro --pull --single-item "$stage"
+    dvc push --run-cache "$stage"
+done

@@ -132,7 +132,7 @@ print("headless render (MUJOCO_GL=egl):", frame.shape)'
 
 step "podman run: a batch job (pull, run, push) into the default store ../ede-store"
 rm -rf "$work/podman/repo/data"
-pm "${run[@]}" --entrypoint batch-job localhost/ede collect@point
+pm "${run[@]}" --entrypoint batch-job localhost/ede task_code@point collect@point
 check_store "$work/podman/repo"
 ls "$work/podman/ede-store/files/md5" >/dev/null || fail "nothing pushed to ../ede-store"
 # The host side: the same store, nothing stale, and the same artifact `dvc repro` makes here.
@@ -182,7 +182,7 @@ check_store "$PWD"
 rm -rf data
 mkdir -p ../ede-store
 docker run --rm --user "$(id -u):$(id -g)" -v "$PWD":/work -v "$PWD/../ede-store":/ede-store \
-    --entrypoint batch-job ede collect@point
+    --entrypoint batch-job ede task_code@point collect@point
 # ---
 check_store "$PWD"
 same_store "$PWD" "$work/host/repo" || fail "docker batch job differs from dvc repro"

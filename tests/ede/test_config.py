@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from ede.config import Params, ParamsError, load_params
-from tests.conftest import REPO
+from ede_pipeline.checkout import REPO
 
 
 def test_committed_params_hold_the_papers_configuration() -> None:

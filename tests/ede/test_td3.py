@@ -1,13 +1,15 @@
-"""TD3/EDE-TD3 internals: Equation 1 on hand-built replay data, the actor's gradient, targets."""
+"""TD3/EDE-TD3 internals: Equation 1 on hand-built replay data, the actor's gradient, targets,
+and the executor of codes."""
 
 from __future__ import annotations
 
+import gymnasium
 import numpy as np
 import pytest
 import torch
 
 from ede.config import TD3Config
-from ede.td3 import Agent, IdentityAdapter, ReplayBuffer, k_step_targets
+from ede.td3 import Agent, CodeExecutor, IdentityAdapter, ReplayBuffer, k_step_targets
 
 GAMMA = 0.9
 K, OBS, CODE = 4, 3, 2
@@ -205,3 +207,87 @@ def test_target_smoothing_noise_is_clipped_relative_to_the_code_box(monkeypatch)
     # half-range 1 x noise_clip 0.5 x the adapter's target_noise_scale 0.25, saturated by the
     # huge noise (up to the box's own clip at ±1)
     assert offset.abs().max().item() == pytest.approx(0.125, abs=1e-6)
+
+
+# The executor of codes ----------------------------------------------------------------------
+
+
+class StepEnv(gymnasium.Env):
+    """Observes the step within the episode; the episode ends after ``length`` steps."""
+
+    observation_space = gymnasium.spaces.Box(0, np.inf, (1,))
+    action_space = gymnasium.spaces.Box(-np.inf, np.inf, (CODE,))
+
+    def __init__(self, length: int, truncate: bool = False) -> None:
+        self.length, self.truncate = length, truncate
+        self.t = 0
+        self.actions: list[np.ndarray] = []
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return np.array([0.0]), {}
+
+    def step(self, action):
+        self.actions.append(np.array(action))
+        self.t += 1
+        over = self.t == self.length
+        return np.array([float(self.t)]), 1.0, over and not self.truncate, over and self.truncate, {}
+
+
+class StepAdapter(FixedAdapter):
+    """Decodes code c into K actions: action m is 10 c + m."""
+
+    def decode(self, codes: torch.Tensor) -> torch.Tensor:
+        return 10 * codes[:, None] + torch.arange(K, dtype=codes.dtype)[None, :, None]
+
+
+class CountingPolicy:
+    """The n-th code chosen is (n, -n); records the observation it was chosen at."""
+
+    def __init__(self) -> None:
+        self.chosen_at: list[float] = []
+
+    def __call__(self, obs: np.ndarray) -> torch.Tensor:
+        n = len(self.chosen_at)
+        self.chosen_at.append(float(obs[0]))
+        return torch.tensor([float(n), float(-n)])
+
+
+def test_a_codes_k_actions_are_executed_in_order_and_the_next_code_is_chosen_at_i_0() -> None:
+    env, policy = StepEnv(length=100), CountingPolicy()
+    executor = CodeExecutor(env, StepAdapter())
+    obs, _ = env.reset()
+    steps = []
+    for _ in range(2 * K + 1):
+        steps.append(executor.step(obs, policy))
+        obs = steps[-1].next_obs
+    assert [step.i for step in steps] == [0, 1, 2, 3, 0, 1, 2, 3, 0]
+    assert policy.chosen_at == [0.0, 4.0, 8.0]  # at i = 0 only
+    expected = [[10 * n + m, -10 * n + m] for n in range(3) for m in range(K)][: 2 * K + 1]
+    assert np.array_equal(np.array(env.actions), expected)
+    assert [step.code.tolist() for step in steps[K:2 * K]] == [[1.0, -1.0]] * K
+    assert executor.i == 1
+
+
+@pytest.mark.parametrize("truncate", [False, True])
+def test_an_episode_end_inside_a_code_cuts_it_and_the_next_episode_chooses_anew(truncate: bool) -> None:
+    env, policy = StepEnv(length=K + 2, truncate=truncate), CountingPolicy()
+    executor = CodeExecutor(env, StepAdapter())
+    steps = list(executor.episode(env.reset()[0], policy))
+    assert len(steps) == K + 2 and [step.ended for step in steps] == [False] * (K + 1) + [True]
+    assert [step.i for step in steps] == [0, 1, 2, 3, 0, 1]  # the second code cut after 2 steps
+    assert (steps[-1].truncated, steps[-1].terminated) == (truncate, not truncate)
+    assert executor.i == 0
+    first = executor.step(env.reset()[0], policy)
+    assert first.i == 0 and first.code.tolist() == [2.0, -2.0]  # a new code, not the cut one's rest
+    assert policy.chosen_at == [0.0, float(K), 0.0]
+    assert np.array_equal(env.actions[-1], [20.0, -20.0])
+
+
+def test_with_k_1_every_step_chooses_a_code_that_is_the_action() -> None:
+    env, policy = StepEnv(length=3), CountingPolicy()
+    executor = CodeExecutor(env, IdentityAdapter(-np.ones(CODE), np.ones(CODE), torch.device("cpu")))
+    steps = list(executor.episode(env.reset()[0], policy))
+    assert [step.i for step in steps] == [0, 0, 0] and policy.chosen_at == [0.0, 1.0, 2.0]
+    assert np.array_equal(np.array(env.actions), [[0, 0], [1, -1], [2, -2]])

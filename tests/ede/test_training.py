@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -101,3 +102,33 @@ def test_building_an_agent_or_an_embedding_reseeds_nothing_outside(point_store) 
     second = Agent(4, adapter, TD3Config(hidden=[8]), torch.device("cpu"), seed=0)
     for a, b in zip(first.actor.parameters(), second.actor.parameters()):
         assert torch.equal(a, b)  # and the same seed still gives the same weights
+
+
+def test_a_checkpoint_taken_inside_a_code_resumes_its_remaining_actions(point_store, tmp_path) -> None:
+    from ede.config import DecoderConfig, EmbeddingConfig
+    from ede.embedding import ActionEmbedding, train_decoder, train_encoder
+    from ede.rollouts import Rollouts
+
+    rollouts = Rollouts.open(point_store)
+    small = {"hidden": [8], "epochs": 1}
+    encoded = train_encoder(rollouts, EmbeddingConfig(**small))
+    decoded = train_decoder(rollouts, encoded, DecoderConfig(**small), 4, -np.ones(2), np.ones(2))
+    embedding = ActionEmbedding(encoded.encoder, decoded.decoder, encoded.code_whitening, decoded.bound)
+    spec = RunSpec("ede/Point-v0", "ede-td3", 0, 1_000, TD3Config(hidden=[16, 16], batch_size=8),
+                   EdeTD3Config(), "test")
+
+    def actions_after(run: _Run, steps: int) -> list[np.ndarray]:
+        for _ in range(steps):
+            run.env_step()
+        return run.episode.actions[-steps:]
+
+    run = _Run(spec, embedding, torch.device("cpu"))
+    actions_after(run, 6)
+    assert run.executor.i == 2  # two actions of the second code are left
+    run.save(tmp_path / "checkpoint")
+    resumed = _Run(spec, embedding, torch.device("cpu"))
+    assert resumed.load(tmp_path / "checkpoint")
+    assert resumed.executor.i == 2 and np.array_equal(resumed.executor.plan, run.executor.plan)
+    assert torch.equal(resumed.executor.code, run.executor.code)
+    ahead, again = actions_after(run, 6), actions_after(resumed, 6)
+    assert all(np.array_equal(a, b) for a, b in zip(ahead, again))

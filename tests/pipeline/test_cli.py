@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import re
+from datetime import datetime
+from pathlib import Path
+
 from click.testing import CliRunner
 
 import ede_envs
-from ede_pipeline.cli import main
-from tests.conftest import REPO
+from ede_pipeline.checkout import REPO
+from ede_pipeline.cli import experiment_name, main
 
 
 def test_validate_accepts_the_committed_params() -> None:
@@ -55,12 +59,13 @@ def test_set_params_turns_an_override_file_into_dvc_set_param_arguments(tmp_path
     overrides.write_text("td3:\n  start_steps: 5\nruns:\n  seeds: [0, 1]\n"
                          "  budgets: {ede/ReacherVertical-v0: 10, ede/ReacherTurn-v0: 10,\n"
                          "            ede/ReacherPush-v0: 10, ede/Pusher-v0: 10, ede/Striker-v0: 10}\n")
-    result = CliRunner().invoke(main, ["set-params", str(overrides), "--params",
+    result = CliRunner().invoke(main, ["set-params", str(overrides), "--name", "look", "--params",
                                        str(REPO / "params.yaml")])
     assert result.exit_code == 0, result.output
     lines = result.stdout.splitlines()
-    assert lines[0::2] == ["-S"] * 3
+    assert lines[0::2] == ["--name"] + ["-S"] * 3
     assert lines[1::2] == [
+        "look",
         "td3.start_steps=5",
         "runs.seeds=[0, 1]",
         "runs.budgets={ede/ReacherVertical-v0: 10, ede/ReacherTurn-v0: 10, "
@@ -76,7 +81,15 @@ def test_set_params_refuses_overrides_that_make_bad_params(tmp_path) -> None:
     assert result.exit_code == 2 and "td3.batch_size" in result.stderr
 
 
-def test_the_quick_configuration_is_valid() -> None:
+def test_the_quick_configuration_is_valid_and_each_run_of_it_a_new_experiment() -> None:
     result = CliRunner().invoke(main, ["set-params", str(REPO / "params-quick.yaml"), "--params",
                                        str(REPO / "params.yaml")])
     assert result.exit_code == 0, result.output
+    flag, name = result.stdout.splitlines()[:2]
+    assert flag == "--name" and re.fullmatch(r"quick-\d{8}-\d{6}", name), name
+
+
+def test_an_experiments_default_name_is_the_files_and_the_time() -> None:
+    when = datetime(2025, 1, 30, 14, 12, 5)
+    assert experiment_name(Path("params-quick.yaml"), when) == "quick-20250130-141205"
+    assert experiment_name(Path("conf/ablation.yaml"), when) == "ablation-20250130-141205"

@@ -2,45 +2,18 @@
 
 from __future__ import annotations
 
-import os
-import shutil
+import json
 import subprocess
-import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 import yaml
+from click.testing import CliRunner
 
 from ede.rollouts import Rollouts
-from tests.conftest import REPO
-
-
-@pytest.fixture
-def repo_copy(tmp_path: Path) -> Path:
-    """The tracked files of this repo in a fresh git repository, with tiny params."""
-    files = subprocess.run(
-        ["git", "ls-files", "--cached", "--others", "--exclude-standard"],
-        cwd=REPO, capture_output=True, text=True, check=True,
-    ).stdout.split()
-    copy = tmp_path / "repo"
-    for name in files:
-        if (REPO / name).is_file():
-            (copy / name).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(REPO / name, copy / name)
-    params = yaml.safe_load((copy / "params.yaml").read_text())
-    params["collect"].update(steps=200, num_envs=1)
-    (copy / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    for command in (["git", "init", "-q"], ["git", "add", "-A"]):
-        subprocess.run(command, cwd=copy, check=True)
-    return copy
-
-
-def dvc(copy: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    bin_dir = str(Path(sys.executable).parent)
-    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
-    return subprocess.run(
-        [str(Path(bin_dir) / "dvc"), *args], cwd=copy, env=env, capture_output=True, text=True
-    )
+from ede_pipeline.checkout import REPO, dvc
+from ede_pipeline.cli import main
 
 
 def test_dvc_collect_stage_writes_the_store_and_is_then_up_to_date(repo_copy: Path) -> None:
@@ -54,6 +27,38 @@ def test_dvc_collect_stage_writes_the_store_and_is_then_up_to_date(repo_copy: Pa
     assert lock["stages"]["collect@point"]["params"]["params.yaml"]["collect"]["steps"] == 200
 
 
+@pytest.mark.slow
+def test_make_quicks_experiments_leave_the_workspace_alone_until_applied(
+    repo_copy: Path, tmp_path: Path
+) -> None:
+    """What ``make quick`` does, at one stage's size: ``dvc exp run --temp`` with the arguments of
+    ``set-params``, twice (a new name each time), then ``dvc exp apply``, as README.md says."""
+    identity = ["-c", "user.name=test", "-c", "user.email=test@example.com"]
+    subprocess.run(["git", *identity, "commit", "-qm", "baseline"], cwd=repo_copy, check=True)
+    overrides = tmp_path / "params-look.yaml"
+    overrides.write_text("collect:\n  steps: 100\n")
+    paper = (repo_copy / "params.yaml").read_text()
+    names = []
+    for _ in range(2):
+        printed = CliRunner().invoke(main, ["set-params", str(overrides), "--params",
+                                            str(repo_copy / "params.yaml")])
+        assert printed.exit_code == 0, printed.output
+        arguments = printed.stdout.splitlines()
+        names.append(arguments[1])
+        result = dvc(repo_copy, "exp", "run", "--temp", *arguments, "collect@point")
+        assert result.returncode == 0, result.stdout + result.stderr
+    assert (repo_copy / "params.yaml").read_text() == paper and not (repo_copy / "data").exists()
+    listed = dvc(repo_copy, "exp", "list", "--name-only").stdout.split()
+    assert names[0] != names[1] and set(names) <= set(listed), (names, listed)
+
+    # Its params, dvc.lock and outputs; only the stages it ran have outputs, hence a complaint.
+    applied = dvc(repo_copy, "exp", "apply", names[1])
+    assert applied.returncode == 0 or "Checkout failed" in applied.stderr, applied.stderr
+    rollouts = Rollouts.open(repo_copy / "data/point/rollouts.zarr", env_id="ede/Point-v0")
+    assert len(rollouts) == 100
+    assert yaml.safe_load((repo_copy / "params.yaml").read_text())["collect"]["steps"] == 100
+
+
 def stale(copy: Path) -> set[str]:
     """The stages ``dvc status`` reports out of date."""
     result = dvc(copy, "status")
@@ -62,21 +67,9 @@ def stale(copy: Path) -> set[str]:
             and line.endswith(":")}
 
 
-def tiny_pipeline(params: dict) -> None:
-    """Every stage at the smallest size that still exercises it."""
-    params["collect"].update(steps=200, num_envs=1)
-    small = {"hidden": [16, 16], "epochs": 1, "batch_size": 64}
-    params["embedding"].update(small, holdout=0.5)
-    params["decoder"].update(small)
-    params["td3"].update(hidden=[16, 16], batch_size=32, start_steps=50, eval_every=100,
-                         eval_episodes=1, checkpoint_every=1000, buffer_size=1000)
-    params["runs"].update(seeds=[0], budgets={task: 200 for task in params["runs"]["budgets"]})
-    params["report"].update(bootstrap_samples=100)
-
-
 @pytest.mark.slow
 def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
-    repo_copy: Path,
+    repo_copy: Path, tiny_pipeline: Callable[[dict], None]
 ) -> None:
     params_file = repo_copy / "params.yaml"
     params = yaml.safe_load(params_file.read_text())
@@ -102,6 +95,19 @@ def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
     params_file.write_text(yaml.safe_dump(longer, sort_keys=False))
     assert stale(repo_copy) == {"report"} | {
         f"train_reacher@ede/ReacherTurn-v0-{algo}-0" for algo in params["runs"]["algos"]}
+
+    params_file.write_text(yaml.safe_dump(params, sort_keys=False))
+    # One task's code: the record task_code writes after an edit of envs/reacher_push.py (whose
+    # effect on the records tests/pipeline/test_task_code.py shows) stales that task's runs only.
+    record = repo_copy / "data/reacher/code/ede/ReacherPush-v0.json"
+    original = record.read_text()
+    edited = json.loads(original)
+    edited["files"]["ede_envs/reacher_push.py"] = "0" * 64
+    record.write_text(json.dumps(edited, indent=2) + "\n")
+    assert stale(repo_copy) == {"task_code@reacher"} | {
+        f"train_reacher@ede/ReacherPush-v0-{algo}-0" for algo in params["runs"]["algos"]}
+    record.write_text(original)
+    assert stale(repo_copy) == set()
 
     params["td3"]["tau"] = 0.01
     params_file.write_text(yaml.safe_dump(params, sort_keys=False))

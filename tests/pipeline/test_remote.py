@@ -10,24 +10,20 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import os
 import shutil
-import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import boto3
+import dvc_s3  # noqa: F401  (the remote type the test configures)
 import moto.server as moto_server
 import pytest
 
-from tests.conftest import REPO
-from tests.pipeline.test_dvc import dvc, repo_copy  # noqa: F401  (repo_copy is a fixture)
-
-import dvc_s3  # noqa: E402, F401  (the remote type the test configures)
+from ede_pipeline.checkout import REPO, dvc, run
 
 BUCKET = "ede-store"
 STAGE = "collect@point"
+UPSTREAM = ["task_code@point"]  # the stages STAGE depends on, each a batch job of its own first
 OUT = "data/point/rollouts.zarr"
 
 
@@ -57,12 +53,7 @@ def run_ok(copy: Path, *args: str) -> str:
 
 def batch_job(copy: Path, stage: str) -> str:
     """``scripts/batch-job.sh STAGE`` in ``copy``, with the venv's ``dvc`` and ``ede-pipeline``."""
-    bin_dir = Path(sys.executable).parent
-    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
-    result = subprocess.run(
-        [str(REPO / "scripts/batch-job.sh"), stage], cwd=copy, env=env,
-        capture_output=True, text=True,
-    )
+    result = run(copy, REPO / "scripts/batch-job.sh", stage)
     assert result.returncode == 0, result.stdout + result.stderr
     return result.stdout + result.stderr
 
@@ -82,7 +73,7 @@ def wipe(copy: Path) -> None:
 
 
 @pytest.mark.slow
-def test_batch_job_round_trip_through_s3(repo_copy: Path, s3_endpoint: str) -> None:  # noqa: F811
+def test_batch_job_round_trip_through_s3(repo_copy: Path, s3_endpoint: str) -> None:
     run_ok(repo_copy, "remote", "add", "--default", "s3", f"s3://{BUCKET}/dvc")
     run_ok(repo_copy, "remote", "modify", "s3", "endpointurl", s3_endpoint)
     run_ok(repo_copy, "remote", "modify", "s3", "region", "us-east-1")
@@ -90,7 +81,8 @@ def test_batch_job_round_trip_through_s3(repo_copy: Path, s3_endpoint: str) -> N
     run_ok(repo_copy, "remote", "modify", "--local", "s3", "access_key_id", "testing")
     run_ok(repo_copy, "remote", "modify", "--local", "s3", "secret_access_key", "testing")
 
-    batch_job(repo_copy, STAGE)
+    for stage in [*UPSTREAM, STAGE]:
+        batch_job(repo_copy, stage)
     made = digest(repo_copy / OUT)
     assert any(name.startswith("obs/") for name in made), sorted(made)[:5]
     lock = (repo_copy / "dvc.lock").read_text()

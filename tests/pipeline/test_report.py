@@ -1,4 +1,5 @@
-"""``ede-pipeline report``: every section, with one seed, missing runs and unequal lengths."""
+"""``ede-pipeline report``: every section, with one seed, missing runs and unequal lengths;
+its inputs from its command line, and bad ones refused."""
 
 from __future__ import annotations
 
@@ -39,12 +40,12 @@ def fake_run(root: Path, task: str, algo: str, seed: int, returns: list[float]) 
 
 
 def embedding(root: Path, family: str, env_id: str) -> None:
-    """A small trained embedding of a family, where the pipeline would put it."""
+    """A family's rollouts and a small trained embedding, where the pipeline would put them."""
     torch.set_num_threads(1)
-    store = root / "scratch" / f"{family}.zarr"
+    store = root / "data" / family / "rollouts.zarr"
     write_store(store, collect(env_id, 2_000, 1, 0, workers=1),
                 {"env_id": env_id, "family": family, "seed": 0, "num_envs": 1, "steps": 2000,
-                 "spaces": {}, "params": {}})
+                 "spaces": {}, "params": {}, "software": software_versions()})
     rollouts = Rollouts.open(store)
     small = {"hidden": [32, 32], "epochs": 3, "lr": 1e-3}
     encoded = train_encoder(rollouts, EmbeddingConfig(**small))
@@ -77,8 +78,8 @@ def project(tmp_path: Path, write_params, monkeypatch: pytest.MonkeyPatch) -> Pa
     return tmp_path
 
 
-def report(root: Path) -> tuple[Result, str]:
-    result = CliRunner().invoke(main, ["report"])
+def report(root: Path, *args: str) -> tuple[Result, str]:
+    result = CliRunner().invoke(main, ["report", *args])
     assert result.exit_code == 0, result.output
     return result, (root / "data/report/index.html").read_text()
 
@@ -105,6 +106,8 @@ def test_every_section_with_runs_missing_and_of_unequal_length(project: Path, em
     here = describe_software(software_versions())
     meta = json.loads((project / "data/point/embedding/encoder/meta.json").read_text())
     assert f"<td>point encoder weights</td><td><code>{meta['weights_sha256']}</code></td><td>{here}</td>" in page
+    assert f"<td>point rollouts</td><td><code>{meta['data_fingerprint']}</code></td><td>{here}</td>" in page
+    assert "reacher encoder weights" not in page  # by default, the embeddings of the figures only
     assert "<td>5 training runs</td><td></td><td>" + here.replace(
         software_versions()["torch"], "9.9") in page
     assert "data/runs/ede/Pusher-v0/td3/seed0" in page and "data/runs/ede/ReacherVertical-v0/td3/seed2" in page
@@ -119,14 +122,86 @@ def test_every_section_with_runs_missing_and_of_unequal_length(project: Path, em
     assert curve[3] == "2000,-8,-3"  # the short run no longer counts at step 2000
 
 
-def test_one_seed_and_no_embeddings_still_render(project: Path) -> None:
+def test_one_seed_and_no_pictures_where_the_params_name_no_family(project: Path, write_params) -> None:
+    def no_pictures(params: dict) -> None:
+        params["runs"].update(tasks=TASKS, seeds=[0], budgets={"ede/ReacherVertical-v0": 2000,
+                                                               "ede/Pusher-v0": 2000})
+        params["report"].update(effect_space_family=None, exploration_family=None)
+
+    write_params(no_pictures)
     fake_run(project, "ede/Pusher-v0", "ede-td3", 0, [-50, -40])
-    _, page = report(project)
-    assert "missing: the point family's embedding" in page
-    assert "missing: the pointmass family's embedding" in page
+    _, page = report(project)  # no embedding needed, none read
+    assert "Not drawn: <code>report.effect_space_family</code> is null" in page
+    assert "Not drawn: <code>report.exploration_family</code> is null" in page
     assert "EDE-TD3 (1 seeds)" not in page  # the legend is in the picture, not the text
     metrics = json.loads((project / "data/report-metrics.json").read_text())
     assert metrics["ede/Pusher-v0"]["ede-td3"] == {"final_return": -40.0, "auc": -45.0, "seeds": 1}
+    assert "coverage" not in metrics and "effect_space_affine_r2" not in metrics
+
+
+def test_the_inputs_are_the_command_lines_and_the_figures_families_the_params(
+    project: Path, embeddings: Path, write_params
+) -> None:
+    """Runs, embeddings and rollouts from wherever the options say; Figure 6 from any family."""
+    shutil.copytree(embeddings / "data", project / "elsewhere")
+    fake_run(project, "ede/ReacherVertical-v0", "td3", 0, [-20, -12, -8])
+    shutil.move(project / "data/runs", project / "elsewhere/runs")
+
+    def swapped(params: dict) -> None:
+        params["runs"].update(tasks=TASKS, seeds=[0], budgets={"ede/ReacherVertical-v0": 2000,
+                                                               "ede/Pusher-v0": 2000})
+        params["report"].update(effect_space_family="pointmass", exploration_family="pointmass")
+
+    write_params(swapped)
+    _, page = report(project, "--runs", "elsewhere/runs",
+                     "--embedding", "pointmass=elsewhere/pointmass/embedding",
+                     "--rollouts", "pointmass=elsewhere/pointmass/rollouts.zarr")
+    assert "random 4-step sequences on ede/PointMass-v0" in page and "Positions over ten" in page
+    assert "pointmass rollouts" in page and "point encoder weights" not in page
+    assert "<code>elsewhere/runs/ede/Pusher-v0/td3/seed0</code>" in page  # missing, by its path
+    metrics = json.loads((project / "data/report-metrics.json").read_text())
+    assert metrics["ede/ReacherVertical-v0"]["td3"]["seeds"] == 1
+
+
+def bad(result: Result, message: str) -> None:
+    assert result.exit_code == 2, result.output
+    assert result.stderr.count("\n") == 1 and message in result.stderr, result.stderr
+    assert "Traceback" not in result.output
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--runs", "nowhere"], "--runs nowhere: no such directory; expected the folder of the runs"),
+        (["--embedding", "point=nowhere"], "--embedding point=nowhere: no such directory"),
+        (["--embedding", "data/point/embedding"], "--embedding 'data/point/embedding': expected "
+         "FAMILY=PATH"),
+        (["--embedding", "moon=data/point/embedding"], "unknown family 'moon'"),
+        (["--embedding", "pointmass=data/pointmass/embedding"],
+         "report.effect_space_family: point, but no --embedding point=DIR is given"),
+        (["--embedding", "point=data/pointmass/embedding", "--embedding",
+          "pointmass=data/pointmass/embedding"], "the embedding of family pointmass, not point"),
+        (["--rollouts", "point=data/pointmass/rollouts.zarr"],
+         "but the point embedding was trained on"),
+        (["--rollouts", "point=data/point/embedding"], "--rollouts point=data/point/embedding: no "
+         "rollouts store here"),
+    ],
+)
+def test_bad_input_is_one_line_exit_2_and_writes_nothing(
+    project: Path, embeddings: Path, args: list[str], message: str
+) -> None:
+    shutil.copytree(embeddings / "data", project / "data")
+    fake_run(project, "ede/Pusher-v0", "td3", 0, [-50, -40])
+    bad(CliRunner().invoke(main, ["report", *args]), message)
+    assert sorted(p.name for p in (project / "data").iterdir()) == ["point", "pointmass", "runs"]
+
+
+def test_a_figures_family_must_be_a_family_of_the_params(project: Path, write_params) -> None:
+    write_params(lambda params: params["report"].update(exploration_family="moon"))
+    (project / "data/runs").mkdir(parents=True)
+    bad(CliRunner().invoke(main, ["report"]), "report.exploration_family: got 'moon'; expected a "
+        "family of `families`")
+    assert not (project / "data/report").exists()
 
 
 @pytest.mark.skipif(shutil.which("chromium") is None, reason="Debian's chromium is not installed")

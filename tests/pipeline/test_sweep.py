@@ -11,19 +11,16 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import shutil
 import subprocess
-import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 import yaml
 
-from tests.conftest import REPO
-from tests.pipeline.test_dvc import dvc, tiny_pipeline
+from ede_pipeline.checkout import BIN, dvc, run, scratch_copy
 
 pytestmark = pytest.mark.slow
 
@@ -34,42 +31,27 @@ BROKEN_CHECKPOINT = f"data/runs/{TASK}/td3/seed1/checkpoint/state.json"
 UNTIMED = {"metrics.json", "eval.csv"}  # the run's files that hold wall times
 
 
-def scratch_copy(dest: Path) -> Path:
-    """The repo's files in a fresh git repository, tiny params, runs of one reacher task."""
-    files = subprocess.run(
-        ["git", "ls-files", "--cached", "--others", "--exclude-standard"],
-        cwd=REPO, capture_output=True, text=True, check=True,
-    ).stdout.split()
-    for name in files:
-        if (REPO / name).is_file():
-            (dest / name).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(REPO / name, dest / name)
-    params = yaml.safe_load((dest / "params.yaml").read_text())
-    tiny_pipeline(params)
-    params["runs"]["tasks"]["reacher"] = [TASK]
-    params["runs"]["seeds"] = [0, 1]
-    (dest / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    for command in (["git", "init", "-q"], ["git", "add", "-A"]):
-        subprocess.run(command, cwd=dest, check=True)
-    return dest
-
-
 def ok(result: subprocess.CompletedProcess[str]) -> str:
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     return result.stdout + result.stderr
 
 
 def sweep(copy: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    bin_dir = Path(sys.executable).parent
-    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
-    return subprocess.run([str(bin_dir / "ede-pipeline"), "sweep", *args], cwd=copy, env=env,
-                          capture_output=True, text=True, timeout=600)
+    return run(copy, BIN / "ede-pipeline", "sweep", *args, timeout=600)
 
 
 @pytest.fixture(scope="module")
-def upstream(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A copy whose embedding is made (collect, pretrain), and no run yet."""
-    copy = scratch_copy(tmp_path_factory.mktemp("upstream") / "repo")
+def upstream(tmp_path_factory: pytest.TempPathFactory,
+             tiny_pipeline: Callable[[dict[str, Any]], None]) -> Path:
+    """A copy with tiny params and runs of one reacher task, whose embedding is made (collect,
+    pretrain), and no run yet."""
+
+    def one_task(params: dict[str, Any]) -> None:
+        tiny_pipeline(params)
+        params["runs"]["tasks"]["reacher"] = [TASK]
+        params["runs"]["seeds"] = [0, 1]
+
+    copy = scratch_copy(tmp_path_factory.mktemp("upstream") / "repo", one_task)
     ok(dvc(copy, "repro", "pretrain_decoder@reacher"))
     return copy
 

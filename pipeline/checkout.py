@@ -1,0 +1,72 @@
+"""This checkout, and scratch copies of it to run ``dvc`` in without touching the real one.
+
+The end-to-end tests (``tests/pipeline/conftest.py``) and the benchmarks (``benchmarks/sweep.py``)
+both need a repository in which DVC runs the pipeline with params of their own. This module makes
+one: the checkout's files, committed or not yet added (never what git ignores: no ``data/``, no
+``.venv``), in a fresh git repository. It lives in the installed package, not in ``tests/`` or
+``benchmarks/``, because it is the one place both can import from: a benchmark is a script that must
+not depend on the test suite, and neither folder is on the other's import path. No stage imports it.
+
+``REPO`` is the checkout that ``make install`` installed the package from (editable), where the
+tests and the benchmarks run; in a non-editable install (the image) it names nothing useful.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent  # this environment's scripts: `dvc`, `ede-pipeline`
+
+
+def tool_env() -> dict[str, str]:
+    """This process's environment with :data:`BIN` first on ``PATH``: the stages call ``dvc`` and
+    ``ede-pipeline`` by name, and must get this environment's."""
+    return {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
+
+
+def scratch_copy(dest: Path, edit_params: Callable[[dict[str, Any]], None] | None = None) -> Path:
+    """Copy the checkout's files to ``dest``, a fresh git repository with every file added.
+
+    Args:
+        dest: The new repository's folder (created; it should not exist or be empty).
+        edit_params: Called on the copy's ``params.yaml`` as plain data, which is then written back.
+
+    Returns:
+        ``dest``.
+    """
+    files = subprocess.run(
+        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+        cwd=REPO, capture_output=True, text=True, check=True,
+    ).stdout.split("\0")
+    for name in filter(None, files):
+        if (REPO / name).is_file():  # a deleted file is still listed until its deletion is added
+            (dest / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(REPO / name, dest / name)
+    if edit_params is not None:
+        params = yaml.safe_load((dest / "params.yaml").read_text())
+        edit_params(params)
+        (dest / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    for command in (["git", "init", "-q"], ["git", "add", "-A"]):
+        subprocess.run(command, cwd=dest, check=True)
+    return dest
+
+
+def run(copy: Path, *argv: str | Path,
+        timeout: float | None = None) -> subprocess.CompletedProcess[str]:
+    """Run a command in ``copy`` with :func:`tool_env`; its output is captured as text."""
+    return subprocess.run([str(arg) for arg in argv], cwd=copy, env=tool_env(),
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def dvc(copy: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """``dvc ARGS`` in ``copy``, this environment's ``dvc``."""
+    return run(copy, BIN / "dvc", *args)

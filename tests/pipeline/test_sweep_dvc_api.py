@@ -1,0 +1,231 @@
+"""The DVC internals that ``ede-pipeline sweep`` drives, checked by name, signature and behaviour.
+
+``pipeline/sweep.py`` does the steps of ``dvc repro`` itself, through DVC's Python API, private
+functions included (``dvc.stage.run._make_cmd``, ...), which any DVC release may move. So
+``pyproject.toml`` bounds dvc below the next minor release, and this file is what moving that bound
+takes: install the new DVC, run it, and each failure names the internal that moved — here, in
+seconds, rather than in a sweep hours in.
+
+The behaviour is checked on a toy repository: two train stages of one line of Python each and an
+upstream stage, with the project's params (the sweep validates them), and DVC's own ``dvc repro``
+in a twin of it as the reference.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import inspect
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from click.testing import CliRunner, Result
+
+from ede_pipeline.checkout import REPO, dvc
+from ede_pipeline.cli import main
+
+# Everything of DVC's that pipeline/sweep.py imports or calls ("module:attribute"), with the
+# parameters it passes by name (None: not called, or called with no arguments).
+INTERNALS: dict[str, list[str] | None] = {
+    "dvc.repo:Repo": ["root_dir"],
+    "dvc.repo:Repo.__enter__": None,
+    "dvc.repo:lock_repo": ["repo"],
+    "dvc.repo.stage:StageLoad.collect": ["target", "glob"],
+    "dvc.repo.index:Index.graph": None,
+    "dvc.stage:Stage": None,
+    "dvc.stage:Stage.changed": None,
+    "dvc.stage:Stage.remove_outs": ["ignore_remove", "force"],
+    "dvc.stage:Stage.save_deps": None,
+    "dvc.stage:Stage.save": ["run_cache"],
+    "dvc.stage:Stage.commit": None,
+    "dvc.stage:Stage.dump": None,  # passes its keywords on to ProjectFile.dump
+    "dvc.dvcfile:ProjectFile.dump": ["stage", "update_pipeline"],
+    "dvc.stage.cache:StageCache.restore": ["stage"],
+    "dvc.stage.cache:RunCacheNotFoundError": None,
+    "dvc.stage.run:_enforce_cmd_list": ["cmd"],
+    "dvc.stage.run:_make_cmd": ["executable", "cmd"],
+    "dvc.stage.run:get_executable": None,
+    "dvc.env:DVC_ROOT": None,
+    "dvc.env:DVC_STAGE": None,
+    "dvc.lock:LockError": None,
+    "dvc.exceptions:DvcException": None,
+}
+
+
+def _dvc_version() -> str:
+    from importlib.metadata import version
+
+    return version("dvc")
+
+
+def _resolve(name: str) -> Any:
+    module_name, _, attributes = name.partition(":")
+    found: Any = importlib.import_module(module_name)
+    for attribute in attributes.split("."):
+        if inspect.isclass(found):  # the attribute as defined: a property, not what it computes
+            found = inspect.getattr_static(found, attribute)
+        else:
+            found = getattr(found, attribute)
+    return found
+
+
+def test_every_dvc_import_of_the_sweep_is_checked_here() -> None:
+    tree = ast.parse((REPO / "pipeline/sweep.py").read_text())
+    imported = {f"{node.module}:{alias.name}" for node in ast.walk(tree)
+                if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("dvc")
+                for alias in node.names}
+    missing = sorted(imported - INTERNALS.keys())
+    assert not missing, f"pipeline/sweep.py imports {missing}: add them to INTERNALS"
+
+
+@pytest.mark.parametrize("name", list(INTERNALS))
+def test_the_internals_the_sweep_calls_are_there_with_the_arguments_it_passes(name: str) -> None:
+    try:
+        found = _resolve(name)
+    except (ImportError, AttributeError) as error:
+        pytest.fail(f"pipeline/sweep.py uses {name}, which DVC {_dvc_version()} does not have "
+                    f"({error}); see the docstring of this file")
+    passed = INTERNALS[name]
+    if not passed:
+        return
+    function = found.__init__ if inspect.isclass(found) else found
+    parameters = inspect.signature(function).parameters
+    absent = [p for p in passed if p not in parameters]
+    assert not absent, (f"pipeline/sweep.py passes {', '.join(absent)} to {name}, whose signature "
+                        f"in DVC {_dvc_version()} is {inspect.signature(function)}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Behaviour, on a toy repository.
+
+STEP = """\
+import json, os, sys
+from pathlib import Path
+
+import yaml
+
+params = yaml.safe_load(Path("params.yaml").read_text())
+if sys.argv[1] == "prepare":
+    Path("data").mkdir(exist_ok=True)
+    Path("data/prepared.txt").write_text(f"seed {params['collect']['seed']}")
+elif sys.argv[1] == "train":
+    run = Path("data/runs") / sys.argv[2]
+    (run / "policy").mkdir(parents=True, exist_ok=True)
+    tau = params["td3"]["tau"]
+    prepared = Path("data/prepared.txt").read_text()
+    (run / "policy/weights.txt").write_text(f"tau {tau}, run {sys.argv[2]}, {prepared}")
+    (run / "metrics.json").write_text(json.dumps({"final_return": tau * int(sys.argv[2])}))
+    (run / "eval.csv").write_text(f"step,mean_return\\n0,{tau}\\n")
+else:  # the command's second line: run in the repository's root, with DVC's variables set
+    expected = {"DVC_STAGE": f"train_toy@{sys.argv[2]}", "DVC_ROOT": os.getcwd()}
+    found = {name: os.environ.get(name) for name in expected}
+    sys.exit(0 if found == expected else f"expected {expected}, found {found}")
+"""
+
+
+def _pipeline() -> dict[str, Any]:
+    """Stages shaped like the project's: an upstream stage, and train stages from a matrix."""
+    python = f"{sys.executable} step.py"
+    return {"stages": {
+        "prepare": {"cmd": f"{python} prepare", "deps": ["step.py"], "params": ["collect.seed"],
+                    "outs": ["data/prepared.txt"]},
+        "train_toy": {
+            "matrix": {"seed": "${runs.seeds}"},
+            "cmd": [f"{python} train ${{item.seed}}", f"{python} check ${{item.seed}}"],
+            "deps": ["step.py", "data/prepared.txt"],
+            "params": ["td3.tau"],
+            "outs": ["data/runs/${item.seed}/policy", "data/runs/${item.seed}/metrics.json"],
+            "plots": [{"data/runs/${item.seed}/eval.csv": {"x": "step", "y": "mean_return"}}],
+        },
+    }}
+
+
+def _toy(path: Path, params: dict[str, Any]) -> Path:
+    path.mkdir()
+    (path / "step.py").write_text(STEP)
+    (path / "dvc.yaml").write_text(yaml.safe_dump(_pipeline(), sort_keys=False))
+    (path / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    subprocess.run(["git", "init", "-q"], cwd=path, check=True)
+    assert dvc(path, "init", "-q").returncode == 0
+    return path
+
+
+def _set_tau(path: Path, tau: float) -> None:
+    params = yaml.safe_load((path / "params.yaml").read_text())
+    params["td3"]["tau"] = tau
+    (path / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+
+
+def _lock(path: Path) -> dict[str, Any]:
+    return yaml.safe_load((path / "dvc.lock").read_text())["stages"]
+
+
+def _outputs(path: Path) -> dict[str, str]:
+    return {str(file.relative_to(path)): file.read_text()
+            for file in sorted((path / "data").rglob("*")) if file.is_file()}
+
+
+def _sweep(path: Path, monkeypatch: pytest.MonkeyPatch) -> Result:
+    monkeypatch.chdir(path)
+    return CliRunner().invoke(main, ["sweep", "--jobs", "2"])
+
+
+@pytest.fixture
+def toy_params(committed_params: dict[str, Any]) -> dict[str, Any]:
+    """The project's params with two seeds: two train stages."""
+    return {**committed_params, "runs": {**committed_params["runs"], "seeds": [0, 1]}}
+
+
+@pytest.mark.slow
+def test_a_sweep_records_what_dvc_repro_records_and_restores_runs_from_the_run_cache(
+    tmp_path: Path, toy_params: dict[str, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    reference = _toy(tmp_path / "reference", toy_params)
+    result = dvc(reference, "repro")
+    assert result.returncode == 0, result.stdout + result.stderr
+    swept = _toy(tmp_path / "swept", toy_params)
+    first = _sweep(swept, monkeypatch)
+    assert first.exit_code == 0, first.output
+    # Which stages: the upstream one by `dvc repro`, then both train stages (the glob `train_*`).
+    assert "sweep: dvc repro prepare" in first.stderr, first.stderr
+    assert "2 of 2 stages out of date" in first.stderr and first.stdout.count(" ok ") == 2
+    assert _lock(swept) == _lock(reference)
+    assert _outputs(swept) == _outputs(reference)
+    assert "0 of 2 stages out of date" in _sweep(swept, monkeypatch).stderr
+
+    # A changed param: only the stages that track it; a changed-back param: the run cache.
+    tau = toy_params["td3"]["tau"]
+    _set_tau(swept, 2 * tau)
+    changed = _sweep(swept, monkeypatch)
+    assert "dvc repro" not in changed.stderr and changed.stdout.count(" ok ") == 2, changed.output
+    assert _lock(swept) != _lock(reference)
+    _set_tau(swept, tau)
+    back = _sweep(swept, monkeypatch)
+    assert back.stdout.count("restored from the run cache") == 2, back.output
+    assert _lock(swept) == _lock(reference) and _outputs(swept) == _outputs(reference)
+    # A lost output: that stage alone is out of date, and comes back from the cache.
+    shutil.rmtree(swept / "data/runs/1")
+    lost = _sweep(swept, monkeypatch)
+    assert "1 of 2 stages out of date" in lost.stderr and "cached" in lost.stdout, lost.output
+    assert _outputs(swept) == _outputs(reference)
+    status = dvc(swept, "status")
+    assert "up to date" in status.stdout, status.stdout + status.stderr
+
+
+@pytest.mark.slow
+def test_a_sweep_does_not_start_while_dvc_holds_the_repository_lock(
+    tmp_path: Path, toy_params: dict[str, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from dvc.repo import Repo, lock_repo
+
+    swept = _toy(tmp_path / "toy", toy_params)
+    with Repo(str(swept)) as repo, lock_repo(repo):
+        blocked = _sweep(swept, monkeypatch)
+    assert blocked.exit_code == 2, blocked.output
+    assert "another sweep is running here" in blocked.stderr, blocked.stderr
+    assert not (swept / "data").exists()
