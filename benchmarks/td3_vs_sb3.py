@@ -13,7 +13,8 @@ with ``b = EVAL_SEED_OFFSET * (seed + 1)``), so evaluation starts cannot separat
 Each finished (learner, seed) writes ``DIR/<learner>-seed<N>.json`` (runs already there are
 skipped, so a killed batch resumes by seed); ``summarise`` prints the mean curve of each learner
 with its 95% percentile bootstrap band over seeds, and at which evaluations our mean lies outside
-stable-baselines3's band.
+stable-baselines3's band; then the area under each learner's curve, and the difference ours − SB3
+of the means, over the run and per evaluation, with bootstrap intervals.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import numpy as np
 import torch
 
 from ede.config import EdeTD3Config, TD3Config
-from ede.stats import bootstrap_mean
+from ede.stats import area_under_curve, bootstrap_mean
 from ede.training import EVAL_SEED_OFFSET, RunSpec, train_run
 
 TASK = "Reacher-v5"
@@ -110,6 +111,34 @@ def summarise(out: Path, confidence: float = 0.95) -> None:
                 outside.append((step, "above" if mean > high else "below"))
     print(f"our mean outside stable-baselines3's band at {len(outside)} of {len(steps)} evaluations:",
           ", ".join(f"{s} ({side})" for s, side in outside) or "none")
+    if {"ours", "sb3"} <= curves.keys():
+        difference(curves, steps, confidence, rng)
+
+
+def difference(curves: dict, steps: list[int], confidence: float, rng: np.random.Generator,
+               samples: int = 2_000) -> None:
+    """Ours minus SB3: the area under the curve (mean return over the run) of each, and per
+    evaluation and over the run the difference of the means with a bootstrap interval that
+    resamples each learner's seeds independently."""
+    values = {name: np.array([[dict(map(tuple, run["curve"]))[step] for step in steps] for run in runs])
+              for name, (_, runs) in curves.items()}  # (seeds, evaluations)
+    auc = {name: np.array([area_under_curve(np.array(steps), row) for row in v]) for name, v in values.items()}
+    for name in ("sb3", "ours"):
+        print(f"area under the curve, {name}: {bootstrap_mean(auc[name], confidence, samples, rng)}")
+    draws = {name: v[rng.integers(len(v), size=(samples, len(v)))].mean(axis=1)
+             for name, v in values.items()}  # (samples, evaluations)
+    gaps = draws["ours"] - draws["sb3"]
+    aucs = {name: auc[name][rng.integers(len(auc[name]), size=(samples, len(auc[name])))].mean(axis=1)
+            for name in auc}
+    tail = (1 - confidence) / 2
+    low, high = np.quantile(aucs["ours"] - aucs["sb3"], [tail, 1 - tail])
+    print(f"area under the curve, ours - sb3: {auc['ours'].mean() - auc['sb3'].mean():+.2f} "
+          f"[{low:+.2f}, {high:+.2f}]")
+    lows, highs = np.quantile(gaps, [tail, 1 - tail], axis=0)
+    apart = [(step, "above" if lo > 0 else "below") for step, lo, hi in zip(steps, lows, highs)
+             if lo > 0 or hi < 0]
+    print(f"difference of the means excludes 0 at {len(apart)} of {len(steps)} evaluations:",
+          ", ".join(f"{s} ({side})" for s, side in apart) or "none")
 
 
 def main() -> None:
