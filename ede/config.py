@@ -53,6 +53,15 @@ Threads = Annotated[
           "lets stages and runs share the cores (more threads than cores slows everything)"),
 ]
 Precision = Literal["fp32", "bf16-matmul", "bf16"]
+
+
+def _repeat(value: Any) -> int | str:
+    if value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and value > 0):
+        return value
+    raise ValueError("expected a positive integer or 'auto'")
+
+
+Repeat = Annotated[Any, AfterValidator(_repeat)]
 HiddenSizes = Annotated[
     list[PositiveInt], Field(min_length=1, description="hidden layer widths of an MLP")
 ]
@@ -138,10 +147,20 @@ class TD3Config(_Section):
     lr: float = Field(1e-3, gt=0, description="Adam learning rate of actor and critics")
     discount: float = Field(0.99, gt=0, le=1)
     tau: float = Field(0.005, gt=0, le=1, description="Polyak rate of the target networks")
-    policy_noise: float = Field(0.2, ge=0, description="target smoothing noise, × action scale")
-    noise_clip: float = Field(0.5, ge=0, description="clip of the target noise, × action scale")
+    policy_noise: float = Field(0.2, ge=0, description="target smoothing noise std (noise_units)")
+    noise_clip: float = Field(0.5, ge=0, description="clip of the target noise (noise_units)")
     policy_delay: PositiveInt = Field(2, description="critic updates per actor update")
-    exploration_noise: float = Field(0.1, ge=0, description="behaviour noise, × action scale")
+    exploration_noise: float = Field(0.1, ge=0, description="behaviour noise std (noise_units)")
+    noise_units: Literal["absolute", "range"] = Field(
+        "absolute", description="TD3's noises in action units (sfujim's TD3, the authors' code) or "
+        "× the half-range of the action box (range: stable-baselines3); the same on a ±1 box. "
+        "EDE-TD3's are × its bound (ede_td3); docs/fidelity.md, row 8d"
+    )
+    critic_action_repeat: Repeat = Field(
+        1, description="copies of (action or code, plan step) the critic sees; auto: the authors' "
+        "max(1, ⌊0.5·obs size / their size⌋); 1: standard TD3 (stable-baselines3); docs/fidelity.md, "
+        "rows 7a–7b"
+    )
     start_steps: int = Field(
         0, ge=0, description="uniform random steps before the policy acts and updates start; 0 (the "
         "authors' code): the actor plus exploration noise acts from the first step, and updates "
@@ -172,10 +191,19 @@ class EdeTD3Config(_Section):
         1.0, gt=0, description="the actor's |z| bound, × the largest whitened |z| the decoder saw"
     )
     target_noise_scale: float = Field(
-        0.25, gt=0, description="target smoothing noise and its clip, × td3's values × the bound; "
-        "0.25 = 1/k for k = 4: the authors' code divides the noise by k (one code moves the state "
-        "k steps, so the same noise on it perturbs k actions) but keeps the clip at td3's 0.5 in "
-        "code units (docs/fidelity.md, row 8a; equal to ours when the bound is 4)"
+        0.25, gt=0, description="target smoothing noise std, × td3.policy_noise × the bound; "
+        "0.25 = 1/k for k = 4, as the authors' code (one code moves the state k steps, so the "
+        "same noise on it perturbs k actions)"
+    )
+    target_noise_clip: Literal["absolute", "scaled"] = Field(
+        "absolute", description="absolute: the target noise is clipped at td3.noise_clip in code "
+        "units (the authors' code); scaled: at td3.noise_clip × the bound × target_noise_scale "
+        "(docs/fidelity.md, row 8a)"
+    )
+    plan_step_input: Literal["onehot", "scalar"] = Field(
+        "onehot", description="how the critic sees i, the steps of the code already executed: a "
+        "one-hot of size k, or the raw count as one input (the authors' code; docs/fidelity.md, "
+        "row 7a)"
     )
 
 

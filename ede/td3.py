@@ -9,7 +9,7 @@ Shapes: B batch, K actions per code (1 for TD3), A action size, C code size (A f
 EDE-TD3), O observation size.
 
 The critic is Q(s, c, i) with i the number of steps of code c already executed, fed as a one-hot
-of size K (absent when K = 1). Its target is Equation 1, batched over B and K::
+of size K or as a scalar (absent when K = 1). Its target is Equation 1, batched over B and K::
 
     y = Σ_{m<n} γ^m r_{t+m} + γ^n (1 − terminal) min_j Q'_j(s_{t+n}, c', i')
 
@@ -59,7 +59,10 @@ class ActionAdapter(Protocol):
     code_size: int
     code_low: torch.Tensor  # (C,)
     code_high: torch.Tensor  # (C,)
-    target_noise_scale: float  # target smoothing noise and its clip, relative to the code box
+    noise_scale: torch.Tensor  # (C,) the unit of exploration and target noise stds
+    target_noise_scale: float  # target smoothing noise std, × noise_scale × this
+    clip_scale: torch.Tensor  # (C,) the unit of the target noise clip
+    plan_step: str  # how the critic sees i: "onehot" (size K) or "scalar" (the raw count)
 
     def decode(self, codes: torch.Tensor) -> torch.Tensor:
         """(B, C) -> (B, K, A) raw actions."""
@@ -67,33 +70,58 @@ class ActionAdapter(Protocol):
 
 
 class IdentityAdapter:
-    """TD3: the code is the raw action, K = 1."""
+    """TD3: the code is the raw action, K = 1.
+
+    ``noise_units``: "absolute" — noises in action units, whatever the box (sfujim's TD3 and the
+    authors' code); "range" — × the half-range of the action box (stable-baselines3, which
+    rescales actions to [−1, 1]). The two agree on a ±1 box.
+    """
 
     k = 1
     target_noise_scale = 1.0
+    plan_step = "onehot"  # unused: K = 1 has no plan step
 
-    def __init__(self, low: np.ndarray, high: np.ndarray, device: torch.device) -> None:
+    def __init__(
+        self, low: np.ndarray, high: np.ndarray, device: torch.device, noise_units: str = "absolute"
+    ) -> None:
         self.code_size = len(low)
         self.code_low = torch.as_tensor(low, dtype=torch.float32, device=device)
         self.code_high = torch.as_tensor(high, dtype=torch.float32, device=device)
+        half_range = (self.code_high - self.code_low) / 2
+        self.noise_scale = half_range if noise_units == "range" else torch.ones_like(half_range)
+        self.clip_scale = self.noise_scale
 
     def decode(self, codes: torch.Tensor) -> torch.Tensor:
         return codes.unsqueeze(1)  # (B, A) -> (B, 1, A)
 
 
 class EmbeddingAdapter:
-    """EDE-TD3: the code is a whitened z in [−bound, bound]^D, decoded to K actions by D."""
+    """EDE-TD3: the code is a whitened z in [−bound, bound]^D, decoded to K actions by D.
+
+    Noise stds are × the bound (the authors' code); the target noise clip is in code units
+    (``target_noise_clip="absolute"``, the authors' code) or × the bound × ``target_noise_scale``
+    ("scaled").
+    """
 
     def __init__(
-        self, embedding: ActionEmbedding, bound_scale: float = 1.0, target_noise_scale: float = 1.0
+        self,
+        embedding: ActionEmbedding,
+        bound_scale: float = 1.0,
+        target_noise_scale: float = 1.0,
+        target_noise_clip: str = "absolute",
+        plan_step: str = "onehot",
     ) -> None:
         self.embedding = embedding
         self.target_noise_scale = target_noise_scale
+        self.plan_step = plan_step
         self.k, self.code_size = embedding.k, embedding.dim
         bound = embedding.bound * bound_scale
         device = embedding.device
         self.code_low = torch.full((self.code_size,), -bound, device=device)
         self.code_high = torch.full((self.code_size,), bound, device=device)
+        self.noise_scale = self.code_high
+        ones = torch.ones_like(self.code_high)
+        self.clip_scale = ones if target_noise_clip == "absolute" else bound * target_noise_scale * ones
 
     @torch.no_grad()
     def decode(self, codes: torch.Tensor) -> torch.Tensor:
@@ -169,21 +197,45 @@ class Actor(nn.Module):
         return self.centre + self.half_range * torch.tanh(self.net(obs))  # (B, O) -> (B, C)
 
 
-class Critic(nn.Module):
-    """Twin Q(s, c, i): two MLPs over (observation, code, one-hot of i)."""
+def critic_repeat(setting: int | str, obs_size: int, pair_size: int) -> int:
+    """How many times the critic sees (code, i): ``setting``, or for "auto" the authors' rule,
+    max(1, ⌊0.5·O / pair size⌋) (their ``action_repeat``, docs/fidelity.md rows 7a–7b)."""
+    if setting == "auto":
+        return max(1, int(0.5 * obs_size // pair_size))
+    return int(setting)
 
-    def __init__(self, obs_size: int, code_size: int, k: int, hidden: list[int]) -> None:
+
+class Critic(nn.Module):
+    """Twin Q(s, c, i): two MLPs over (observation, then ``repeat`` copies of (code, i)).
+
+    i is a one-hot of size K (``plan_step="onehot"``) or the raw count as one input ("scalar", the
+    authors' code); it is absent when K = 1.
+    """
+
+    def __init__(
+        self,
+        obs_size: int,
+        code_size: int,
+        k: int,
+        hidden: list[int],
+        plan_step: str = "onehot",
+        repeat: int | str = 1,
+    ) -> None:
         super().__init__()
-        self.k = k
-        in_size = obs_size + code_size + (k if k > 1 else 0)
+        self.k, self.plan_step = k, plan_step
+        step_size = 0 if k == 1 else (k if plan_step == "onehot" else 1)
+        self.repeat = critic_repeat(repeat, obs_size, code_size + step_size)
+        in_size = obs_size + self.repeat * (code_size + step_size)
         self.q1 = mlp(in_size, hidden, 1)
         self.q2 = mlp(in_size, hidden, 1)
 
     def _inputs(self, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor) -> torch.Tensor:
-        parts = [obs, code]
-        if self.k > 1:
-            parts.append(F.one_hot(i, self.k).to(obs.dtype))  # (B,) -> (B, K)
-        return torch.cat(parts, dim=-1)
+        pair = [code]
+        if self.k > 1 and self.plan_step == "onehot":
+            pair.append(F.one_hot(i, self.k).to(obs.dtype))  # (B,) -> (B, K)
+        elif self.k > 1:
+            pair.append(i.to(obs.dtype)[:, None])  # (B,) -> (B, 1)
+        return torch.cat([obs, *pair * self.repeat], dim=-1)
 
     def forward(
         self, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor
@@ -349,11 +401,14 @@ class Agent:
     ) -> None:
         self.adapter, self.config, self.device = adapter, config, device
         low, high = adapter.code_low, adapter.code_high
-        self.scale = (high - low) / 2  # noise is relative to the half-range of the code box
+        self.scale = adapter.noise_scale  # (C,) the unit of the noise stds
         self.target_scale = self.scale * adapter.target_noise_scale
         with initial_weights(seed):
             self.actor = Actor(obs_size, low, high, config.hidden).to(device)
-            self.critic = Critic(obs_size, adapter.code_size, adapter.k, config.hidden).to(device)
+            self.critic = Critic(
+                obs_size, adapter.code_size, adapter.k, config.hidden, adapter.plan_step,
+                config.critic_action_repeat,
+            ).to(device)
         self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         # One fused kernel per step instead of a Python loop over tensors: a third of an update's
@@ -404,7 +459,7 @@ class Agent:
         parts = k_step_targets(batch, c.discount)
         with torch.no_grad(), self._autocast():
             noise = self._noise(batch.code.shape, c.policy_noise, self.target_scale)
-            clip = c.noise_clip * self.target_scale
+            clip = c.noise_clip * self.adapter.clip_scale
             noise = torch.maximum(torch.minimum(noise, clip), -clip)
             chosen = self.clip(self.actor_target(parts.bootstrap_obs) + noise)
             next_code = torch.where(parts.keep_code[:, None], batch.code, chosen)

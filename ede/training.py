@@ -153,11 +153,15 @@ class _Run:
         assert isinstance(space, gymnasium.spaces.Box)
         obs_size = int(np.prod(self.env.observation_space.shape))
         if spec.algo == "td3":
-            self.adapter: ActionAdapter = IdentityAdapter(space.low, space.high, device)
+            self.adapter: ActionAdapter = IdentityAdapter(
+                space.low, space.high, device, spec.td3.noise_units
+            )
         else:
             assert embedding is not None
+            ede = spec.ede_td3
             self.adapter = EmbeddingAdapter(
-                embedding, spec.ede_td3.bound_scale, spec.ede_td3.target_noise_scale
+                embedding, ede.bound_scale, ede.target_noise_scale, ede.target_noise_clip,
+                ede.plan_step_input,
             )
         self.agent = Agent(obs_size, self.adapter, spec.td3, device, spec.seed)
         capacity = min(spec.td3.buffer_size, spec.budget)

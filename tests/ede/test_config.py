@@ -71,6 +71,15 @@ def test_defaults_in_the_model_match_the_committed_file() -> None:
         (lambda p: p["families"].pop("sevendof"), "runs.tasks.sevendof: not a family"),
         (lambda p: p["runs"].update(seeds=[0, 0]), "runs.seeds: [0, 0] repeats a seed"),
         (lambda p: p["decoder"].update(z_source="posterior"), "decoder.z_source: got 'posterior'"),
+        (lambda p: p["td3"].update(noise_units="percent"), "td3.noise_units: got 'percent'"),
+        (lambda p: p["td3"].update(critic_action_repeat=0), "td3.critic_action_repeat: got 0"),
+        (lambda p: p["td3"].update(critic_action_repeat="twice"),
+         "td3.critic_action_repeat: got 'twice'"),
+        (lambda p: p["ede_td3"].update(target_noise_clip="none"),
+         "ede_td3.target_noise_clip: got 'none'"),
+        (lambda p: p["ede_td3"].update(plan_step_input="binary"),
+         "ede_td3.plan_step_input: got 'binary'"),
+        (lambda p: p["td3"].update(update_schedule="batch"), "td3.update_schedule: got 'batch'"),
     ],
 )
 def test_a_bad_file_names_the_key_and_value(write_params, edit, key: str) -> None:

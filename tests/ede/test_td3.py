@@ -9,7 +9,15 @@ import pytest
 import torch
 
 from ede.config import TD3Config
-from ede.td3 import Agent, CodeExecutor, IdentityAdapter, ReplayBuffer, k_step_targets
+from ede.td3 import (
+    Agent,
+    CodeExecutor,
+    Critic,
+    EmbeddingAdapter,
+    IdentityAdapter,
+    ReplayBuffer,
+    k_step_targets,
+)
 
 GAMMA = 0.9
 K, OBS, CODE = 4, 3, 2
@@ -21,7 +29,10 @@ class FixedAdapter:
     k, code_size = K, CODE
     code_low = -torch.ones(CODE)
     code_high = torch.ones(CODE)
+    noise_scale = torch.ones(CODE)
     target_noise_scale = 0.25
+    clip_scale = torch.ones(CODE)
+    plan_step = "onehot"
 
     def decode(self, codes: torch.Tensor) -> torch.Tensor:
         return codes[:, None].expand(-1, K, -1)
@@ -189,24 +200,85 @@ def test_actor_updates_wait_for_the_policy_delay_and_targets_move_by_tau() -> No
         torch.testing.assert_close(new, 0.75 * old + 0.25 * online)
 
 
-def test_target_smoothing_noise_is_clipped_relative_to_the_code_box(monkeypatch) -> None:
-    agent = agent_for(FixedAdapter())
-    agent.config = agent.config.model_copy(update={"policy_noise": 1e3, "noise_clip": 0.5})
-    buffer = filled_buffer(REWARDS)
+class BoxEmbedding:
+    """What EmbeddingAdapter reads of an embedding: k, dim, the bound, the device."""
+
+    k, dim, device = K, CODE, torch.device("cpu")
+
+    def __init__(self, bound: float) -> None:
+        self.bound = bound
+
+
+def largest_target_noise(adapter, noise_clip: float = 0.5, **overrides) -> float:
+    """The largest |c' − μ'(s')| over a batch, with a target noise std far above its clip."""
+    config = TD3Config(hidden=[16, 16], policy_noise=1e3, noise_clip=noise_clip, **overrides)
+    agent = Agent(OBS, adapter, config, torch.device("cpu"), seed=0)
+    buffer = filled_buffer(REWARDS) if adapter.k == K else filled_buffer_k1()
     seen = []
-    original = type(agent.critic_target).forward
-
-    def spy(self, obs, code, i):
-        seen.append((obs.clone(), code.clone()))
-        return original(self, obs, code, i)
-
-    monkeypatch.setattr(type(agent.critic_target), "forward", spy)
+    forward = agent.critic_target.forward
+    agent.critic_target.forward = lambda obs, code, i: seen.append((obs, code)) or forward(obs, code, i)
     agent.target(buffer.sample(64, torch.Generator().manual_seed(0)))
     obs, code = seen[0]
-    offset = code - agent.clip(agent.actor_target(obs))
-    # half-range 1 x noise_clip 0.5 x the adapter's target_noise_scale 0.25, saturated by the
-    # huge noise (up to the box's own clip at ±1)
-    assert offset.abs().max().item() == pytest.approx(0.125, abs=1e-6)
+    return (code - agent.clip(agent.actor_target(obs))).abs().max().item()
+
+
+def filled_buffer_k1() -> ReplayBuffer:
+    buffer = ReplayBuffer(32, OBS, CODE, 1, torch.device("cpu"))
+    for t in range(8):
+        buffer.add(np.full(OBS, t, dtype=np.float32), torch.zeros(CODE), 0, 0.0,
+                   np.full(OBS, t + 1, dtype=np.float32), False, False)
+    return buffer
+
+
+@pytest.mark.parametrize(("clip", "expected"), [("absolute", 0.5), ("scaled", 0.5 * 3.8 * 0.25)])
+def test_ede_target_noise_is_clipped_in_code_units_or_scaled_by_the_bound(clip, expected) -> None:
+    # The bound 3.8 (ReacherVertical's): the authors' clip is td3.noise_clip = 0.5 in whitened-z
+    # units; "scaled" multiplies it by the bound and target_noise_scale (0.475).
+    adapter = EmbeddingAdapter(BoxEmbedding(3.8), target_noise_scale=0.25, target_noise_clip=clip)
+    assert largest_target_noise(adapter) == pytest.approx(expected, abs=1e-5)
+
+
+@pytest.mark.parametrize(("units", "expected"), [("absolute", 0.5), ("range", 1.0)])
+def test_td3_noise_is_absolute_or_relative_to_the_action_box(units, expected) -> None:
+    # A ±2 box, as Pusher's: absolute noises are in action units (sfujim, the authors' code);
+    # "range" multiplies them by the half-range 2 (stable-baselines3).
+    adapter = IdentityAdapter(-2 * np.ones(CODE), 2 * np.ones(CODE), torch.device("cpu"), units)
+    assert largest_target_noise(adapter) == pytest.approx(expected, abs=1e-5)
+    config = TD3Config(hidden=[16, 16], exploration_noise=0.1)
+    agent = Agent(OBS, adapter, config, torch.device("cpu"), seed=0)
+    obs = np.zeros(OBS, dtype=np.float32)
+    mean = agent.act(obs, explore=False)
+    noise = torch.stack([agent.act(obs, explore=True) - mean for _ in range(4000)])
+    assert noise.std().item() == pytest.approx(0.1 * expected / 0.5, rel=0.05)
+
+
+def test_critic_sees_the_plan_step_as_a_one_hot_or_a_scalar() -> None:
+    obs, code, i = torch.zeros(3, OBS), torch.ones(3, CODE), torch.tensor([0, 2, 3])
+    onehot = Critic(OBS, CODE, K, [8], "onehot")._inputs(obs, code, i)
+    scalar = Critic(OBS, CODE, K, [8], "scalar")._inputs(obs, code, i)
+    assert onehot[:, OBS + CODE:].tolist() == torch.eye(K)[i].tolist()
+    assert scalar[:, OBS + CODE:].tolist() == [[0.0], [2.0], [3.0]]
+
+
+@pytest.mark.parametrize(
+    ("obs_size", "code_size", "k", "plan_step", "repeat", "copies"),
+    [
+        (10, 2, 1, "onehot", "auto", 2),  # TD3 on ReacherVertical: ⌊5 / 2⌋, as the authors' code
+        (10, 2, 4, "scalar", "auto", 1),  # EDE-TD3 there: ⌊5 / 3⌋
+        (14, 2, 4, "scalar", "auto", 2),  # ReacherPush (the authors' 14 entries): ⌊7 / 3⌋
+        (23, 7, 1, "onehot", "auto", 1),  # Pusher: ⌊11.5 / 7⌋
+        (10, 2, 1, "onehot", 3, 3),  # a number is taken as it is
+    ],
+)
+def test_critic_repeats_its_action_input_as_asked(obs_size, code_size, k, plan_step, repeat,
+                                                  copies) -> None:
+    critic = Critic(obs_size, code_size, k, [8], plan_step, repeat)
+    step_size = 0 if k == 1 else (k if plan_step == "onehot" else 1)
+    assert critic.q1[0].in_features == obs_size + copies * (code_size + step_size)
+    obs, code = torch.randn(2, obs_size), torch.randn(2, code_size)
+    x = critic._inputs(obs, code, torch.tensor([0, k - 1]))
+    pair = x[:, obs_size:].reshape(2, copies, -1)
+    assert torch.equal(pair, pair[:, :1].expand_as(pair)) and torch.equal(pair[:, 0, :code_size], code)
 
 
 # The executor of codes ----------------------------------------------------------------------
