@@ -43,6 +43,9 @@ def variant_params(task: str, overrides: str) -> dict:
     params["families"] = {family: params["families"][family]}
     params["runs"]["tasks"] = {family: [task]}
     params["runs"]["budgets"] = {task: params["runs"]["budgets"][task]}
+    for figure in ("effect_space_family", "exploration_family"):  # other families' figures
+        if params["report"].get(figure) != family:
+            params["report"][figure] = None
     for assignment in filter(None, overrides.split(",")):
         key, _, value = assignment.partition("=")
         *path, last = key.split(".")
