@@ -71,11 +71,10 @@ quick: install
 	$(BIN)/ede-pipeline set-params params-quick.yaml >.dvc/tmp/quick.args
 	xargs -d '\n' -a .dvc/tmp/quick.args $(BIN)/dvc exp run --temp
 
-# The experiments of this commit, one line each in 80 columns: the name, and the two figures of
-# the report whose names fit (`dvc exp show` in full is far wider; README.md, "Comparing experiments").
+# The experiments of this commit in 80 columns: per experiment its changed params and the report's
+# final return and area under the curve per task and algorithm (README.md, "Comparing experiments").
 experiments: install
-	$(BIN)/dvc exp show --no-pager --hide-workspace --drop '.*' \
-		--keep '^(Experiment|effect_space_affine_r2|missing_runs)$$'
+	$(BIN)/ede-pipeline experiments
 
 test: install
 	$(BIN)/pytest $(PYTEST_ARGS)

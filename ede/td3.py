@@ -121,7 +121,8 @@ class EmbeddingAdapter:
         self.code_high = torch.full((self.code_size,), bound, device=device)
         self.noise_scale = self.code_high
         ones = torch.ones_like(self.code_high)
-        self.clip_scale = ones if target_noise_clip == "absolute" else bound * target_noise_scale * ones
+        scaled = target_noise_clip == "scaled"
+        self.clip_scale = bound * target_noise_scale * ones if scaled else ones
 
     @torch.no_grad()
     def decode(self, codes: torch.Tensor) -> torch.Tensor:

@@ -16,7 +16,7 @@ import yaml
 from pydantic import ValidationError
 
 from ede.config import Params
-from ede_pipeline import collect, pretrain, report, sweep, task_code, train
+from ede_pipeline import collect, experiments, pretrain, report, sweep, task_code, train
 from ede_pipeline.common import BadInput, params_option
 
 
@@ -102,3 +102,4 @@ main.add_command(pretrain.pretrain)
 main.add_command(train.train)
 main.add_command(report.report)
 main.add_command(sweep.sweep)
+main.add_command(experiments.experiments)

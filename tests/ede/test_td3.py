@@ -216,7 +216,9 @@ def largest_target_noise(adapter, noise_clip: float = 0.5, **overrides) -> float
     buffer = filled_buffer(REWARDS) if adapter.k == K else filled_buffer_k1()
     seen = []
     forward = agent.critic_target.forward
-    agent.critic_target.forward = lambda obs, code, i: seen.append((obs, code)) or forward(obs, code, i)
+    agent.critic_target.forward = (
+        lambda obs, code, i: seen.append((obs, code)) or forward(obs, code, i)
+    )
     agent.target(buffer.sample(64, torch.Generator().manual_seed(0)))
     obs, code = seen[0]
     return (code - agent.clip(agent.actor_target(obs))).abs().max().item()

@@ -1,0 +1,102 @@
+"""``ede-pipeline experiments``: DVC's experiments, each as a block that fits 80 columns."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from ede_pipeline.checkout import tool_env
+from ede_pipeline.cli import main
+from ede_pipeline.experiments import WIDTH, experiment_blocks
+
+TASK = "ede/ReacherVertical-v0"
+
+# A stage that writes the report's metrics in the report's layout from two params, and a second
+# metrics file, so that DVC prefixes metric columns with their file as it does in dvc.yaml.
+STAGE = """
+import json, yaml
+p = yaml.safe_load(open("params.yaml"))
+lr, seeds = p["td3"]["lr"], p["runs"]["seeds"]
+metrics = {
+    "ede/ReacherVertical-v0": {
+        "td3": {"final_return": -1000 * lr, "auc": -2000 * lr, "seeds": len(seeds)},
+        "ede-td3": {"final_return": -500 * lr, "auc": -1500 * lr, "seeds": len(seeds)},
+    },
+    "missing_runs": 0,
+}
+json.dump(metrics, open("data/report-metrics.json", "w"))
+json.dump({"r2": 0.5}, open("data/other.json", "w"))
+"""
+
+
+def git(repo: Path, *args: str) -> None:
+    subprocess.run(["git", *args], cwd=repo, check=True, capture_output=True)
+
+
+@pytest.fixture(scope="module")
+def repo(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("experiments")
+    git(root, "init", "-q")
+    git(root, "config", "user.email", "test@example.org")
+    git(root, "config", "user.name", "test")
+    (root / "data").mkdir()
+    (root / "data" / ".gitkeep").write_text("")
+    (root / "params.yaml").write_text(yaml.safe_dump(
+        {"td3": {"lr": 0.001, "batch_size": 100}, "runs": {"seeds": [0, 1]}}))
+    (root / "stage.py").write_text(STAGE)
+    (root / "dvc.yaml").write_text(yaml.safe_dump({"stages": {"report": {
+        "cmd": "python stage.py",
+        "deps": ["stage.py"],
+        "params": ["td3.lr", "td3.batch_size", "runs.seeds"],
+        "metrics": [{"data/report-metrics.json": {"cache": False}},
+                    {"data/other.json": {"cache": False}}],
+    }}}))
+    env = tool_env()
+    subprocess.run(["dvc", "init", "-q"], cwd=root, check=True, env=env)
+    git(root, "add", "-A")
+    git(root, "commit", "-qm", "base")
+    for name, overrides in [("smaller-lr", ["td3.lr=0.0003"]),
+                            ("three-seeds", ["runs.seeds=[0,1,2]", "td3.batch_size=256"])]:
+        sets = [arg for override in overrides for arg in ("-S", override)]
+        args = ["dvc", "exp", "run", "--temp", "--name", name, *sets]
+        subprocess.run(args, cwd=root, check=True, env=env, capture_output=True)
+    return root
+
+
+def test_each_experiment_shows_its_changes_and_returns_in_80_columns(repo: Path,
+                                                                     monkeypatch) -> None:
+    monkeypatch.chdir(repo)
+    result = CliRunner().invoke(main, ["experiments"])
+    assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    assert all(len(line) <= WIDTH for line in lines), [line for line in lines if len(line) > WIDTH]
+    blocks = {block.splitlines()[0].split()[0]: block for block in result.output.split("\n\n")}
+    assert set(blocks) == {"smaller-lr", "three-seeds"}
+
+    smaller = blocks["smaller-lr"]
+    assert "td3.lr: 0.001 → 0.0003" in smaller and "batch_size" not in smaller
+    row = next(line for line in smaller.splitlines() if TASK in line).split()
+    # final and AUC of TD3, then of EDE-TD3, then the seeds of each
+    assert row[1:] == ["-0.30", "-0.60", "-0.15", "-0.45", "2/2"]
+
+    three = blocks["three-seeds"]
+    assert "td3.batch_size: 100 → 256" in three and "runs.seeds: [0, 1] → [0, 1, 2]" in three
+    assert next(line for line in three.splitlines() if TASK in line).split()[-1] == "3/3"
+
+
+def test_an_experiment_without_a_report_says_so() -> None:
+    def entry(rev: str, name: str, lr: float, metrics: dict) -> dict:
+        return {"rev": rev, "name": name, "error": None, "data": {
+            "params": {"params.yaml": {"data": {"td3": {"lr": lr}}}}, "metrics": metrics}}
+
+    missing = {"data/report-metrics.json": {"error": {"type": "FileNotFoundError"}}}
+    commit = entry("0123456789", "main", 0.001, missing)
+    commit["experiments"] = [{"revs": [entry("abc1234567", "no-report", 0.002, missing)]}]
+    assert experiment_blocks([entry("workspace", None, 0.1, {}), commit]) == [
+        "no-report  (abc1234, from main)", "  changed: td3.lr: 0.001 → 0.002", "  no report yet",
+    ]
+    assert experiment_blocks([{**commit, "experiments": None}]) == []
