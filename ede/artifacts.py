@@ -2,12 +2,14 @@
 
 An artifact is a directory holding ``weights.safetensors`` and ``meta.json``; the metadata is
 validated by a pydantic model and records the SHA-256 of the weights file, so a tampered or
-mismatched pair is refused with a clear error.
+mismatched pair is refused with a clear error. :func:`params_mismatches` names every way an
+artifact contradicts the params in force (its ``k``, ``dim`` and the recorded training params).
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
@@ -19,6 +21,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from ede.atomic import write_atomically
+from ede.config import DecoderConfig, EmbeddingConfig
 from ede.embedding import ActionDecoder, ActionEmbedding, Encoder, EncoderResult, Predictor
 from ede.provenance import software_versions
 from ede.rollouts import Whitening
@@ -30,12 +33,15 @@ __all__ = [
     "WhiteningMeta",
     "load_action_embedding",
     "load_encoder",
+    "params_mismatches",
     "save_decoder",
     "save_encoder",
 ]
 
 WEIGHTS = "weights.safetensors"
 META = "meta.json"
+# Params that decide where and how fast an artifact is made, not what it is.
+RESULT_NEUTRAL_PARAMS = frozenset({"device", "threads"})
 
 
 class ArtifactError(ValueError):
@@ -255,3 +261,70 @@ def load_action_embedding(
     _fill(decoder_path, "decoder", decoder, tensors)
     embedding = ActionEmbedding(encoded.encoder, decoder, meta.code_whitening.whitening(), meta.bound)
     return meta, embedding.to(device)
+
+
+def params_mismatches(
+    path: str | Path,
+    meta: EncoderMeta | DecoderMeta,
+    embedding: EmbeddingConfig,
+    decoder: DecoderConfig | None = None,
+    action_size: int | None = None,
+) -> list[str]:
+    """Every way an artifact contradicts the params in force, one line each.
+
+    ``k`` and ``dim`` are compared as the artifact has them; every other param recorded in
+    ``meta.params`` (all but :data:`RESULT_NEUTRAL_PARAMS`) is compared key by key, and a key
+    recorded on one side only is a contradiction too.
+
+    Args:
+        path: the artifact's directory, which each line names.
+        meta: its metadata, from :func:`load_encoder` or :func:`load_action_embedding`.
+        embedding: the ``embedding`` params in force.
+        decoder: the ``decoder`` params in force, to check a decoder's own params as well
+            (a :class:`DecoderMeta` records both sections, an :class:`EncoderMeta` only ``embedding``).
+        action_size: what a null ``embedding.dim`` means; default: the artifact's action size.
+
+    Returns:
+        Lines such as ``data/reacher/embedding/encoder: made with embedding.k = 4, but
+        params.yaml has embedding.k = 2``; none when the artifact agrees with the params.
+    """
+    lines: list[str] = []
+
+    def differ(name: str, made: Any, given: str) -> None:
+        lines.append(f"{path}: made with {name} = {_show(made)}, but params.yaml has {name} = {given}")
+
+    if meta.k != embedding.k:
+        differ("embedding.k", meta.k, _show(embedding.k))
+    size = len(meta.action_space.low) if action_size is None else action_size
+    if meta.dim != (size if embedding.dim is None else embedding.dim):
+        differ("embedding.dim", meta.dim, _show(embedding.dim) if embedding.dim is not None
+               else f"null (the action size, {size})")
+    sections: list[tuple[str, EmbeddingConfig | DecoderConfig]] = [("embedding", embedding)]
+    if decoder is not None:
+        sections.append(("decoder", decoder))
+    for section, config in sections:
+        recorded = meta.params.get(section)
+        if not isinstance(recorded, dict):
+            lines.append(f"{path}: records no {section} params, so it cannot be checked against "
+                         "params.yaml; make it again (`ede-pipeline pretrain`)")
+            continue
+        given = config.model_dump(mode="json")
+        done = RESULT_NEUTRAL_PARAMS | ({"k", "dim"} if section == "embedding" else set())
+        for key in [*given, *(key for key in recorded if key not in given)]:
+            name = f"{section}.{key}"
+            if key in done:
+                continue
+            if key not in recorded:
+                lines.append(f"{path}: made with no record of {name}, but params.yaml has "
+                             f"{name} = {_show(given[key])}")
+            elif key not in given:
+                lines.append(f"{path}: made with {name} = {_show(recorded[key])}, which params.yaml "
+                             "does not have")
+            elif recorded[key] != given[key]:
+                differ(name, recorded[key], _show(given[key]))
+    return lines
+
+
+def _show(value: Any) -> str:
+    """A param's value as params.yaml would spell it: null, true, [400, 400], 0.0001, marginal."""
+    return value if isinstance(value, str) else json.dumps(value)

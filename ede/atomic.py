@@ -9,19 +9,19 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-__all__ = ["write_atomically", "write_json", "write_text"]
+__all__ = ["remove_stale_temporaries", "write_atomically", "write_json", "write_text"]
 
 
 def write_atomically(path: str | Path, write: Callable[[Path], None]) -> None:
     """Call ``write(tmp)`` on a fresh sibling directory and rename it onto ``path`` when it returns.
 
     A writer killed midway leaves only ``<path>.tmp-<pid>``, which nothing reads and the next
-    write to ``path`` removes; an old ``path`` is replaced only by a complete new one.
+    write to ``path`` removes once that process is gone (a live writer's temporary is left alone);
+    an old ``path`` is replaced only by a complete new one.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    for stale in path.parent.glob(f"{path.name}.tmp-*"):
-        shutil.rmtree(stale, ignore_errors=True)
+    remove_stale_temporaries(path)
     tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
     tmp.mkdir()
     try:
@@ -34,10 +34,35 @@ def write_atomically(path: str | Path, write: Callable[[Path], None]) -> None:
     os.replace(tmp, path)
 
 
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return False  # this process's own leftover
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # another user's live process
+    return True
+
+
+def remove_stale_temporaries(path: Path) -> None:
+    """Remove ``<path>.tmp-<pid>`` siblings whose writer is no longer running."""
+    for stale in path.parent.glob(f"{path.name}.tmp-*"):
+        pid = stale.name.rpartition("-")[2]
+        if pid.isdigit() and _alive(int(pid)):
+            continue
+        if stale.is_dir():
+            shutil.rmtree(stale, ignore_errors=True)
+        else:
+            stale.unlink(missing_ok=True)
+
+
 def write_text(path: str | Path, text: str) -> None:
     """Write a file atomically (temporary file, then rename)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(path)
     tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
     tmp.write_text(text)
     os.replace(tmp, path)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import json
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -213,17 +214,32 @@ class RunsConfig(_Section):
     tasks: dict[str, list[TaskId]] = Field(
         min_length=1, description="per family, the tasks to train on (its embedding transfers)"
     )
-    algos: list[Literal["td3", "ede-td3"]] = Field(default_factory=lambda: list(ALGOS))
+    algos: list[Literal["td3", "ede-td3"]] = Field(
+        default_factory=lambda: list(ALGOS), min_length=1
+    )
     seeds: list[Seed] = Field(min_length=1)
     budgets: dict[str, PositiveInt] = Field(description="environment steps per task")
 
     @model_validator(mode="after")
-    def _every_task_has_a_budget(self) -> RunsConfig:
+    def _every_run_is_named_once(self) -> RunsConfig:
+        problems = []
+        if not self.all_tasks:
+            problems.append("runs.tasks: names no task; expected at least one task to train on")
+        for family, tasks in self.tasks.items():
+            repeated = sorted({task for task in tasks if tasks.count(task) > 1})
+            if repeated:
+                problems.append(f"runs.tasks.{family}: {', '.join(repeated)} listed twice; "
+                                "expected each task once")
         missing = [task for task in self.all_tasks if task not in self.budgets]
         if missing:
-            raise ValueError(f"runs.budgets: no budget for {', '.join(missing)}")
+            problems.append(f"runs.budgets: no budget for {', '.join(missing)}")
+        if len(set(self.algos)) != len(self.algos):
+            problems.append(f"runs.algos: {self.algos} repeats an algorithm; "
+                            "expected distinct algorithms")
         if len(set(self.seeds)) != len(self.seeds):
-            raise ValueError(f"runs.seeds: {self.seeds} repeats a seed; expected distinct seeds")
+            problems.append(f"runs.seeds: {self.seeds} repeats a seed; expected distinct seeds")
+        if problems:
+            raise ValueError("\n".join(problems))
         return self
 
     @property
@@ -262,7 +278,12 @@ class ReportConfig(_Section):
 
 
 class Params(_Section):
-    """The whole of ``params.yaml``."""
+    """The whole of ``params.yaml``.
+
+    Beyond each key's own constraint, keys must agree: tasks sit in their families, and the
+    numbers leave every stage something to do (a run reaches its first update and more than its
+    first and last evaluation; the rollouts fill a batch of windows).
+    """
 
     families: dict[str, FamilyConfig] = Field(min_length=1)
     collect: CollectConfig = CollectConfig()
@@ -274,7 +295,14 @@ class Params(_Section):
     report: ReportConfig = ReportConfig()
 
     @model_validator(mode="after")
-    def _tasks_are_placed(self) -> Params:
+    def _keys_agree(self) -> Params:
+        problems = self._placement_problems() + self._scale_problems()
+        if problems:
+            raise ValueError("\n".join(problems))
+        return self
+
+    def _placement_problems(self) -> list[str]:
+        """Tasks in their families, the report's families among ``families``."""
         problems = []
         for family, tasks in self.runs.tasks.items():
             if family not in self.families:
@@ -295,9 +323,53 @@ class Params(_Section):
             shared = set(self.families[a].tasks) & set(self.families[b].tasks)
             if shared:
                 problems.append(f"families: {', '.join(sorted(shared))} in both {a} and {b}")
-        if problems:
-            raise ValueError("\n".join(problems))
-        return self
+        return problems
+
+    def _scale_problems(self) -> list[str]:
+        """Numbers valid one by one that together leave a stage nothing to do."""
+        collect, embedding, td3 = self.collect, self.embedding, self.td3
+        problems = []
+        if collect.num_envs is not None and collect.num_envs > collect.steps:
+            problems.append(f"collect.num_envs: got {collect.num_envs}; expected at most "
+                            f"collect.steps ({collect.steps}): each sub-environment records an "
+                            "equal share of the steps, so some would record none")
+        if collect.steps < embedding.k:
+            problems.append(f"collect.steps: got {collect.steps}; expected at least embedding.k "
+                            f"({embedding.k}): no window of k actions fits in the rollouts")
+        # A loose bound: rollouts end in whole episodes and windows must stay inside one.
+        windows = collect.steps * (1 - embedding.holdout)
+        bound = f"collect.steps {collect.steps} × (1 - embedding.holdout {embedding.holdout})"
+        for key, batch_size, stride in (
+            ("embedding", embedding.batch_size, embedding.window_stride),
+            ("decoder", self.decoder.batch_size, 1),  # D learns on every training window
+        ):
+            if windows / stride < batch_size:
+                of = f" / embedding.window_stride {stride}" if key == "embedding" else ""
+                problems.append(f"{key}.batch_size: got {batch_size}; expected at most "
+                                f"{int(windows / stride)} = {bound}{of}, the most training "
+                                "windows the rollouts can give: every epoch would be one "
+                                "partial batch")
+        # EDE-TD3 samples k-step sequences: n stored steps hold n - (k - 1) of them.
+        extra = embedding.k - 1 if "ede-td3" in self.runs.algos else 0
+        batch = f"td3.batch_size {td3.batch_size}" + (
+            f" + embedding.k {embedding.k} - 1 (ede-td3's k-step samples)" if extra else ""
+        )
+        if td3.buffer_size < td3.batch_size + extra:
+            problems.append(f"td3.buffer_size: got {td3.buffer_size}; expected at least "
+                            f"{td3.batch_size + extra} = {batch}: no batch could ever be sampled")
+        first_update = max(td3.start_steps, td3.batch_size + extra)
+        for task in self.runs.all_tasks:
+            budget = self.runs.budgets[task]
+            if budget < first_update:
+                problems.append(f"runs.budgets.{task}: got {budget}; expected at least "
+                                f"{first_update} = max(td3.start_steps {td3.start_steps}, "
+                                f"{batch}), the step of the first update: the run would never "
+                                "update")
+            if budget < td3.eval_every:
+                problems.append(f"runs.budgets.{task}: got {budget}; expected at least "
+                                f"td3.eval_every ({td3.eval_every}): the run would have only "
+                                "its initial and final evaluations")
+        return problems
 
     def family_of(self, task: str) -> str:
         """The name of the family that holds ``task``."""
@@ -334,11 +406,15 @@ def load_params(path: str | Path) -> Params:
     """
     path = Path(path)
     try:
-        raw = yaml.safe_load(path.read_text())
+        text = path.read_text()
     except FileNotFoundError:
         raise ParamsError(path, ["no such file"]) from None
-    except (OSError, yaml.YAMLError) as error:
+    except (OSError, UnicodeDecodeError) as error:
         raise ParamsError(path, [f"not readable YAML ({_first_line(error)})"]) from None
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise ParamsError(path, [_describe_yaml_error(error, text)]) from None
     if not isinstance(raw, dict):
         raise ParamsError(path, [f"expected a mapping of sections, found {type(raw).__name__}"])
     try:
@@ -371,3 +447,25 @@ def _short(value: Any) -> str:
 
 def _first_line(error: BaseException) -> str:
     return str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+
+
+def _describe_yaml_error(error: yaml.YAMLError, text: str) -> str:
+    """One line: where (1-based, as editors count), what PyYAML says, and the line's text.
+
+    A problem found at the end of the stream (an unclosed bracket or quote) is placed where its
+    context began, the line to fix, rather than past the last line.
+    """
+    if not (isinstance(error, yaml.MarkedYAMLError) and error.problem_mark and error.problem):
+        return f"not readable YAML ({_first_line(error)})"
+    mark, problem = error.problem_mark, error.problem
+    context, context_mark = error.context, error.context_mark
+    if context_mark is not None and not text[mark.index:].strip():  # at the end of the stream
+        mark = context_mark
+    if context and context_mark is not None and context_mark.index != mark.index:
+        context += f" from line {context_mark.line + 1}, column {context_mark.column + 1}"
+    lines = text.splitlines()
+    line = lines[mark.line] if mark.line < len(lines) else ""
+    shown = line if len(line) <= 100 else line[:97] + "..."
+    return (f"line {mark.line + 1}, column {mark.column + 1}: not readable YAML: {problem}"
+            + (f" ({context})" if context else "")
+            + f"; the line reads: {json.dumps(shown, ensure_ascii=False)}")

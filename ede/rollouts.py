@@ -13,6 +13,10 @@ array      shape        meaning
 ``t``       (N,)         step within the episode, 0, 1, ...
 ========== ============ ==========================================================
 
+The group's attributes name the task, seed, spaces and params, ``collector`` (the store format,
+:data:`COLLECTOR_VERSION`) and ``fingerprint``: a SHA-256 over the arrays and every attribute but
+itself and ``software`` (see :func:`fingerprint`), so an edited array or attribute is refused.
+
 Rows are whole episodes. The state *after* an episode's last action is not a row, so a k-step
 window ``(state[t], action[t:t+k], state[t+k])`` needs ``t + k`` inside the same episode.
 
@@ -48,16 +52,22 @@ __all__ = [
     "COLLECTOR_VERSION",
     "Rollouts",
     "RolloutsError",
+    "UNFINGERPRINTED_ATTRS",
     "Whitening",
     "collect",
+    "fingerprint",
     "physics_state",
     "write_store",
 ]
 
-COLLECTOR_VERSION = 1
+COLLECTOR_VERSION = 2  # 2: the fingerprint covers the attributes as well as the arrays
 CHUNK_STEPS = 16_384
 ARRAYS = ("obs", "state", "action", "reward", "episode", "t")
 REQUIRED_ATTRS = ("env_id", "family", "seed", "num_envs", "steps", "spaces", "params", "fingerprint")
+# Attributes the fingerprint leaves out: itself, and the versions of the software that wrote the
+# store, which name the machine rather than the content (the same rollouts collected in the
+# container and on the host share one fingerprint; scripts/container-test.sh checks this).
+UNFINGERPRINTED_ATTRS = ("fingerprint", "software")
 _STD_FLOOR = 1e-6  # columns that never move (e.g. a velocity held at zero) are left unscaled
 
 
@@ -236,13 +246,19 @@ def _concatenate(episodes: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]
     return {key: arrays[key] for key in ARRAYS}
 
 
-def fingerprint(arrays: dict[str, np.ndarray]) -> str:
-    """A SHA-256 over every array's name, dtype, shape and bytes."""
+def fingerprint(arrays: dict[str, np.ndarray], attrs: dict[str, Any]) -> str:
+    """A SHA-256 over every array's name, dtype, shape and bytes, then over the attributes.
+
+    The attributes (all but :data:`UNFINGERPRINTED_ATTRS`) enter as canonical JSON, keys sorted,
+    so a store whose ``env_id``, ``family`` or ``params`` were edited no longer matches.
+    """
     digest = hashlib.sha256()
     for key in ARRAYS:
         array = np.ascontiguousarray(arrays[key])
         digest.update(f"{key}:{array.dtype.str}:{array.shape};".encode())
         digest.update(array.tobytes())
+    content = {key: value for key, value in attrs.items() if key not in UNFINGERPRINTED_ATTRS}
+    digest.update(b"attrs:" + json.dumps(content, sort_keys=True).encode())
     return digest.hexdigest()
 
 
@@ -263,9 +279,8 @@ def write_store(path: str | Path, arrays: dict[str, np.ndarray], attrs: dict[str
                 chunks=(min(CHUNK_STEPS, len(array)), *array.shape[1:]),
                 compressors=BloscCodec(cname="zstd", clevel=3, shuffle="shuffle"),
             )
-        group.attrs.update(
-            {**attrs, "fingerprint": fingerprint(arrays), "collector": COLLECTOR_VERSION}
-        )
+        content = {**attrs, "collector": COLLECTOR_VERSION}
+        group.attrs.update({**content, "fingerprint": fingerprint(arrays, content)})
 
     write_atomically(path, write)
 
@@ -323,6 +338,12 @@ class Rollouts:
             missing = [key for key in REQUIRED_ATTRS if key not in attrs]
             if missing:
                 raise RolloutsError(f"{path}: attributes {', '.join(missing)} are missing")
+            if attrs.get("collector") != COLLECTOR_VERSION:
+                raise RolloutsError(
+                    f"{path}: written by collector version {attrs.get('collector')}, but this "
+                    f"code reads version {COLLECTOR_VERSION} only; collect it again "
+                    "(`ede-pipeline collect`)"
+                )
             absent = [key for key in ARRAYS if key not in group]
             if absent:
                 raise RolloutsError(f"{path}: arrays {', '.join(absent)} are missing")
@@ -331,13 +352,13 @@ class Rollouts:
             raise
         except (OSError, ValueError, KeyError, RuntimeError, json.JSONDecodeError) as error:
             raise RolloutsError(f"{path}: unreadable store ({type(error).__name__}: {error})")
+        rollouts = cls(path=path, attrs=attrs, **arrays)
+        rollouts._check()  # first: an edited env_id must not be reported as where it came from
         if env_id is not None and attrs["env_id"] != env_id:
             raise RolloutsError(
                 f"{path}: collected on {attrs['env_id']} (family {attrs['family']}), "
                 f"expected {env_id}"
             )
-        rollouts = cls(path=path, attrs=attrs, **arrays)
-        rollouts._check()
         return rollouts
 
     def _check(self) -> None:
@@ -353,8 +374,11 @@ class Rollouts:
         expected_episode = np.repeat(np.arange(starts.size), np.diff([*starts, len(self)]))
         if not (np.array_equal(self.t, expected_t) and np.array_equal(self.episode, expected_episode)):
             raise RolloutsError(f"{self.path}: episodes are not contiguous and in order")
-        if self.attrs["fingerprint"] != fingerprint(self.arrays()):
-            raise RolloutsError(f"{self.path}: content does not match its fingerprint")
+        if self.attrs["fingerprint"] != fingerprint(self.arrays(), self.attrs):
+            raise RolloutsError(
+                f"{self.path}: content does not match its fingerprint (its arrays or attributes "
+                "were changed since collection)"
+            )
 
     def __len__(self) -> int:
         return len(self.reward)

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
-from ede.atomic import write_atomically, write_json, write_text
+from ede.atomic import remove_stale_temporaries, write_atomically, write_json, write_text
 from ede.config import EdeTD3Config, TD3Config
 from ede.embedding import ActionEmbedding
 from ede.provenance import software_versions
@@ -52,9 +52,19 @@ from ede.td3 import (
     ReplayBuffer,
 )
 
-__all__ = ["RunSpec", "evaluate", "train_run"]
+__all__ = ["CheckpointError", "CheckpointWriteError", "RunSpec", "evaluate", "train_run"]
 
-CHECKPOINT_VERSION = 2  # 2: training diagnostics
+CHECKSUMS = "checksums.json"
+
+
+class CheckpointError(Exception):
+    """A checkpoint that cannot be used: unreadable, damaged, or another run's."""
+
+
+class CheckpointWriteError(Exception):
+    """A checkpoint could not be written (a full disk, ...); the previous one is intact."""
+
+CHECKPOINT_VERSION = 3  # 2: training diagnostics; 3: checksums, the run's identity
 EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes are seeded apart from training ones
 EVAL_COLUMNS = ("step", "episode", "mean_return", "std_return", "wall_seconds")
 DIAGNOSTIC_COLUMNS = ("step", "updates", "critic_loss", "actor_loss", "mean_q")
@@ -199,6 +209,7 @@ class _Run:
         state = {
             "version": CHECKPOINT_VERSION,
             "fingerprint": self.spec.fingerprint(),
+            "identity": self.spec.identity(),
             "step": self.step,
             "episodes": self.episodes,
             "i": self.executor.i,
@@ -215,17 +226,35 @@ class _Run:
             save_file({k: v.detach().cpu().clone() for k, v in tensors.items()},
                       tmp / "state.safetensors")
             (tmp / "state.json").write_text(json.dumps(state))
+            sums = {name: _sha256(tmp / name) for name in ("state.safetensors", "state.json")}
+            (tmp / CHECKSUMS).write_text(json.dumps(sums))
 
         write_atomically(path, write)
 
     def load(self, path: Path) -> bool:
-        """Continue from ``path`` if it holds a checkpoint of this very run; else start afresh."""
-        state_file = path / "state.json"
-        if not state_file.is_file():
+        """Continue from the checkpoint at ``path``; False where there is none.
+
+        Raises:
+            CheckpointError: it cannot be used — a file missing, damaged or changed (its checksum),
+                an older format, another run's (another seed, task, params or embedding), or a
+                state its episode's replay does not reach. This run's state may then be partly
+                overwritten: the caller starts from a fresh run.
+        """
+        if not path.exists():
             return False
-        state = json.loads(state_file.read_text())
-        if state.get("version") != CHECKPOINT_VERSION or state.get("fingerprint") != self.spec.fingerprint():
-            return False
+        state = _verified_state(path)
+        if state.get("version") != CHECKPOINT_VERSION:
+            raise CheckpointError(f"format version {state.get('version')}, this version reads "
+                                  f"{CHECKPOINT_VERSION}")
+        if state.get("fingerprint") != self.spec.fingerprint():
+            raise CheckpointError(f"another run's: {_difference(state.get('identity'), self.spec)}")
+        try:
+            self._restore(path, state)
+        except Exception as error:  # noqa: BLE001 — whatever is wrong, the run must restart
+            raise CheckpointError(f"not restorable ({_first_line(error)})") from None
+        return True
+
+    def _restore(self, path: Path, state: dict[str, Any]) -> None:
         tensors = load_file(path / "state.safetensors", device=str(self.agent.device))
         for name, module in self.agent.modules().items():
             module.load_state_dict({k.removeprefix(f"{name}."): v for k, v in tensors.items()
@@ -256,8 +285,8 @@ class _Run:
         )
         self.obs = _replay(self.env, self.episode)
         if not np.array_equal(self.obs, tensors["obs"].cpu().numpy()):
-            raise RuntimeError(f"{path}: replaying the episode did not reach the saved state")
-        return True
+            raise RuntimeError("replaying the episode did not reach the saved state")
+
 
     # The loop ------------------------------------------------------------------------------
 
@@ -304,6 +333,48 @@ class _Run:
                 self.agent.update(self.buffer.sample(config.batch_size, self.agent.generator))
 
 
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _first_line(error: BaseException) -> str:
+    return (str(error).strip().splitlines() or [type(error).__name__])[0]
+
+
+def _verified_state(path: Path) -> dict[str, Any]:
+    """``state.json`` of a checkpoint whose files all match their checksums."""
+    try:
+        sums = json.loads((path / CHECKSUMS).read_text())
+        for name in ("state.safetensors", "state.json"):
+            if _sha256(path / name) != sums[name]:
+                raise CheckpointError(f"{name} does not match its checksum (damaged or changed)")
+        return json.loads((path / "state.json").read_text())
+    except CheckpointError:
+        raise
+    except FileNotFoundError as error:
+        raise CheckpointError(f"{Path(error.filename).name} is missing") from None
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise CheckpointError(f"not readable ({_first_line(error)})") from None
+
+
+def _difference(identity: Any, spec: RunSpec) -> str:
+    """What tells another run's checkpoint from this run: the first identity key that differs."""
+    if not isinstance(identity, dict):
+        return "its identity is not recorded"
+    for key, value in spec.identity().items():
+        if identity.get(key) != value:
+            if key == "params":
+                return "made with other params"
+            if key == "embedding":
+                return "made with another embedding"
+            return f"{key} {identity.get(key)}, not {value}"
+    return "made by another configuration"
+
+
 def _write_curves(out: Path, run: _Run) -> None:
     write_text(out / "diagnostics.csv", _csv(run.diagnostics, DIAGNOSTIC_COLUMNS))
     write_text(out / "eval.csv", _csv(run.history))
@@ -316,11 +387,21 @@ def train_run(
     device: torch.device = torch.device("cpu"),
     progress: Callable[[int], None] | None = None,
     keep_checkpoint: bool = False,
+    bad_checkpoint: str = "restart",
+    notice: Callable[[str], None] = print,
 ) -> dict[str, Any]:
-    """Train one run into ``out`` (resuming from ``out/checkpoint`` when it matches).
+    """Train one run into ``out``, resuming from ``out/checkpoint`` when there is one.
+
+    A checkpoint that cannot be used (:meth:`_Run.load`) is reported through ``notice`` and moved
+    aside to ``out/checkpoint.bad-<time>``, and the run starts over; with
+    ``bad_checkpoint="refuse"`` it raises :class:`CheckpointError` instead, touching nothing.
 
     Returns:
         The metrics written to ``metrics.json``.
+
+    Raises:
+        CheckpointError: a bad checkpoint under "refuse".
+        CheckpointWriteError: a checkpoint could not be written; the previous one is kept.
     """
     if spec.algo not in ("td3", "ede-td3"):
         raise ValueError(f"unknown algorithm {spec.algo!r}; expected td3 or ede-td3")
@@ -329,7 +410,14 @@ def train_run(
     out.mkdir(parents=True, exist_ok=True)
     checkpoint = out / "checkpoint"
     run = _Run(spec, embedding, device)
-    resumed = run.load(checkpoint)
+    try:
+        resumed = run.load(checkpoint)
+    except CheckpointError as error:
+        if bad_checkpoint == "refuse":
+            raise CheckpointError(f"{checkpoint}: {error}") from None
+        aside = _move_aside(checkpoint)
+        notice(f"{checkpoint}: {error}; moved aside to {aside.name}, starting over")
+        run, resumed = _Run(spec, embedding, device), False
     if progress is not None and resumed:
         progress(run.step)
     config = spec.td3
@@ -352,7 +440,11 @@ def train_run(
             _write_curves(out, run)
         if run.step % config.checkpoint_every == 0 and run.step < spec.budget:
             clock()
-            run.save(checkpoint)
+            try:
+                run.save(checkpoint)
+            except OSError as error:
+                raise CheckpointWriteError(f"{checkpoint}: not written ({error.strerror or error}); "
+                                      "the previous checkpoint is kept") from None
     clock()
     _write_curves(out, run)
     steps = np.array([row["step"] for row in run.history], dtype=float)
@@ -372,7 +464,19 @@ def train_run(
     write_json(out / "metrics.json", metrics)  # last: a run with metrics.json is complete
     if not keep_checkpoint:
         shutil.rmtree(checkpoint, ignore_errors=True)
+    remove_stale_temporaries(checkpoint)  # a killed session's half-written checkpoint
     return metrics
+
+
+def _move_aside(checkpoint: Path) -> Path:
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    aside = checkpoint.with_name(f"{checkpoint.name}.bad-{stamp}")
+    n = 1
+    while aside.exists():
+        n += 1
+        aside = checkpoint.with_name(f"{checkpoint.name}.bad-{stamp}-{n}")
+    checkpoint.rename(aside)
+    return aside
 
 
 def save_policy(path: Path, agent: Agent, spec: RunSpec, adapter: ActionAdapter) -> None:

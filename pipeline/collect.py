@@ -15,7 +15,7 @@ from ede.rollouts import Rollouts, RolloutsError, write_store
 from ede.rollouts import collect as collect_steps
 from ede.tasks import make
 from ede_pipeline import layout
-from ede_pipeline.common import BadInput, check_family, family_option, params_option
+from ede_pipeline.common import BadInput, check_family, family_option, holding, params_option
 from ede_pipeline.progress import progress
 
 
@@ -36,9 +36,9 @@ def collect(params: Params, family: str, out: Path | None, workers: int | None) 
     env_id = params.families[family].source
     config = params.collect
     num_envs = config.num_envs or os.cpu_count() or 1
-    with progress(config.steps, f"collect {family}") as advance:
+    with holding(out), progress(config.steps, f"collect {family}") as advance:
         arrays = collect_steps(env_id, config.steps, num_envs, config.seed, workers, advance)
-    write_store(out, arrays, store_attrs(params, family, num_envs, arrays))
+        write_store(out, arrays, store_attrs(params, family, num_envs, arrays))
     click.echo(f"{out}: {len(arrays['reward'])} steps, {int(arrays['episode'][-1]) + 1} episodes")
 
 

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
 import click
 
 from ede.config import Params, ParamsError, load_params
+from ede.locks import OutputBusy, exclusive
 
 DEFAULT_PARAMS = Path("params.yaml")
 
@@ -60,3 +62,17 @@ def check_family(params: Params, family: str) -> None:
         raise BadInput(
             f"--family {family!r}: unknown; params.yaml's families are {', '.join(params.families)}"
         )
+
+
+@contextmanager
+def holding(output: Path) -> Iterator[None]:
+    """The stage's exclusive lock on its output (:func:`ede.locks.exclusive`) for the block; a
+    second process on the same output is refused as bad input (one line with the holder's PID,
+    exit 2) before it writes anything."""
+    lock = ExitStack()
+    try:
+        lock.enter_context(exclusive(output))
+    except OutputBusy as error:
+        raise BadInput(str(error)) from None
+    with lock:
+        yield

@@ -11,14 +11,20 @@ import click
 import numpy as np
 import torch
 
-from ede.artifacts import ArtifactError, load_encoder, save_decoder, save_encoder
+from ede.artifacts import (
+    ArtifactError,
+    load_encoder,
+    params_mismatches,
+    save_decoder,
+    save_encoder,
+)
 from ede.atomic import write_json, write_text
 from ede.config import Params
 from ede.embedding import train_decoder, train_encoder
 from ede.nets import pick_device
 from ede_pipeline import layout
 from ede_pipeline.collect import open_rollouts
-from ede_pipeline.common import BadInput, check_family, family_option, params_option
+from ede_pipeline.common import BadInput, check_family, family_option, holding, params_option
 from ede_pipeline.progress import progress
 
 
@@ -86,19 +92,21 @@ def encoder(
     if len(data.window_starts(config.k)) == 0:
         raise BadInput(f"{data.path}: no episode is longer than k={config.k} steps")
     folder = layout.embedding(family)
-    with progress(config.epochs, f"encoder {family}", unit="epoch") as advance:
-        result = train_encoder(data, config, device, on_epoch=lambda row: advance(1))
-    low, high = (np.asarray(data.attrs["spaces"][key]) for key in ("action_low", "action_high"))
-    save_encoder(
-        out or folder / "encoder",
-        result,
-        family=family,
-        env_id=data.attrs["env_id"],
-        low=low,
-        high=high,
-        params={"embedding": config.model_dump(mode="json")},
-        data_fingerprint=data.attrs["fingerprint"],
-    )
+    out = out or folder / "encoder"
+    with holding(out):
+        with progress(config.epochs, f"encoder {family}", unit="epoch") as advance:
+            result = train_encoder(data, config, device, on_epoch=lambda row: advance(1))
+        low, high = (np.asarray(data.attrs["spaces"][key]) for key in ("action_low", "action_high"))
+        save_encoder(
+            out,
+            result,
+            family=family,
+            env_id=data.attrs["env_id"],
+            low=low,
+            high=high,
+            params={"embedding": config.model_dump(mode="json")},
+            data_fingerprint=data.attrs["fingerprint"],
+        )
     m = _write_reports(result, metrics or folder / "encoder_metrics.json",
                        plots or folder / "encoder_history.csv")
     click.echo(
@@ -106,6 +114,7 @@ def encoder(
         f"({m['prediction_ratio']:.3f}x the mean-change baseline, raw actions "
         f"{m['raw_prediction_ratio']:.3f}x)"
     )
+
 
 
 @pretrain.command()
@@ -131,23 +140,29 @@ def decoder(
         meta, encoded = load_encoder(encoder_path, device)
     except ArtifactError as error:
         raise BadInput(str(error)) from None
+    mismatches = params_mismatches(encoder_path, meta, params.embedding,
+                                   action_size=data.action.shape[1])
+    if mismatches:
+        raise BadInput("\n".join(mismatches))
     if meta.family != family or meta.data_fingerprint != data.attrs["fingerprint"]:
         raise BadInput(
             f"{encoder_path}: trained on family {meta.family}'s rollouts "
             f"{meta.data_fingerprint[:12]}, not on {data.path} ({family})"
         )
     low, high = np.asarray(meta.action_space.low), np.asarray(meta.action_space.high)
-    with progress(config.epochs, f"decoder {family}", unit="epoch") as advance:
-        result = train_decoder(
-            data, encoded, config, meta.k, low, high, device, on_epoch=lambda row: advance(1)
+    out = out or folder / "decoder"
+    with holding(out):
+        with progress(config.epochs, f"decoder {family}", unit="epoch") as advance:
+            result = train_decoder(
+                data, encoded, config, meta.k, low, high, device, on_epoch=lambda row: advance(1)
+            )
+        save_decoder(
+            out,
+            result.decoder,
+            result.bound,
+            encoder_path=encoder_path,
+            params={"decoder": config.model_dump(mode="json"), **meta.params},
         )
-    save_decoder(
-        out or folder / "decoder",
-        result.decoder,
-        result.bound,
-        encoder_path=encoder_path,
-        params={"decoder": config.model_dump(mode="json"), **meta.params},
-    )
     m = _write_reports(result, metrics or folder / "decoder_metrics.json",
                        plots or folder / "decoder_history.csv")
     click.echo(

@@ -40,7 +40,7 @@ from ede.report import (
     summarise_task,
 )
 from ede_pipeline import layout
-from ede_pipeline.common import BadInput, params_option
+from ede_pipeline.common import BadInput, holding, params_option
 
 STYLE = """
 body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }
@@ -368,6 +368,12 @@ def report(
 ) -> None:
     """Stage 5: learning curves, tables, the EDE pictures and provenance in one HTML page."""
     torch.set_num_threads(params.embedding.threads)  # it only encodes and decodes small batches
+    with holding(out):
+        _report(params, runs, embeddings, rollouts, out, metrics, curves)
+
+
+def _report(params: Params, runs: Path, embeddings: tuple[str, ...], rollouts: tuple[str, ...],
+            out: Path, metrics: Path, curves: Path) -> None:
     inputs = read_inputs(params, runs, embeddings, rollouts)
     params_path = Path(click.get_current_context().params.get("params_path") or "params.yaml")
     params_text = params_path.read_text() if params_path.is_file() else ""

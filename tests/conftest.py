@@ -60,3 +60,21 @@ def point_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
              "params": {}}
     write_store(path, arrays, attrs)
     return path
+
+
+def _tiny_pipeline(params: dict[str, Any]) -> None:
+    params["collect"].update(steps=200, num_envs=1)
+    small = {"hidden": [16, 16], "epochs": 1, "batch_size": 64}
+    params["embedding"].update(small, holdout=0.5)
+    params["decoder"].update(small)
+    params["td3"].update(hidden=[16, 16], batch_size=32, start_steps=50, eval_every=100,
+                         eval_episodes=1, checkpoint_every=1000, buffer_size=1000)
+    params["runs"].update(seeds=[0], budgets={task: 200 for task in params["runs"]["budgets"]})
+    params["report"].update(bootstrap_samples=100)
+
+
+@pytest.fixture(scope="session")
+def tiny_pipeline() -> Callable[[dict[str, Any]], None]:
+    """Shrinks params (plain data, in place) to every stage at the smallest size that still
+    exercises it."""
+    return _tiny_pipeline

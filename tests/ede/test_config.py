@@ -80,6 +80,46 @@ def test_defaults_in_the_model_match_the_committed_file() -> None:
         (lambda p: p["ede_td3"].update(plan_step_input="binary"),
          "ede_td3.plan_step_input: got 'binary'"),
         (lambda p: p["td3"].update(update_schedule="batch"), "td3.update_schedule: got 'batch'"),
+        # Keys valid one by one that together leave a stage nothing to do.
+        (lambda p: p["runs"]["budgets"].update({"ede/Pusher-v0": 102}),
+         "runs.budgets.ede/Pusher-v0: got 102; expected at least 103 = max(td3.start_steps 0, "
+         "td3.batch_size 100 + embedding.k 4 - 1 (ede-td3's k-step samples)), the step of the "
+         "first update: the run would never update"),
+        (lambda p: (p["runs"]["budgets"].update({"ede/Pusher-v0": 4_999}),
+                    p["td3"].update(start_steps=5_000)),
+         "runs.budgets.ede/Pusher-v0: got 4999; expected at least 5000 = max(td3.start_steps 5000"),
+        (lambda p: (p["runs"]["budgets"].update({"ede/Pusher-v0": 99}),
+                    p["runs"].update(algos=["td3"])),
+         "runs.budgets.ede/Pusher-v0: got 99; expected at least 100 = max(td3.start_steps 0, "
+         "td3.batch_size 100), the step"),
+        (lambda p: p["runs"]["budgets"].update({"ede/ReacherVertical-v0": 999}),
+         "runs.budgets.ede/ReacherVertical-v0: got 999; expected at least td3.eval_every (1000): "
+         "the run would have only its initial and final evaluations"),
+        (lambda p: p["td3"].update(buffer_size=102),
+         "td3.buffer_size: got 102; expected at least 103 = td3.batch_size 100 + embedding.k 4 "
+         "- 1 (ede-td3's k-step samples): no batch could ever be sampled"),
+        (lambda p: (p["td3"].update(buffer_size=99), p["runs"].update(algos=["td3"])),
+         "td3.buffer_size: got 99; expected at least 100 = td3.batch_size 100: no batch"),
+        (lambda p: p["embedding"].update(batch_size=90_001),
+         "embedding.batch_size: got 90001; expected at most 90000 = collect.steps 100000 × "
+         "(1 - embedding.holdout 0.1) / embedding.window_stride 1, the most training windows"),
+        (lambda p: p["embedding"].update(window_stride=1_000),
+         "embedding.batch_size: got 128; expected at most 90 = collect.steps 100000 × "
+         "(1 - embedding.holdout 0.1) / embedding.window_stride 1000"),
+        (lambda p: p["decoder"].update(batch_size=90_001),
+         "decoder.batch_size: got 90001; expected at most 90000 = collect.steps 100000 × "
+         "(1 - embedding.holdout 0.1), the most"),
+        (lambda p: p["collect"].update(steps=3),
+         "collect.steps: got 3; expected at least embedding.k (4): no window of k actions fits"),
+        (lambda p: p["collect"].update(steps=4, num_envs=5),
+         "collect.num_envs: got 5; expected at most collect.steps (4)"),
+        (lambda p: p["runs"].update(algos=[]), "runs.algos: got []"),
+        (lambda p: p["runs"].update(algos=["td3", "td3"]),
+         "runs.algos: ['td3', 'td3'] repeats an algorithm"),
+        (lambda p: p["runs"]["tasks"].update(reacher=[], sevendof=[]),
+         "runs.tasks: names no task; expected at least one"),
+        (lambda p: p["runs"]["tasks"]["sevendof"].append("ede/Pusher-v0"),
+         "runs.tasks.sevendof: ede/Pusher-v0 listed twice; expected each task once"),
     ],
 )
 def test_a_bad_file_names_the_key_and_value(write_params, edit, key: str) -> None:
@@ -102,14 +142,34 @@ def test_every_problem_is_reported_not_just_the_first(write_params) -> None:
 
 @pytest.mark.parametrize(
     ("text", "expected"),
-    [("runs: [unclosed", "not readable YAML"), ("- a list\n", "expected a mapping")],
+    [
+        # An unclosed bracket is found at the end of the file; the problem names where it opened.
+        ("collect:\n  steps: 10\nruns:\n  seeds: [0, 1\n",
+         "line 4, column 10: not readable YAML: expected ',' or ']', but got '<stream end>' "
+         "(while parsing a flow sequence); the line reads: \"  seeds: [0, 1\""),
+        ("td3:\n\tbatch_size: 3\n",
+         "line 2, column 1: not readable YAML: found character '\\t' that cannot start any token "
+         "(while scanning for the next token); the line reads: \"\\tbatch_size: 3\""),
+        ("td3:\n  batch_size: 3\n   lr: 1\n",
+         "line 3, column 6: not readable YAML: mapping values are not allowed here; "
+         "the line reads: \"   lr: 1\""),
+        ("td3:\n  lr: 1\n bad: 2\n",
+         "line 3, column 2: not readable YAML: expected <block end>, but found "
+         "'<block mapping start>' (while parsing a block mapping from line 1, column 1); "
+         "the line reads: \" bad: 2\""),
+        # PyYAML's reader marks no line: the message stays PyYAML's first line.
+        ("a: \x07\n",
+         "not readable YAML (unacceptable character #x0007: special characters are not allowed)"),
+        ("- a list\n", "expected a mapping of sections, found list"),
+    ],
 )
 def test_unparseable_files_are_one_clear_problem(tmp_path: Path, text: str, expected: str) -> None:
     path = tmp_path / "params.yaml"
     path.write_text(text)
     with pytest.raises(ParamsError) as caught:
         load_params(path)
-    assert len(caught.value.problems) == 1 and expected in caught.value.problems[0]
+    assert caught.value.problems == [expected]
+    assert str(caught.value) == f"{path}: {expected}"
 
 
 def test_a_missing_file_is_named(tmp_path: Path) -> None:

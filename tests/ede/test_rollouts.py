@@ -10,6 +10,7 @@ import zarr
 
 from ede.rollouts import (
     ARRAYS,
+    COLLECTOR_VERSION,
     Rollouts,
     RolloutsError,
     collect,
@@ -160,6 +161,49 @@ def test_a_store_missing_a_chunk_is_refused(tmp_path: Path) -> None:
     chunk.unlink()  # Zarr would read it back as fill values: only the fingerprint can tell
     with pytest.raises(RolloutsError, match="fingerprint"):
         Rollouts.open(path)
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("env_id", "ede/PointMass-v0"), ("family", "pointmass"), ("params", {"collect": {"seed": 1}}),
+     ("seed", 1), ("spaces", {"action_low": [-2.0, -2.0]})],
+)
+def test_a_store_whose_attributes_were_edited_is_refused(tmp_path: Path, key: str, value: object) -> None:
+    path = store_of(tmp_path / "r.zarr", ragged([5, 5]))
+    Rollouts.open(path)  # untouched, it opens
+    zarr.open_group(path, mode="a").attrs[key] = value  # same arrays, same shapes
+    with pytest.raises(RolloutsError) as raised:
+        Rollouts.open(path)
+    message = str(raised.value)
+    assert message.startswith(f"{path}: ") and "fingerprint" in message and "\n" not in message
+    assert "arrays or attributes were changed" in message
+
+
+def test_an_edited_env_id_is_refused_as_edited_not_as_foreign(tmp_path: Path) -> None:
+    path = store_of(tmp_path / "r.zarr", ragged([5]))
+    zarr.open_group(path, mode="a").attrs["env_id"] = "ede/PointMass-v0"
+    with pytest.raises(RolloutsError, match="fingerprint"):
+        Rollouts.open(path, env_id="ede/PointMass-v0")
+
+
+def test_the_software_versions_are_not_part_of_the_fingerprint(tmp_path: Path) -> None:
+    # They name the machine that wrote the store, not its content: the same rollouts collected
+    # in the container and on the host share a fingerprint (scripts/container-test.sh).
+    one = store_of(tmp_path / "a.zarr", ragged([5]))
+    two = tmp_path / "b.zarr"
+    write_store(two, ragged([5]), {**ATTRS, "steps": 5, "software": {"python": "0.0"}})
+    assert Rollouts.open(one).attrs["fingerprint"] == Rollouts.open(two).attrs["fingerprint"]
+
+
+def test_a_store_of_an_older_collector_is_refused_in_one_line(tmp_path: Path) -> None:
+    path = store_of(tmp_path / "r.zarr", ragged([5]))
+    zarr.open_group(path, mode="a").attrs["collector"] = COLLECTOR_VERSION - 1
+    with pytest.raises(RolloutsError) as raised:
+        Rollouts.open(path)
+    assert str(raised.value) == (
+        f"{path}: written by collector version {COLLECTOR_VERSION - 1}, but this code reads "
+        f"version {COLLECTOR_VERSION} only; collect it again (`ede-pipeline collect`)"
+    )
 
 
 def test_arrays_of_unequal_length_are_refused(tmp_path: Path) -> None:

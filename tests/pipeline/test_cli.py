@@ -57,8 +57,8 @@ def test_envs_lists_every_task_with_its_family_and_shapes() -> None:
 def test_set_params_turns_an_override_file_into_dvc_set_param_arguments(tmp_path) -> None:
     overrides = tmp_path / "quick.yaml"
     overrides.write_text("td3:\n  start_steps: 5\nruns:\n  seeds: [0, 1]\n"
-                         "  budgets: {ede/ReacherVertical-v0: 10, ede/ReacherTurn-v0: 10,\n"
-                         "            ede/ReacherPush-v0: 10, ede/Pusher-v0: 10, ede/Striker-v0: 10}\n")
+                         "  budgets: {ede/ReacherVertical-v0: 1000, ede/ReacherTurn-v0: 1000,\n"
+                         "            ede/ReacherPush-v0: 1000, ede/Pusher-v0: 1000, ede/Striker-v0: 1000}\n")
     result = CliRunner().invoke(main, ["set-params", str(overrides), "--name", "look", "--params",
                                        str(REPO / "params.yaml")])
     assert result.exit_code == 0, result.output
@@ -68,8 +68,8 @@ def test_set_params_turns_an_override_file_into_dvc_set_param_arguments(tmp_path
         "look",
         "td3.start_steps=5",
         "runs.seeds=[0, 1]",
-        "runs.budgets={ede/ReacherVertical-v0: 10, ede/ReacherTurn-v0: 10, "
-        "ede/ReacherPush-v0: 10, ede/Pusher-v0: 10, ede/Striker-v0: 10}",
+        "runs.budgets={ede/ReacherVertical-v0: 1000, ede/ReacherTurn-v0: 1000, "
+        "ede/ReacherPush-v0: 1000, ede/Pusher-v0: 1000, ede/Striker-v0: 1000}",
     ]
 
 

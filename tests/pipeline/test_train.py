@@ -31,7 +31,7 @@ def tiny(params: dict) -> None:
     params["td3"].update(hidden=[64, 64], batch_size=64, start_steps=500, eval_every=500,
                          eval_episodes=5, checkpoint_every=400)
     params["runs"].update(tasks={"point": ["ede/Point-v0"], "reacher": ["ede/ReacherVertical-v0"]},
-                          seeds=[0], budgets={"ede/Point-v0": BUDGET, "ede/ReacherVertical-v0": 500})
+                          seeds=[0], budgets={"ede/Point-v0": BUDGET, "ede/ReacherVertical-v0": 600})
 
 
 def run(*args: str) -> Result:
@@ -152,7 +152,7 @@ def test_a_run_killed_midway_resumes_to_the_same_returns(in_workdir: Path, preci
     assert json.loads((killed / "run.json").read_text())["params"]["td3"]["precision"] == precision
 
 
-def test_a_checkpoint_of_other_params_is_not_resumed(in_workdir: Path, write_params) -> None:
+def test_a_checkpoint_of_other_params_is_moved_aside_not_resumed(in_workdir: Path) -> None:
     out = in_workdir / "other"
     assert run("train", "--task", "ede/ReacherVertical-v0", "--algo", "td3", "--seed", "0",
                "--out", str(out), "--keep-checkpoint").exit_code == 0
@@ -166,6 +166,8 @@ def test_a_checkpoint_of_other_params_is_not_resumed(in_workdir: Path, write_par
         params.write_text(text)
     assert result.exit_code == 0
     assert json.loads((out / "metrics.json").read_text())["resumed_from_step"] is None
+    assert "another run's: made with other params; moved aside to checkpoint.bad-" in result.stderr
+    assert len(list(out.glob("checkpoint.bad-*/state.json"))) == 1
 
 
 def bad(result: Result, message: str) -> None:
@@ -193,3 +195,19 @@ def test_bad_train_input_is_one_line_exit_2_and_writes_nothing(
     out = in_workdir / "bad-run"
     bad(run("train", *args, "--out", str(out)), message)
     assert not out.exists()
+
+
+@pytest.mark.parametrize("command", [
+    ["train", "--task", "ede/Point-v0", "--algo", "ede-td3", "--seed", "0", "--out", "k2-run"],
+    ["pretrain", "decoder", "--family", "point", "--out", "k2-decoder"],
+])
+def test_an_embedding_made_with_other_params_is_refused_by_name(in_workdir: Path,
+                                                                command: list[str]) -> None:
+    import yaml
+
+    params = yaml.safe_load((in_workdir / "params.yaml").read_text())
+    params["embedding"]["k"] = 2
+    (in_workdir / "params-k2.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    bad(run(*command, "--params", "params-k2.yaml"),
+        "made with embedding.k = 4, but params.yaml has embedding.k = 2")
+    assert not (in_workdir / command[command.index("--out") + 1]).exists()
