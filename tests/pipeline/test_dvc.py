@@ -36,7 +36,7 @@ def test_make_quicks_experiments_leave_the_workspace_alone_until_applied(
     identity = ["-c", "user.name=test", "-c", "user.email=test@example.com"]
     subprocess.run(["git", *identity, "commit", "-qm", "baseline"], cwd=repo_copy, check=True)
     overrides = tmp_path / "params-look.yaml"
-    overrides.write_text("collect:\n  steps: 150\n")
+    overrides.write_text("collect:\n  steps: 300\n")
     paper = (repo_copy / "params.yaml").read_text()
     names = []
     for _ in range(2):
@@ -55,8 +55,8 @@ def test_make_quicks_experiments_leave_the_workspace_alone_until_applied(
     applied = dvc(repo_copy, "exp", "apply", names[1])
     assert applied.returncode == 0 or "Checkout failed" in applied.stderr, applied.stderr
     rollouts = Rollouts.open(repo_copy / "data/point/rollouts.zarr", env_id="ede/Point-v0")
-    assert len(rollouts) == 150
-    assert yaml.safe_load((repo_copy / "params.yaml").read_text())["collect"]["steps"] == 150
+    assert len(rollouts) == 300
+    assert yaml.safe_load((repo_copy / "params.yaml").read_text())["collect"]["steps"] == 300
 
 
 def stale(copy: Path) -> set[str]:
