@@ -235,7 +235,7 @@ class Critic(nn.Module):
         if self.k > 1 and self.plan_step == "onehot":
             pair.append(F.one_hot(i, self.k).to(obs.dtype))  # (B,) -> (B, K)
         elif self.k > 1:
-            pair.append(i.to(obs.dtype)[:, None])  # (B,) -> (B, 1)
+            pair.append(i.to(obs.dtype)[..., None])  # (B,) -> (B, 1)
         return torch.cat([obs, *pair * self.repeat], dim=-1)
 
     def forward(

@@ -28,9 +28,9 @@ import json
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import gymnasium
 import numpy as np
@@ -40,6 +40,7 @@ from safetensors.torch import load_file, save_file
 from ede.atomic import remove_stale_temporaries, write_atomically, write_json, write_text
 from ede.config import EdeTD3Config, TD3Config
 from ede.embedding import ActionEmbedding
+from ede.group import GroupAgent
 from ede.provenance import software_versions
 from ede.stats import area_under_curve
 from ede.tasks import make
@@ -49,10 +50,12 @@ from ede.td3 import (
     CodeExecutor,
     EmbeddingAdapter,
     IdentityAdapter,
+    ReplayBatch,
     ReplayBuffer,
 )
 
-__all__ = ["CheckpointError", "CheckpointWriteError", "RunSpec", "evaluate", "train_run"]
+__all__ = ["CheckpointError", "CheckpointWriteError", "RunSpec", "evaluate", "train_group",
+           "train_run"]
 
 CHECKSUMS = "checksums.json"
 
@@ -101,7 +104,7 @@ class RunSpec:
 
 
 def evaluate(
-    env: gymnasium.Env, agent: Agent, adapter: ActionAdapter, episodes: int, seed: int
+    env: gymnasium.Env, agent: Agent | _Actor, adapter: ActionAdapter, episodes: int, seed: int
 ) -> np.ndarray:
     """Returns of ``episodes`` deterministic episodes; episode e starts from ``reset(seed + e)``."""
     executor, policy = CodeExecutor(env, adapter), functools.partial(agent.act, explore=False)
@@ -111,6 +114,21 @@ def evaluate(
         for step in executor.episode(obs, policy):
             returns[e] += step.reward
     return returns
+
+
+class _Actor(Protocol):
+    def act(self, obs: np.ndarray, explore: bool) -> torch.Tensor: ...
+
+
+@dataclass
+class _Member:
+    """Member j of a group, acting as its agent alone would (``GroupAgent.act``)."""
+
+    group: GroupAgent
+    j: int
+
+    def act(self, obs: np.ndarray, explore: bool) -> torch.Tensor:
+        return self.group.act(self.j, obs, explore)
 
 
 @dataclass
@@ -174,6 +192,7 @@ class _Run:
                 ede.plan_step_input,
             )
         self.agent = Agent(obs_size, self.adapter, spec.td3, device, spec.seed)
+        self.actor: Agent | _Actor = self.agent  # who acts: the agent, or its seat in a group
         capacity = min(spec.td3.buffer_size, spec.budget)
         self.buffer = ReplayBuffer(capacity, obs_size, self.adapter.code_size, self.adapter.k, device)
         self.executor = CodeExecutor(self.env, self.adapter)
@@ -291,7 +310,7 @@ class _Run:
     # The loop ------------------------------------------------------------------------------
 
     def evaluate(self) -> dict[str, float]:
-        returns = evaluate(self.eval_env, self.agent, self.adapter, self.spec.td3.eval_episodes,
+        returns = evaluate(self.eval_env, self.actor, self.adapter, self.spec.td3.eval_episodes,
                            EVAL_SEED_OFFSET * (self.spec.seed + 1))
         row = {"step": self.step, "episode": self.episodes, "mean_return": float(returns.mean()),
                "std_return": float(returns.std()), "wall_seconds": round(self.wall, 3)}
@@ -305,13 +324,17 @@ class _Run:
         """The code training acts with: uniform for ``td3.start_steps`` steps, then μ(s) + noise."""
         if self.step < self.spec.td3.start_steps:
             return self.agent.random_code()
-        return self.agent.act(obs, explore=True)
+        return self.actor.act(obs, explore=True)
 
-    def env_step(self) -> None:
+    def env_step(self, update: bool = True) -> int:
         """One environment step and its updates (Section 3: learn from every step).
 
         With ``td3.update_schedule: step``, one update after the step; with ``episode``, none
-        until the episode ends, then one per step of it.
+        until the episode ends, then one per step of it. With ``update=False`` the updates are
+        left to the caller (a group updates its members together).
+
+        Returns:
+            The number of updates due after this step.
         """
         config = self.spec.td3
         step = self.executor.step(self.obs, self._behaviour)
@@ -328,9 +351,14 @@ class _Run:
             self.obs, self.episode = _reset(self.env, None)
         else:
             self.obs = step.next_obs
-        if self.step >= config.start_steps and self.buffer.sampleable >= config.batch_size:
-            for _ in range(updates):
-                self.agent.update(self.buffer.sample(config.batch_size, self.agent.generator))
+        if self.step < config.start_steps or self.buffer.sampleable < config.batch_size:
+            return 0
+        for _ in range(updates if update else 0):
+            self.agent.update(self.sample())
+        return updates
+
+    def sample(self) -> ReplayBatch:
+        return self.buffer.sample(self.spec.td3.batch_size, self.agent.generator)
 
 
 def _sha256(path: Path) -> str:
@@ -390,82 +418,155 @@ def train_run(
     bad_checkpoint: str = "restart",
     notice: Callable[[str], None] = print,
 ) -> dict[str, Any]:
-    """Train one run into ``out``, resuming from ``out/checkpoint`` when there is one.
+    """Train one run into ``out``: :func:`train_group` of one member."""
+    return train_group([spec], [out], embedding, device, progress, keep_checkpoint,
+                       bad_checkpoint, notice)[0]
 
-    A checkpoint that cannot be used (:meth:`_Run.load`) is reported through ``notice`` and moved
-    aside to ``out/checkpoint.bad-<time>``, and the run starts over; with
-    ``bad_checkpoint="refuse"`` it raises :class:`CheckpointError` instead, touching nothing.
+
+def train_group(
+    specs: list[RunSpec],
+    outs: list[Path],
+    embedding: ActionEmbedding | None = None,
+    device: torch.device = torch.device("cpu"),
+    progress: Callable[[int], None] | None = None,
+    keep_checkpoint: bool = False,
+    bad_checkpoint: str = "restart",
+    notice: Callable[[str], None] = print,
+) -> list[dict[str, Any]]:
+    """Train runs of one task and algorithm that differ only in their seeds, each into its
+    ``out``, in one process: their environments stepped in turn, their updates as one
+    (:class:`ede.group.GroupAgent`). Each member's outputs are those it gets alone.
+
+    Each resumes from its ``out/checkpoint`` when there is one; members that resume from
+    earlier steps than others first catch up alone. A checkpoint that cannot be used
+    (:meth:`_Run.load`) is reported through ``notice`` and moved aside to
+    ``out/checkpoint.bad-<time>``, and that run starts over; with ``bad_checkpoint="refuse"``
+    it raises :class:`CheckpointError` instead, touching nothing.
 
     Returns:
-        The metrics written to ``metrics.json``.
+        Each member's metrics, as written to its ``metrics.json``.
 
     Raises:
         CheckpointError: a bad checkpoint under "refuse".
         CheckpointWriteError: a checkpoint could not be written; the previous one is kept.
     """
+    spec = specs[0]
     if spec.algo not in ("td3", "ede-td3"):
         raise ValueError(f"unknown algorithm {spec.algo!r}; expected td3 or ede-td3")
     if spec.algo == "ede-td3" and embedding is None:
         raise ValueError("ede-td3 needs the family's action embedding")
-    out.mkdir(parents=True, exist_ok=True)
-    checkpoint = out / "checkpoint"
-    run = _Run(spec, embedding, device)
-    try:
-        resumed = run.load(checkpoint)
-    except CheckpointError as error:
-        if bad_checkpoint == "refuse":
-            raise CheckpointError(f"{checkpoint}: {error}") from None
-        aside = _move_aside(checkpoint)
-        notice(f"{checkpoint}: {error}; moved aside to {aside.name}, starting over")
-        run, resumed = _Run(spec, embedding, device), False
-    if progress is not None and resumed:
-        progress(run.step)
-    config = spec.td3
-    session_start, steps_at_start = time.perf_counter(), run.step
-    wall_at_start = run.wall
+    alike = all(replace(s, seed=0) == replace(spec, seed=0) for s in specs)
+    if not alike or len({s.seed for s in specs}) != len(specs):
+        raise ValueError("a group's runs must differ in their seeds only")
+    if len(specs) > 1 and spec.td3.update_schedule != "step":
+        raise ValueError("a group needs td3.update_schedule: step (its members update together)")
+    sessions = [_Session.start(s, out, embedding, device, bad_checkpoint, notice)
+                for s, out in zip(specs, outs)]
+    if progress is not None:
+        progress(sum(session.run.step for session in sessions))
+    ahead = max(session.run.step for session in sessions)
+    for session in sessions:  # members resumed from earlier checkpoints catch up alone
+        while session.run.step < ahead:
+            session.run.env_step()
+            session.after_step(progress)
+    group = GroupAgent([s.run.agent for s in sessions]) if len(sessions) > 1 else None
+    if group is not None:
+        for j, session in enumerate(sessions):
+            session.run.actor = _Member(group, j)
+            session.group = group
+    runs = [session.run for session in sessions]
+    while runs[0].step < spec.budget:
+        due = [run.env_step(update=group is None) for run in runs]
+        if group is not None:
+            for _ in range(due[0]):
+                group.update([run.sample() for run in runs])
+        for session in sessions:
+            session.after_step(progress)
+    if group is not None:
+        group.sync()
+    return [session.finish(keep_checkpoint) for session in sessions]
 
-    def clock() -> None:
-        run.wall = wall_at_start + time.perf_counter() - session_start
 
-    if not run.history:
-        run.evaluate()
-        _write_curves(out, run)
-    while run.step < spec.budget:
-        run.env_step()
-        if progress is not None:
-            progress(1)
-        if run.step % config.eval_every == 0 or run.step == spec.budget:
-            clock()
+@dataclass
+class _Session:
+    """One run of a group in this process: its run, outputs, and wall clock."""
+
+    run: _Run
+    out: Path
+    resumed: bool
+    started: float = field(default_factory=time.perf_counter)
+    steps_at_start: int = 0
+    wall_at_start: float = 0.0
+    group: GroupAgent | None = None
+
+    @classmethod
+    def start(cls, spec: RunSpec, out: Path, embedding: ActionEmbedding | None,
+              device: torch.device, bad_checkpoint: str, notice: Callable[[str], None]) -> _Session:
+        out.mkdir(parents=True, exist_ok=True)
+        checkpoint = out / "checkpoint"
+        run = _Run(spec, embedding, device)
+        try:
+            resumed = run.load(checkpoint)
+        except CheckpointError as error:
+            if bad_checkpoint == "refuse":
+                raise CheckpointError(f"{checkpoint}: {error}") from None
+            aside = _move_aside(checkpoint)
+            notice(f"{checkpoint}: {error}; moved aside to {aside.name}, starting over")
+            run, resumed = _Run(spec, embedding, device), False
+        session = cls(run, out, resumed, steps_at_start=run.step, wall_at_start=run.wall)
+        if not run.history:
             run.evaluate()
             _write_curves(out, run)
-        if run.step % config.checkpoint_every == 0 and run.step < spec.budget:
-            clock()
+        return session
+
+    def clock(self) -> None:
+        self.run.wall = self.wall_at_start + time.perf_counter() - self.started
+
+    def after_step(self, progress: Callable[[int], None] | None) -> None:
+        """Evaluate and checkpoint when the step calls for it."""
+        run, config = self.run, self.run.spec.td3
+        if progress is not None:
+            progress(1)
+        if run.step % config.eval_every == 0 or run.step == run.spec.budget:
+            self.clock()
+            run.evaluate()
+            _write_curves(self.out, run)
+        if run.step % config.checkpoint_every == 0 and run.step < run.spec.budget:
+            self.clock()
+            if self.group is not None:
+                self.group.sync()
+            checkpoint = self.out / "checkpoint"
             try:
                 run.save(checkpoint)
             except OSError as error:
                 raise CheckpointWriteError(f"{checkpoint}: not written ({error.strerror or error}); "
-                                      "the previous checkpoint is kept") from None
-    clock()
-    _write_curves(out, run)
-    steps = np.array([row["step"] for row in run.history], dtype=float)
-    returns = np.array([row["mean_return"] for row in run.history])
-    session_steps = run.step - steps_at_start
-    session_seconds = time.perf_counter() - session_start
-    metrics = {
-        "final_return": float(returns[-1]),
-        "best_return": float(returns.max()),
-        "auc": area_under_curve(steps, returns),
-        "steps_per_second": session_steps / session_seconds if session_steps else None,
-        "episodes": run.episodes,
-        "resumed_from_step": steps_at_start if resumed else None,
-    }
-    save_policy(out / "policy", run.agent, spec, run.adapter)
-    write_json(out / "run.json", {**spec.identity(), "software": software_versions()})
-    write_json(out / "metrics.json", metrics)  # last: a run with metrics.json is complete
-    if not keep_checkpoint:
-        shutil.rmtree(checkpoint, ignore_errors=True)
-    remove_stale_temporaries(checkpoint)  # a killed session's half-written checkpoint
-    return metrics
+                                           "the previous checkpoint is kept") from None
+
+    def finish(self, keep_checkpoint: bool) -> dict[str, Any]:
+        """The run's final outputs; ``metrics.json`` last."""
+        run, out, spec = self.run, self.out, self.run.spec
+        self.clock()
+        _write_curves(out, run)
+        steps = np.array([row["step"] for row in run.history], dtype=float)
+        returns = np.array([row["mean_return"] for row in run.history])
+        session_steps = run.step - self.steps_at_start
+        session_seconds = time.perf_counter() - self.started
+        metrics = {
+            "final_return": float(returns[-1]),
+            "best_return": float(returns.max()),
+            "auc": area_under_curve(steps, returns),
+            "steps_per_second": session_steps / session_seconds if session_steps else None,
+            "episodes": run.episodes,
+            "resumed_from_step": self.steps_at_start if self.resumed else None,
+        }
+        save_policy(out / "policy", run.agent, spec, run.adapter)
+        write_json(out / "run.json", {**spec.identity(), "software": software_versions()})
+        write_json(out / "metrics.json", metrics)  # last: a run with metrics.json is complete
+        checkpoint = out / "checkpoint"
+        if not keep_checkpoint:
+            shutil.rmtree(checkpoint, ignore_errors=True)
+        remove_stale_temporaries(checkpoint)  # a killed session's half-written checkpoint
+        return metrics
 
 
 def _move_aside(checkpoint: Path) -> Path:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+from contextlib import ExitStack
 from pathlib import Path
 
 import click
@@ -11,7 +12,7 @@ import torch
 from ede.artifacts import ArtifactError, load_action_embedding, params_mismatches
 from ede.config import ALGOS, Params
 from ede.nets import pick_device
-from ede.training import CheckpointError, CheckpointWriteError, RunSpec, train_run
+from ede.training import CheckpointError, CheckpointWriteError, RunSpec, train_group
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, holding, params_option
 from ede_pipeline.progress import progress
@@ -20,9 +21,13 @@ from ede_pipeline.progress import progress
 @click.command()
 @click.option("--task", required=True, help="A task of params.yaml's runs.tasks.")
 @click.option("--algo", required=True, help="td3 or ede-td3.")
-@click.option("--seed", type=int, required=True, help="Seed of the run (>= 0).")
+@click.option("--seed", "--seeds", "seeds", required=True,
+              help="The run's seed (>= 0), or several (0,1,2,3 or 0-3): the runs of one task and "
+                   "algorithm trained in one process, their updates batched, each with the "
+                   "outputs it gets alone.")
 @click.option("--out", type=click.Path(path_type=Path),
-              help="Run directory  [default: data/runs/<task>/<algo>/seed<N>]")
+              help="Run directory; with several seeds, a pattern with {seed}  "
+                   "[default: data/runs/<task>/<algo>/seed<N>]")
 @click.option("--encoder", type=click.Path(path_type=Path),
               help="EDE-TD3: the family's encoder  [default: data/<family>/embedding/encoder]")
 @click.option("--decoder", type=click.Path(path_type=Path),
@@ -35,14 +40,18 @@ from ede_pipeline.progress import progress
                    "checkpoint.bad-<time> and start over, or refuse (exit 2) and touch nothing.")
 @params_option
 def train(
-    params: Params, task: str, algo: str, seed: int, out: Path | None, encoder: Path | None,
+    params: Params, task: str, algo: str, seeds: str, out: Path | None, encoder: Path | None,
     decoder: Path | None, keep_checkpoint: bool, bad_checkpoint: str,
 ) -> None:
-    """Stage 4: train one run; resumes from its checkpoint if one of the same run exists."""
+    """Stage 4: train one run, or the runs of several seeds in one process; each resumes from
+    its checkpoint if one of the same run exists."""
     if algo not in ALGOS:
         raise BadInput(f"--algo {algo!r}: unknown; expected one of {', '.join(ALGOS)}")
-    if seed < 0:
-        raise BadInput(f"--seed {seed}: expected a seed >= 0")
+    seed_list = parse_seeds(seeds)
+    outs = run_dirs(task, algo, seed_list, out)
+    if len(seed_list) > 1 and params.td3.update_schedule != "step":
+        raise BadInput("--seeds: several seeds need td3.update_schedule: step (the members of a "
+                       "group update together); train them one by one")
     families = [family for family, tasks in params.runs.tasks.items() if task in tasks]
     if not families:
         raise BadInput(f"--task {task!r}: not in params.yaml's runs.tasks "
@@ -71,16 +80,50 @@ def train(
             raise BadInput("\n".join(mismatches))
         embedding_id = meta.weights_sha256
     torch.set_num_threads(config.threads)
-    spec = RunSpec(task, algo, seed, params.runs.budgets[task], config, params.ede_td3, embedding_id)
-    out = out or layout.run(task, algo, seed)
+    budget = params.runs.budgets[task]
+    specs = [RunSpec(task, algo, seed, budget, config, params.ede_td3, embedding_id)
+             for seed in seed_list]
     notice = functools.partial(click.echo, err=True)
+    label = f"{algo} {task} seed{'s' if len(seed_list) > 1 else ''} {seeds}"
     try:
-        with holding(out), progress(spec.budget, f"{algo} {task} seed {seed}") as advance:
-            metrics = train_run(spec, out, embedding, device, advance, keep_checkpoint,
-                                bad_checkpoint, notice)
+        with ExitStack() as locks:
+            for run_dir in outs:
+                locks.enter_context(holding(run_dir))
+            with progress(budget * len(specs), label) as advance:
+                results = train_group(specs, outs, embedding, device, advance, keep_checkpoint,
+                                      bad_checkpoint, notice)
     except CheckpointError as error:
         raise BadInput(f"{error} (--bad-checkpoint refuse)") from None
     except CheckpointWriteError as error:
         raise click.ClickException(str(error)) from None
-    click.echo(f"{out}: final return {metrics['final_return']:.2f}, best {metrics['best_return']:.2f}, "
-               f"{metrics['steps_per_second'] or 0:.0f} steps/s")
+    for run_dir, metrics in zip(outs, results):
+        click.echo(f"{run_dir}: final return {metrics['final_return']:.2f}, best "
+                   f"{metrics['best_return']:.2f}, {metrics['steps_per_second'] or 0:.0f} steps/s")
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``3``, ``0,1,2,3`` or ``0-3`` as a list of distinct seeds >= 0."""
+    try:
+        if "-" in text.strip("-") and "," not in text:
+            first, last = (int(part) for part in text.split("-"))
+            seeds = list(range(first, last + 1))
+        else:
+            seeds = [int(part) for part in text.split(",")]
+    except ValueError:
+        raise BadInput(f"--seed {text!r}: expected a seed, a list (0,1,2) or a range (0-3)") from None
+    if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
+        raise BadInput(f"--seed {text}: expected distinct seeds >= 0")
+    return seeds
+
+
+def run_dirs(task: str, algo: str, seeds: list[int], out: Path | None) -> list[Path]:
+    """Each seed's run directory: ``--out`` (a pattern with ``{seed}`` for several) or the
+    layout's."""
+    if out is None:
+        return [layout.run(task, algo, seed) for seed in seeds]
+    if len(seeds) == 1:
+        return [out]
+    if "{seed}" not in str(out):
+        raise BadInput(f"--out {out}: several seeds need a pattern with {{seed}}, e.g. "
+                       "runs/seed{seed}")
+    return [Path(str(out).replace("{seed}", str(seed))) for seed in seeds]

@@ -182,6 +182,11 @@ def bad(result: Result, message: str) -> None:
         (["--task", "ede/Nope-v0", "--algo", "td3", "--seed", "0"], "--task 'ede/Nope-v0': not in"),
         (["--task", "ede/Point-v0", "--algo", "ddpg", "--seed", "0"], "--algo 'ddpg': unknown"),
         (["--task", "ede/Point-v0", "--algo", "td3", "--seed", "-3"], "--seed -3: expected"),
+        (["--task", "ede/Point-v0", "--algo", "td3", "--seeds", "1,1"], "expected distinct seeds"),
+        (["--task", "ede/Point-v0", "--algo", "td3", "--seeds", "a-b"],
+         "expected a seed, a list (0,1,2) or a range (0-3)"),
+        (["--task", "ede/Point-v0", "--algo", "td3", "--seeds", "0-1"],
+         "several seeds need a pattern with {seed}"),
         (["--task", "ede/ReacherVertical-v0", "--algo", "ede-td3", "--seed", "0"],
          "needs the reacher family's embedding"),
         (["--task", "ede/ReacherVertical-v0", "--algo", "ede-td3", "--seed", "0",
@@ -211,3 +216,14 @@ def test_an_embedding_made_with_other_params_is_refused_by_name(in_workdir: Path
     bad(run(*command, "--params", "params-k2.yaml"),
         "made with embedding.k = 4, but params.yaml has embedding.k = 2")
     assert not (in_workdir / command[command.index("--out") + 1]).exists()
+
+
+def test_several_seeds_train_in_one_process_each_as_it_trains_alone(in_workdir: Path) -> None:
+    task = ["--task", "ede/ReacherVertical-v0", "--algo", "td3"]
+    group = run("train", *task, "--seeds", "0-1", "--out", "group/seed{seed}")
+    assert group.exit_code == 0, group.output
+    alone = run("train", *task, "--seed", "1", "--out", "alone1")
+    assert alone.exit_code == 0, alone.output
+    assert [line.rsplit(",", 1)[0] for line in (in_workdir / "group/seed1/eval.csv").read_text().splitlines()] \
+        == [line.rsplit(",", 1)[0] for line in (in_workdir / "alone1/eval.csv").read_text().splitlines()]
+    assert (in_workdir / "group/seed0/metrics.json").is_file()
