@@ -9,7 +9,10 @@ repository's lock. A sweep takes that lock once, as ``dvc repro`` does, and insi
    reports); for each, it does what ``dvc repro`` does before the command — removes the stage's
    outputs (never the run's ``checkpoint/``, which is not one) and restores the run from DVC's run
    cache if this very run (command, dependencies, params) was recorded before;
-3. runs the commands of the others in parallel — threads each waiting on one child process
+3. with ``--group-size N`` (by default every seed on CUDA, one run on CPU), gathers the runs of
+   one task and algorithm into processes of up to N (``ede-pipeline train --seeds``: their
+   updates batched, each run's outputs those it gets alone), then
+   runs the commands of the others in parallel — threads each waiting on one child process
    (``--executor local``), or one Ray task each (``--executor ray``);
 4. records each run as it finishes, exactly as ``dvc repro`` would: the stage's dependencies and
    outputs hashed, the outputs committed to DVC's cache and the run cache, its ``dvc.lock`` entry
@@ -28,6 +31,7 @@ runs each stage as a batch job instead (``scripts/batch-job.sh``: pull, run, pus
 from __future__ import annotations
 
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -61,6 +65,68 @@ class Job:
     cwd: str  # the checkout, the same path on every node
     env: dict[str, str]  # set on top of the executing process's environment
     log: str  # where the commands' output goes
+    members: tuple[str, ...] = ()  # a group's stages (one process trains them all); () for one
+
+
+def group_jobs(jobs: list[Job], size: int) -> list[Job]:
+    """Jobs of train runs that differ only in their seed, as jobs of up to ``size`` runs each:
+    one ``ede-pipeline train --seeds a,b,… --out …/seed{seed}`` per group (README, "Stage 4").
+
+    A job that is not a one-line ``train`` command with ``--seed`` and an ``--out`` ending in
+    ``seed<N>`` stays alone.
+    """
+    if size <= 1:
+        return jobs
+    groups: dict[tuple[str, ...], list[tuple[int, Job]]] = {}
+    alone: list[Job] = []
+    for job in jobs:
+        key = _group_key(job)
+        if key is None:
+            alone.append(job)
+        else:
+            groups.setdefault(key[0], []).append((key[1], job))
+    grouped: list[Job] = []
+    for pattern, members in groups.items():
+        members.sort()
+        for start in range(0, len(members), size):
+            chunk = members[start:start + size]
+            if len(chunk) == 1:
+                grouped.append(chunk[0][1])
+                continue
+            seeds = ",".join(str(seed) for seed, _ in chunk)
+            argv = [part.replace("{seeds}", seeds) for part in pattern]
+            first = chunk[0][1]
+            stages = tuple(job.stage for _, job in chunk)
+            log = str(Path(first.log).with_name(f"{Path(first.log).stem}+{len(chunk) - 1}.log"))
+            grouped.append(Job(" + ".join(stages), [argv], first.cwd, first.env, log, stages))
+    return alone + grouped
+
+
+def _group_key(job: Job) -> tuple[tuple[str, ...], int] | None:
+    """(the argv with its seed and run folder made patterns, the seed), for a train job.
+
+    DVC runs a command through a shell (``sh -c CMD``): the pattern is made in CMD's words.
+    """
+    if len(job.argvs) != 1:
+        return None
+    argv = list(job.argvs[0])
+    shell = len(argv) >= 2 and argv[-2] == "-c"
+    words = shlex.split(argv[-1]) if shell else argv
+    if "train" not in words:
+        return None
+    try:
+        at, out_at = words.index("--seed"), words.index("--out")
+        seed = int(words[at + 1])
+    except (ValueError, IndexError):
+        return None
+    out = words[out_at + 1]
+    if not out.endswith(f"seed{seed}"):
+        return None
+    words[at], words[at + 1] = "--seeds", "{seeds}"
+    words[out_at + 1] = out.removesuffix(str(seed)) + "{seed}"
+    if shell:
+        return (*argv[:-1], shlex.join(words)), seed
+    return tuple(words), seed
 
 
 @dataclass(frozen=True)
@@ -280,11 +346,14 @@ def _tail(text: str) -> str:
               "default: $RAY_ADDRESS, else a new local Ray instance).")
 @click.option("--cpus-per-run", type=click.FloatRange(min=0, min_open=True), default=1.0,
               show_default=True, help="Ray: the num_cpus of each run's task.")
+@click.option("--group-size", type=click.IntRange(min=1),
+              help="Runs of one task and algorithm trained by one process (`train --seeds`)  "
+                   "[default: on CUDA (td3.device cuda, or auto with a GPU) every seed; on CPU 1]")
 @click.option("--logs", type=click.Path(file_okay=False, path_type=Path), default=LOGS,
               show_default=True, help="Where each run's output goes, one file per stage.")
 @click.pass_context
 def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, executor: str,
-          address: str | None, cpus_per_run: float, logs: Path) -> None:
+          address: str | None, cpus_per_run: float, group_size: int | None, logs: Path) -> None:
     """Run the out-of-date train stages in parallel and record each with DVC.
 
     TARGETS are stages as `dvc repro` takes them (default: every `train_*` stage of dvc.yaml).
@@ -298,7 +367,9 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
         raise BadInput(f"run from the repository root (no dvc.yaml in {Path.cwd()})")
     if executor == "local" and address:
         raise BadInput("--address is for --executor ray")
-    read_params(DEFAULT_PARAMS)  # bad params end here, before anything runs
+    params = read_params(DEFAULT_PARAMS)  # bad params end here, before anything runs
+    if group_size is None:
+        group_size = len(params.runs.seeds) if _on_cuda(params.td3.device) else 1
 
     with Repo(".") as repo:
         stages = collect_stages(repo, targets)
@@ -329,24 +400,28 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
             log = (Path(repo.root_dir) / logs / f"{_safe(stage.addressing)}.log").resolve()
             pending.append(Job(stage.addressing, stage_argvs(stage), repo.root_dir,
                                stage_env(stage), str(log)))
+        pending = group_jobs(pending, group_size)
+        logs_of = {job.stage: Path(job.log) for job in pending}
         runner = _executor(executor, jobs, address, cpus_per_run)
         by_name = {stage.addressing: stage for stage in stale}
         for outcome in runner.map_unordered(pending):
-            stage = by_name[outcome.stage]
-            log = _log_path(repo, logs, outcome)
-            problem = _problem(outcome)
-            if not problem:
-                try:
-                    record(stage)
-                except (DvcException, OSError) as error:  # reported with the run; others go on
-                    problem = f"not recorded: {type(error).__name__}: {error}"
-            if problem:
-                failed.append(outcome.stage)
-                click.echo(tally.line("FAILED", outcome.stage, f"{problem}; log: {log}"))
-                if log.is_file():
-                    click.echo(_tail(log.read_text()), err=True)
-            else:
-                click.echo(tally.line("ok", outcome.stage, f"{outcome.seconds:.1f}s"))
+            log = logs_of[outcome.stage]
+            members = outcome.stage.split(" + ")
+            for name in members:
+                problem = _problem(outcome)
+                if not problem:
+                    try:
+                        record(by_name[name])
+                    except (DvcException, OSError) as error:  # reported with the run
+                        problem = f"not recorded: {type(error).__name__}: {error}"
+                if problem:
+                    failed.append(name)
+                    click.echo(tally.line("FAILED", name, f"{problem}; log: {log}"))
+                else:
+                    shared = f" (one process for {len(members)})" if len(members) > 1 else ""
+                    click.echo(tally.line("ok", name, f"{outcome.seconds:.1f}s{shared}"))
+            if _problem(outcome) and log.is_file():
+                click.echo(_tail(log.read_text()), err=True)
 
     recorded = len(stale) - len(failed)
     click.echo(f"sweep: {recorded} recorded, {len(failed)} failed", err=True)
@@ -385,8 +460,12 @@ def _problem(outcome: Outcome) -> str:
     return ""
 
 
-def _log_path(repo: Repo, logs: Path, outcome: Outcome) -> Path:
-    return (Path(repo.root_dir) / logs / f"{_safe(outcome.stage)}.log").resolve()
+def _on_cuda(device: str) -> bool:
+    if device == "cpu":
+        return False
+    import torch
+
+    return torch.cuda.is_available()
 
 
 def _safe(name: str) -> str:

@@ -10,6 +10,7 @@ of those two files are compared by content minus the times instead.
 from __future__ import annotations
 
 import contextlib
+import shlex
 import csv
 import json
 import shutil
@@ -23,6 +24,7 @@ import yaml
 
 from ede.locks import exclusive
 from ede_pipeline.checkout import BIN, dvc, run, scratch_copy
+from ede_pipeline.sweep import Job, group_jobs
 
 pytestmark = pytest.mark.slow
 
@@ -111,6 +113,35 @@ def test_sweep_with_two_jobs_records_what_dvc_repro_records(
     assert record_of(copy) == reference
     assert not (copy / f"data/runs/{TASK}/td3/seed0/checkpoint").exists()
     assert_up_to_date(copy)
+
+
+def test_sweep_in_groups_of_seeds_records_what_dvc_repro_records(
+    copy_of_upstream: Path, reference: dict[str, Any]
+) -> None:
+    copy = copy_of_upstream
+    out = ok(sweep(copy, "train_reacher", "--jobs", "2", "--group-size", "2"))
+    assert out.count("(one process for 2)") == 4 and "[4/4]" in out, out
+    assert record_of(copy) == reference
+    assert_up_to_date(copy)
+
+
+def test_jobs_of_one_task_and_algorithm_are_grouped_by_seed() -> None:
+    def job(algo: str, seed: int) -> Job:  # as DVC runs a stage's command: through a shell
+        command = (f"ede-pipeline train --task {TASK} --algo {algo} --seed {seed} "
+                   f"--out data/runs/{TASK}/{algo}/seed{seed}")
+        return Job(f"train@{algo}-{seed}", [["/bin/sh", "-c", command]], "/repo", {},
+                   f"/logs/{algo}-{seed}.log")
+
+    other = Job("report", [["ede-pipeline", "report"]], "/repo", {}, "/logs/report.log")
+    jobs = [job("td3", 0), job("ede-td3", 1), job("td3", 2), job("td3", 1), other]
+    grouped = group_jobs(jobs, 2)
+    assert [j.stage for j in grouped] == [
+        "report", "train@td3-0 + train@td3-1", "train@td3-2", "train@ede-td3-1"]
+    words = shlex.split(grouped[1].argvs[0][2])
+    assert words[words.index("--seeds") + 1] == "0,1"
+    assert words[words.index("--out") + 1] == f"data/runs/{TASK}/td3/seed{{seed}}"
+    assert grouped[1].members == ("train@td3-0", "train@td3-1")
+    assert group_jobs(jobs, 1) == jobs
 
 
 def break_one_run(copy: Path) -> contextlib.AbstractContextManager[None]:
