@@ -11,6 +11,12 @@ embedding of Reacher-v5's actions; its weights do not matter for speed), in each
 Prints each and its ratio to SB3. Goals: our TD3 >= 1.5x SB3; EDE-TD3 >= 0.9x our TD3.
 ``--hidden 400,300 --batch-size 100`` measures the paper's TD3 configuration instead.
 
+``--members N [--device cpu|cuda]`` measures groups instead (``ede-pipeline train --seeds``):
+the aggregate environment steps per second of one process training N seeds of our TD3 together
+(``ede.training.train_group``) against the same N runs trained one after another in this
+process — the reference, measured in the same run; on one core that is what N single-run
+processes give in aggregate.
+
 What ``bf16-matmul`` and ``bf16`` compute and buy depends on the CPU, so the benchmark first
 prints the machine: the CPU model and its bf16-related flags, and for each precision the error
 of a product against float64 (``ede.nets.product_error``) and the oneDNN kernel that computed it
@@ -38,7 +44,7 @@ from ede.config import EdeTD3Config, Precision, TD3Config
 from ede.embedding import ActionDecoder, ActionEmbedding, Encoder
 from ede.nets import product_error
 from ede.rollouts import Whitening
-from ede.training import RunSpec, train_run
+from ede.training import RunSpec, train_group, train_run
 
 TASK = "Reacher-v5"
 PRECISIONS = list(get_args(Precision))
@@ -84,6 +90,23 @@ def ours(steps: int, shape: Shape, algo: str, precision: str) -> float:
         start = time.perf_counter()
         train_run(spec, Path(tmp), embedding)
         return steps / (time.perf_counter() - start)
+
+
+def runs(steps: int, shape: Shape, members: int, device: str, grouped: bool) -> float:
+    """Aggregate steps/s of ``members`` TD3 runs, as one group or one after another."""
+    config = TD3Config(hidden=shape.hidden, batch_size=shape.batch_size, start_steps=START,
+                       buffer_size=steps, eval_every=10**9, eval_episodes=1,
+                       checkpoint_every=10**9, device=device)
+    specs = [RunSpec(TASK, "td3", seed, steps, config, EdeTD3Config()) for seed in range(members)]
+    with tempfile.TemporaryDirectory() as tmp:
+        outs = [Path(tmp) / f"seed{spec.seed}" for spec in specs]
+        start = time.perf_counter()
+        if grouped:
+            train_group(specs, outs, device=torch.device(device))
+        else:
+            for spec, out in zip(specs, outs):
+                train_run(spec, out, device=torch.device(device))
+        return members * steps / (time.perf_counter() - start)
 
 
 def warm(learner: Callable[..., float], steps: int, shape: Shape, *args: str) -> float:
@@ -139,9 +162,21 @@ def main() -> None:
     parser.add_argument("--precision", choices=[*PRECISIONS, "all"], default="all")
     parser.add_argument("--hidden", default="256,256", help="hidden widths, comma-separated")
     parser.add_argument("--batch-size", type=int, default=256)
+    parser.add_argument("--members", type=int, help="measure a group of this many seeds")
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     args = parser.parse_args()
     shape = Shape([int(width) for width in args.hidden.split(",")], args.batch_size)
     torch.set_num_threads(1)
+    if args.members:
+        describe_machine(["fp32"])
+        alone = warm(runs, args.steps, shape, args.members, args.device, False)
+        grouped = warm(runs, args.steps, shape, args.members, args.device, True)
+        print(f"{TASK}, {args.steps} steps per run, {args.members} seeds of TD3, {args.device}, "
+              f"1 thread, batch {shape.batch_size}, {'-'.join(map(str, shape.hidden))} networks")
+        print(f"{args.members} runs one after another  {alone:7.0f} steps/s aggregate   1.00x")
+        print(f"{args.members} runs as one group       {grouped:7.0f} steps/s aggregate   "
+              f"{grouped / alone:.2f}x")
+        return
     precisions = PRECISIONS if args.precision == "all" else [args.precision]
     describe_machine(precisions)
     reference = warm(sb3, args.steps, shape)
