@@ -17,7 +17,7 @@ import yaml
 from ede_pipeline.checkout import REPO
 
 TASK = "ede/Point-v0"
-BUDGET = 2_000
+BUDGET = 1_200
 
 
 def tiny(params: dict) -> None:
