@@ -55,7 +55,7 @@ class GroupAgent:
         self.critic_inputs = first.critic._inputs  # the same encoding of (s, c, i) for all
 
         def stack(get: str) -> StackedMLP:
-            modules = [agent for agent in self.agents]
+            modules: list[nn.Module] = list(self.agents)  # type: ignore[arg-type]
             for part in get.split("."):
                 modules = [getattr(m, part) for m in modules]
             return StackedMLP(modules).to(self.device)
@@ -175,9 +175,8 @@ class GroupAgent:
     @torch.no_grad()
     def sync(self) -> None:
         """Write every member's weights and Adam state back into its own agent."""
-        pairs: list[tuple[StackedMLP, nn.Module]] = []
         for j, agent in enumerate(self.agents):
-            pairs = [(self.actor, agent.actor.net), (self.actor_target, agent.actor_target.net),
+            pairs: list[tuple[StackedMLP, nn.Module]] = [(self.actor, agent.actor.net), (self.actor_target, agent.actor_target.net),
                      (self.q1, agent.critic.q1), (self.q2, agent.critic.q2),
                      (self.q1_target, agent.critic_target.q1),
                      (self.q2_target, agent.critic_target.q2)]
