@@ -8,7 +8,6 @@ artifact contradicts the params in force (its ``k``, ``dim`` and the recorded tr
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 from typing import Any, Literal, TypeVar
@@ -20,7 +19,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from ede.atomic import write_atomically
+from ede.atomic import sha256, write_atomically
 from ede.config import DecoderConfig, EmbeddingConfig
 from ede.embedding import ActionDecoder, ActionEmbedding, Encoder, EncoderResult, Predictor
 from ede.provenance import software_versions
@@ -105,10 +104,6 @@ class DecoderMeta(_Meta):
     weights_sha256: str
 
 
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
 def _save(path: Path, modules: dict[str, nn.Module], meta: dict[str, Any], model: type[_Meta]) -> None:
     def write(tmp: Path) -> None:
         tensors = {
@@ -118,7 +113,7 @@ def _save(path: Path, modules: dict[str, nn.Module], meta: dict[str, Any], model
         }
         save_file(tensors, tmp / WEIGHTS)
         validated = model.model_validate(
-            {**meta, "software": software_versions(), "weights_sha256": _sha256(tmp / WEIGHTS)}
+            {**meta, "software": software_versions(), "weights_sha256": sha256(tmp / WEIGHTS)}
         )
         (tmp / META).write_text(validated.model_dump_json(indent=2) + "\n")
 
@@ -139,7 +134,7 @@ def _load_meta(path: Path, model: type[M]) -> tuple[M, dict[str, torch.Tensor]]:
         first = error.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
         raise ArtifactError(f"{meta_file}: {where}: {first['msg']}") from None
-    if _sha256(weights_file) != meta.weights_sha256:  # type: ignore[attr-defined]
+    if sha256(weights_file) != meta.weights_sha256:  # type: ignore[attr-defined]
         raise ArtifactError(f"{weights_file}: does not match the checksum in {META}")
     try:
         tensors = load_file(weights_file)

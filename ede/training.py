@@ -37,7 +37,7 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
-from ede.atomic import remove_stale_temporaries, write_atomically, write_json, write_text
+from ede.atomic import remove_stale_temporaries, sha256, write_atomically, write_json, write_text
 from ede.config import EdeTD3Config, TD3Config
 from ede.embedding import ActionEmbedding
 from ede.group import GroupAgent
@@ -66,6 +66,7 @@ class CheckpointError(Exception):
 
 class CheckpointWriteError(Exception):
     """A checkpoint could not be written (a full disk, ...); the previous one is intact."""
+
 
 CHECKPOINT_VERSION = 3  # 2: training diagnostics; 3: checksums, the run's identity
 EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes are seeded apart from training ones
@@ -245,7 +246,7 @@ class _Run:
             save_file({k: v.detach().cpu().clone() for k, v in tensors.items()},
                       tmp / "state.safetensors")
             (tmp / "state.json").write_text(json.dumps(state))
-            sums = {name: _sha256(tmp / name) for name in ("state.safetensors", "state.json")}
+            sums = {name: sha256(tmp / name) for name in ("state.safetensors", "state.json")}
             (tmp / CHECKSUMS).write_text(json.dumps(sums))
 
         write_atomically(path, write)
@@ -361,14 +362,6 @@ class _Run:
         return self.buffer.sample(self.spec.td3.batch_size, self.agent.generator)
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def _first_line(error: BaseException) -> str:
     return (str(error).strip().splitlines() or [type(error).__name__])[0]
 
@@ -378,7 +371,7 @@ def _verified_state(path: Path) -> dict[str, Any]:
     try:
         sums = json.loads((path / CHECKSUMS).read_text())
         for name in ("state.safetensors", "state.json"):
-            if _sha256(path / name) != sums[name]:
+            if sha256(path / name) != sums[name]:
                 raise CheckpointError(f"{name} does not match its checksum (damaged or changed)")
         return json.loads((path / "state.json").read_text())
     except CheckpointError:

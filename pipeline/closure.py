@@ -14,11 +14,12 @@ install, an installed wheel and a container.
 from __future__ import annotations
 
 import ast
-import hashlib
 import importlib.util
 import re
 from pathlib import Path
 from typing import Any
+
+from ede.atomic import sha256
 
 __all__ = ["OURS", "closure", "package_dirs", "relative_name", "task_code", "task_record"]
 
@@ -101,10 +102,6 @@ def _model_files(path: Path) -> list[Path]:
     return files
 
 
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
 def task_code(task_id: str) -> dict[str, Any]:
     """What defines task ``task_id``: its registration and the SHA-256 of every file it runs.
 
@@ -142,13 +139,13 @@ def task_record(
     task's record and no other's.
     """
     module = entry_point.partition(":")[0]
-    files = {relative_name(p, dirs): _sha256(p) for p in closure([module], dirs)}
+    files = {relative_name(p, dirs): sha256(p) for p in closure([module], dirs)}
     for path in _model_files(model) if model else []:
         try:
             name = relative_name(path, dirs)
         except ValueError:
             name = _outside_name(path)
-        files[name] = _sha256(path)
+        files[name] = sha256(path)
     return {
         "task": task_id,
         "entry_point": entry_point,
