@@ -59,7 +59,12 @@ lock:
 		--output-file $(LOCK) pyproject.toml
 	$(BIN)/python scripts/lock.py simulator $(LOCK) $(SIMULATOR_LOCK)
 
+# The pipeline through the sweep (README.md, "Running many runs at once"): the collect and pretrain
+# stages with dvc repro, the out-of-date runs side by side on every core (or grouped by seed on a
+# GPU) with one overall progress line, then what is left (the report) with dvc repro. Plain
+# `dvc repro` is the serial way, with the same record.
 repro: install
+	$(BIN)/ede-pipeline sweep
 	$(BIN)/dvc repro
 
 # The quick look (params-quick.yaml) as a DVC experiment named quick-<date>-<time>, run in a

@@ -35,6 +35,7 @@ import shlex
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
@@ -44,8 +45,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import click
+from tqdm import tqdm
 
 from ede_pipeline.common import DEFAULT_PARAMS, BadInput, read_params
+from ede_pipeline.progress import PROGRESS_ENV, read_progress
 
 if TYPE_CHECKING:
     from dvc.repo import Repo
@@ -147,6 +150,8 @@ def run_job(job: Job) -> Outcome:
     # The interpreter's own scripts first: `ede-pipeline` and `dvc` of the environment running this.
     bin_dir = str(Path(sys.executable).parent)
     env["PATH"] = os.pathsep.join([bin_dir, env.get("PATH", "")])
+    env[PROGRESS_ENV] = str(progress_file(job))  # the sweep's overall line reads it
+    progress_file(job).unlink(missing_ok=True)  # an earlier sweep's
     log_path = Path(job.log)
     log_path.parent.mkdir(parents=True, exist_ok=True)
     returncode = 0
@@ -312,19 +317,147 @@ def _duration(seconds: float) -> str:
     return f"{hours}h{rest // 60:02d}m{rest % 60:02d}s" if hours else f"{rest // 60}m{rest % 60:02d}s"
 
 
+def progress_file(job: Job) -> Path:
+    """Where the job's command publishes its step counts (``EDE_PROGRESS``)."""
+    return Path(job.log).with_suffix(".progress")
+
+
+def job_steps(job: Job, budgets: dict[str, int]) -> int:
+    """The environment steps a train job runs: its task's budget times its seeds (0: unknown)."""
+    if len(job.argvs) != 1:
+        return 0
+    argv = job.argvs[0]
+    words = shlex.split(argv[-1]) if len(argv) >= 2 and argv[-2] == "-c" else list(argv)
+    if "train" not in words or "--task" not in words:
+        return 0
+    task = words[words.index("--task") + 1] if words.index("--task") + 1 < len(words) else ""
+    return budgets.get(task, 0) * max(len(job.members), 1)
+
+
 class Tally:
-    """One line per finished run, with the overall count and an ETA from the pace so far."""
+    """The sweep's progress: a line per finished run, and one overall line — runs finished,
+    environment steps done of all, the aggregate rate and an ETA — live at the bottom of a
+    terminal (``watch``), or printed at every tenth of the steps in a log.
+
+    Steps come from the runs' progress files (``EDE_PROGRESS``); the steps a resumed run had
+    already done count as done but not towards the rate. Without step counts (stages other
+    than train) the ETA is from the pace of finished runs.
+    """
+
+    POLL = 2.0  # seconds between two reads of the progress files
 
     def __init__(self, total: int) -> None:
         self.total, self.done, self.start = total, 0, time.perf_counter()
+        self.jobs: dict[str, Job] = {}
+        self.steps: dict[str, int] = {}
+        self.finished: set[str] = set()
+        self.resumed: dict[str, int] = {}  # per job: the steps done when first seen
+        self.lock = threading.Lock()
+        self.bar: tqdm | None = None
+        self.next_line = 0.1
 
-    def line(self, status: str, stage: str, detail: str) -> str:
-        self.done += 1
-        elapsed = time.perf_counter() - self.start
+    def track(self, jobs: list[Job], budgets: dict[str, int]) -> None:
+        """Count the steps of these jobs (``budgets``: the environment steps of a run per task)."""
+        self.jobs = {job.stage: job for job in jobs}
+        self.steps = {job.stage: job_steps(job, budgets) for job in jobs}
+
+    # The counts --------------------------------------------------------------------------
+
+    def _counts(self) -> tuple[int, int, int]:
+        """(steps done, steps in all, steps done before this sweep) over the jobs."""
+        done = total = before = 0
+        for name, job in self.jobs.items():
+            read = None if name in self.finished else read_progress(progress_file(job))
+            steps = read[1] if read else self.steps[name]
+            if read and name not in self.resumed:
+                self.resumed[name] = read[0]
+            total += steps
+            done += steps if name in self.finished else (read[0] if read else 0)
+            before += self.resumed.get(name, 0)
+        return done, total, before
+
+    def _eta(self, elapsed: float) -> str:
+        done, total, before = self._counts()
+        if total and done > before:
+            rate = (done - before) / elapsed
+            return f"ETA {_duration((total - done) / rate)}" if total > done else "done"
         left = self.total - self.done
-        eta = f"ETA {_duration(elapsed / self.done * left)}" if left else "done"
-        return (f"[{self.done}/{self.total}] {status:<6} {stage}  {detail}  "
-                f"(elapsed {_duration(elapsed)}, {eta})")
+        if not left:
+            return "done"
+        return f"ETA {_duration(elapsed / self.done * left)}" if self.done else "ETA unknown"
+
+    def overall(self) -> str:
+        """The one line: runs, steps, rate, ETA."""
+        elapsed = max(time.perf_counter() - self.start, 1e-9)
+        done, total, before = self._counts()
+        steps = ""
+        if total:
+            rate = (done - before) / elapsed
+            steps = f", {_count(done)}/{_count(total)} steps ({done / total:.0%}), {rate:,.0f} steps/s"
+        return (f"sweep: {self.done}/{self.total} runs{steps}, elapsed {_duration(elapsed)}, "
+                f"{self._eta(elapsed)}")
+
+    # Output ------------------------------------------------------------------------------
+
+    def line(self, status: str, stage: str, detail: str, job: str | None = None) -> str:
+        """A finished run's line (``job``: the job it was part of, when all of it is over)."""
+        with self.lock:
+            self.done += 1
+            if job is not None:
+                self.finished.add(job)
+            elapsed = time.perf_counter() - self.start
+            return (f"[{self.done}/{self.total}] {status:<6} {stage}  {detail}  "
+                    f"(elapsed {_duration(elapsed)}, {self._eta(elapsed)})")
+
+    def echo(self, text: str) -> None:
+        with self.lock:
+            if self.bar is not None:
+                self.bar.write(text)
+            else:
+                click.echo(text)
+
+    def tick(self) -> None:
+        """Refresh the overall line (terminal), or print it at each further tenth (log)."""
+        with self.lock:
+            text = self.overall()
+            if self.bar is not None:
+                self.bar.set_description_str(text, refresh=True)
+                return
+            done, total, _ = self._counts()
+            if total and done >= self.next_line * total:
+                click.echo(text, err=True)
+                while self.next_line * total <= done:
+                    self.next_line += 0.1
+
+    @contextmanager
+    def watch(self) -> Iterator[None]:
+        """Keep the overall line up to date while the runs run."""
+        stop = threading.Event()
+        if sys.stderr.isatty():
+            self.bar = tqdm(total=0, bar_format="{desc}", file=sys.stderr, dynamic_ncols=True)
+
+        def loop() -> None:
+            while not stop.wait(self.POLL):
+                self.tick()
+
+        thread = threading.Thread(target=loop, name="sweep-progress", daemon=True)
+        thread.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            thread.join()
+            if self.bar is not None:
+                self.bar.close()
+                self.bar = None
+            click.echo(self.overall(), err=True)
+
+
+def _count(steps: int) -> str:
+    for size, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
+        if steps >= size:
+            return f"{steps / size:.3g}{suffix}"
+    return str(steps)
 
 
 def _tail(text: str) -> str:
@@ -404,24 +537,10 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
         logs_of = {job.stage: Path(job.log) for job in pending}
         runner = _executor(executor, jobs, address, cpus_per_run)
         by_name = {stage.addressing: stage for stage in stale}
-        for outcome in runner.map_unordered(pending):
-            log = logs_of[outcome.stage]
-            members = outcome.stage.split(" + ")
-            for name in members:
-                problem = _problem(outcome)
-                if not problem:
-                    try:
-                        record(by_name[name])
-                    except (DvcException, OSError) as error:  # reported with the run
-                        problem = f"not recorded: {type(error).__name__}: {error}"
-                if problem:
-                    failed.append(name)
-                    click.echo(tally.line("FAILED", name, f"{problem}; log: {log}"))
-                else:
-                    shared = f" (one process for {len(members)})" if len(members) > 1 else ""
-                    click.echo(tally.line("ok", name, f"{outcome.seconds:.1f}s{shared}"))
-            if _problem(outcome) and log.is_file():
-                click.echo(_tail(log.read_text()), err=True)
+        tally.track(pending, params.runs.budgets)
+        with tally.watch():
+            for outcome in runner.map_unordered(pending):
+                _report(outcome, by_name, logs_of[outcome.stage], tally, failed)
 
     recorded = len(stale) - len(failed)
     click.echo(f"sweep: {recorded} recorded, {len(failed)} failed", err=True)
@@ -429,6 +548,29 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
         click.echo("failed (run `ede-pipeline sweep` again to resume them): " + " ".join(failed),
                    err=True)
         ctx.exit(1)
+
+
+def _report(outcome: Outcome, by_name: dict[str, Stage], log: Path, tally: Tally,
+            failed: list[str]) -> None:
+    """Record each run of a finished job, or say why not; a line per run."""
+    from dvc.exceptions import DvcException
+
+    members = outcome.stage.split(" + ")
+    for name in members:
+        problem = _problem(outcome)
+        if not problem:
+            try:
+                record(by_name[name])
+            except (DvcException, OSError) as error:  # reported with the run
+                problem = f"not recorded: {type(error).__name__}: {error}"
+        if problem:
+            failed.append(name)
+            tally.echo(tally.line("FAILED", name, f"{problem}; log: {log}", outcome.stage))
+        else:
+            shared = f" (one process for {len(members)})" if len(members) > 1 else ""
+            tally.echo(tally.line("ok", name, f"{outcome.seconds:.1f}s{shared}", outcome.stage))
+    if _problem(outcome) and log.is_file():
+        tally.echo(_tail(log.read_text()))
 
 
 def _bring_upstream_up_to_date(repo: Repo, stages: list[Stage]) -> None:

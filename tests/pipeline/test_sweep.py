@@ -110,6 +110,8 @@ def test_sweep_with_two_jobs_records_what_dvc_repro_records(
     assert "sweep: dvc repro pretrain_decoder@reacher" in out, out
     assert "4 of 4 stages out of date" in out, out
     assert out.count(" ok ") == 4 and "[4/4]" in out and "ETA" in out, out
+    overall = [line for line in out.splitlines() if line.startswith("sweep: 4/4 runs")]
+    assert overall and "/s" in overall[-1] and "(100%)" in overall[-1], out
     assert record_of(copy) == reference
     assert not (copy / f"data/runs/{TASK}/td3/seed0/checkpoint").exists()
     assert_up_to_date(copy)

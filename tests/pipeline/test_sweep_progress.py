@@ -1,0 +1,98 @@
+"""The sweep's one overall line: runs, steps from the runs' progress files, rate and ETA."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from ede_pipeline.progress import PROGRESS_ENV, progress, read_progress
+from ede_pipeline.sweep import Job, Tally, group_jobs, job_steps, progress_file
+
+TASK = "ede/ReacherVertical-v0"
+
+
+def job(tmp_path: Path, algo: str, seed: int, task: str = TASK) -> Job:
+    command = (f"ede-pipeline train --task {task} --algo {algo} --seed {seed} "
+               f"--out data/runs/{task}/{algo}/seed{seed}")
+    return Job(f"train@{algo}-{seed}", [["/bin/sh", "-c", command]], str(tmp_path), {},
+               str(tmp_path / f"{algo}-{seed}.log"))
+
+
+def test_a_job_runs_its_tasks_budget_once_per_seed(tmp_path: Path) -> None:
+    budgets = {TASK: 1000}
+    jobs = [job(tmp_path, "td3", seed) for seed in range(3)]
+    assert job_steps(jobs[0], budgets) == 1000
+    [group] = group_jobs(jobs, 3)
+    assert job_steps(group, budgets) == 3000
+    report = Job("report", [["ede-pipeline", "report"]], str(tmp_path), {}, str(tmp_path / "r.log"))
+    assert job_steps(report, budgets) == 0
+    assert job_steps(job(tmp_path, "td3", 0, task="other/Task-v0"), budgets) == 0
+
+
+def test_the_overall_line_counts_steps_and_leaves_resumed_ones_out_of_the_rate(
+    tmp_path: Path,
+) -> None:
+    jobs = [job(tmp_path, "td3", 0), job(tmp_path, "td3", 1)]
+    tally = Tally(2)
+    tally.track(jobs, {TASK: 1000})
+    assert "0/2 runs, 0/2k steps (0%)" in tally.overall()
+    # The first run resumed at step 400 (seen first at 400), then did 100 more.
+    progress_file(jobs[0]).write_text('{"done": 400, "total": 1000}')
+    tally.overall()
+    progress_file(jobs[0]).write_text('{"done": 500, "total": 1000}')
+    tally.start = time.perf_counter() - 10.0  # 10 s into the sweep: 100 new steps, 10 steps/s
+    line = tally.overall()
+    assert "0/2 runs, 500/2k steps (25%)" in line, line
+    assert "10 steps/s" in line, line
+    assert "ETA 2m30s" in line, line  # 1,500 steps left at 10 steps/s
+    finished = tally.line("ok", jobs[0].stage, "1.0s", jobs[0].stage)
+    assert finished.startswith("[1/2] ok") and "ETA" in finished, finished
+    assert "1/2 runs, 1k/2k steps (50%)" in tally.overall()
+
+
+def test_without_step_counts_the_eta_comes_from_finished_runs(tmp_path: Path) -> None:
+    tally = Tally(3)
+    tally.start = time.perf_counter() - 60.0
+    line = tally.line("ok", "report", "60.0s")
+    assert line.startswith("[1/3]") and "ETA 2m00s" in line, line
+
+
+def test_a_stage_publishes_its_progress_where_the_sweep_asks(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "run.progress"
+    monkeypatch.setenv(PROGRESS_ENV, str(path))
+    with progress(10, "steps") as advance:
+        advance(3)
+        assert read_progress(path) == (3, 10)  # the first update is written at once
+        advance(7)
+    assert read_progress(path) == (10, 10)  # and the last whatever the time
+    assert read_progress(tmp_path / "none") is None
+    assert not [p for p in tmp_path.iterdir() if p.name != "run.progress"]  # no temporaries
+
+
+def test_the_overall_line_lives_on_a_terminal_and_ends_in_a_log(tmp_path: Path) -> None:
+    """Without a terminal the line is printed at every further tenth of the steps, and last."""
+    script = f"""
+import time
+from pathlib import Path
+from ede_pipeline.sweep import Job, Tally, progress_file
+Tally.POLL = 0.05
+job = Job("t", [["ede-pipeline", "train", "--task", "{TASK}"]], ".", {{}}, r"{tmp_path}/t.log")
+tally = Tally(1)
+tally.track([job], {{"{TASK}": 100}})
+with tally.watch():
+    for done in (10, 55, 100):
+        progress_file(job).write_text('{{"done": %d, "total": 100}}' % done)
+        time.sleep(0.3)
+"""
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                            env={**os.environ}, timeout=60, check=True)
+    lines = [line for line in result.stderr.splitlines() if line.startswith("sweep:")]
+    assert [line.split(" steps ")[0].split(", ")[-1] for line in lines] == [
+        "10/100", "55/100", "100/100", "100/100"], result.stderr
