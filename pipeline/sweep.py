@@ -9,7 +9,8 @@ repository's lock. A sweep takes that lock once, as ``dvc repro`` does, and insi
    reports); for each, it does what ``dvc repro`` does before the command — removes the stage's
    outputs (never the run's ``checkpoint/``, which is not one) and restores the run from DVC's run
    cache if this very run (command, dependencies, params) was recorded before;
-3. with ``--group-size N`` (by default every seed on CUDA, one run on CPU), gathers the runs of
+3. with ``--group-size N`` (by default every seed on CUDA; on CPU as many as leave every job a
+   process: ``default_group_size``), gathers the runs of
    one task and algorithm into processes of up to N (``ede-pipeline train --seeds``: their
    updates batched, each run's outputs those it gets alone), then
    runs the commands of the others in parallel — threads each waiting on one child process
@@ -47,6 +48,7 @@ from typing import TYPE_CHECKING, Any
 import click
 from tqdm import tqdm
 
+from ede.config import Params
 from ede_pipeline.common import DEFAULT_PARAMS, BadInput, read_params
 from ede_pipeline.progress import PROGRESS_ENV, read_progress
 
@@ -481,7 +483,8 @@ def _tail(text: str) -> str:
               show_default=True, help="Ray: the num_cpus of each run's task.")
 @click.option("--group-size", type=click.IntRange(min=1),
               help="Runs of one task and algorithm trained by one process (`train --seeds`)  "
-                   "[default: on CUDA (td3.device cuda, or auto with a GPU) every seed; on CPU 1]")
+                   "[default: on CUDA (td3.device cuda, or auto with a GPU) every seed; on CPU as "
+                   "many as leave every job a process; 1 with td3.update_schedule episode]")
 @click.option("--logs", type=click.Path(file_okay=False, path_type=Path), default=LOGS,
               show_default=True, help="Where each run's output goes, one file per stage.")
 @click.pass_context
@@ -501,8 +504,6 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
     if executor == "local" and address:
         raise BadInput("--address is for --executor ray")
     params = read_params(DEFAULT_PARAMS)  # bad params end here, before anything runs
-    if group_size is None:
-        group_size = len(params.runs.seeds) if _on_cuda(params.td3.device) else 1
 
     with Repo(".") as repo:
         stages = collect_stages(repo, targets)
@@ -533,7 +534,8 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
             log = (Path(repo.root_dir) / logs / f"{_safe(stage.addressing)}.log").resolve()
             pending.append(Job(stage.addressing, stage_argvs(stage), repo.root_dir,
                                stage_env(stage), str(log)))
-        pending = group_jobs(pending, group_size)
+        workers = jobs or (os.cpu_count() if executor == "local" else None)
+        pending = group_jobs(pending, group_size or default_group_size(params, len(pending), workers))
         logs_of = {job.stage: Path(job.log) for job in pending}
         runner = _executor(executor, jobs, address, cpus_per_run)
         by_name = {stage.addressing: stage for stage in stale}
@@ -600,6 +602,26 @@ def _problem(outcome: Outcome) -> str:
     if outcome.returncode > 0:
         return f"exit {outcome.returncode} after {outcome.seconds:.1f}s"
     return ""
+
+
+def default_group_size(params: Params, runs: int, workers: int | None) -> int:
+    """Seeds per process when ``--group-size`` is not given.
+
+    On CUDA every seed of a task and algorithm: the update is bound by kernel launches, so a group
+    costs about what one run costs. On CPU as many as still leave every worker a process
+    (``runs // workers``): batching saves per-operation overhead (1.2x aggregate at 4 members on
+    one core, ``benchmarks/train_throughput.py --members``), but a group runs on one core; on Ray
+    without ``--jobs`` (workers unknown) one. Runs that cannot share their updates
+    (``td3.update_schedule: episode``, ``td3.precision: bf16``) go one to a process.
+    """
+    seeds = len(params.runs.seeds)
+    if params.td3.update_schedule != "step" or params.td3.precision == "bf16":
+        return 1
+    if _on_cuda(params.td3.device):
+        return seeds
+    if workers is None:
+        return 1
+    return max(1, min(seeds, runs // workers))
 
 
 def _on_cuda(device: str) -> bool:

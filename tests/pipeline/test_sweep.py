@@ -106,7 +106,7 @@ def test_sweep_with_two_jobs_records_what_dvc_repro_records(
     copy = copy_of_upstream
     # An upstream stage out of date (its output gone): the sweep has `dvc repro` bring it back.
     shutil.rmtree(copy / "data/reacher/embedding/decoder")
-    out = ok(sweep(copy, "train_reacher", "--jobs", "2"))
+    out = ok(sweep(copy, "train_reacher", "--jobs", "2", "--group-size", "1"))
     assert "sweep: dvc repro pretrain_decoder@reacher" in out, out
     assert "4 of 4 stages out of date" in out, out
     assert out.count(" ok ") == 4 and "[4/4]" in out and "ETA" in out, out
@@ -157,7 +157,7 @@ def test_a_failed_run_is_reported_and_the_others_recorded_then_resumed(
 ) -> None:
     copy = copy_of_upstream
     with break_one_run(copy):
-        failed = sweep(copy, "train_reacher", "--jobs", "2")
+        failed = sweep(copy, "train_reacher", "--jobs", "2", "--group-size", "1")
     out = failed.stdout + failed.stderr
     assert failed.returncode == 1, out
     log = copy / ".dvc/tmp/sweep" / (BROKEN.replace("/", "_").replace("@", "__") + ".log")
@@ -169,7 +169,7 @@ def test_a_failed_run_is_reported_and_the_others_recorded_then_resumed(
     assert BROKEN not in lock
     assert record_of(copy, others) == {stage: reference[stage] for stage in others}
 
-    again = ok(sweep(copy, "train_reacher", "--jobs", "2"))
+    again = ok(sweep(copy, "train_reacher", "--jobs", "2", "--group-size", "1"))
     assert "1 of 4 stages out of date" in again and f"ok     {BROKEN}" in again, again
     assert record_of(copy) == reference
     assert_up_to_date(copy)

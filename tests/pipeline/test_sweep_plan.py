@@ -1,4 +1,5 @@
-"""The sweep's one overall line: runs, steps from the runs' progress files, rate and ETA."""
+"""The sweep's plan and progress: how many seeds share a process by default, and the one overall
+line — runs, steps from the runs' progress files, rate and ETA."""
 
 from __future__ import annotations
 
@@ -11,7 +12,16 @@ from pathlib import Path
 import pytest
 
 from ede_pipeline.progress import PROGRESS_ENV, progress, read_progress
-from ede_pipeline.sweep import Job, Tally, group_jobs, job_steps, progress_file
+from ede.config import Params
+from ede_pipeline.common import read_params
+from ede_pipeline.sweep import (
+    Job,
+    Tally,
+    default_group_size,
+    group_jobs,
+    job_steps,
+    progress_file,
+)
 
 TASK = "ede/ReacherVertical-v0"
 
@@ -96,3 +106,23 @@ with tally.watch():
     lines = [line for line in result.stderr.splitlines() if line.startswith("sweep:")]
     assert [line.split(" steps ")[0].split(", ")[-1] for line in lines] == [
         "10/100", "55/100", "100/100", "100/100"], result.stderr
+
+
+def paper_params(**td3: str) -> Params:
+    params = read_params(Path(__file__).resolve().parents[2] / "params.yaml")
+    return params.model_copy(update={"td3": params.td3.model_copy(update=td3)})
+
+
+def test_on_cpu_seeds_share_a_process_while_every_job_still_gets_one() -> None:
+    params = paper_params()  # 8 seeds
+    seeds = len(params.runs.seeds)
+    assert default_group_size(params, runs=80, workers=2) == seeds  # 40 runs a core: all 8 seeds
+    assert default_group_size(params, runs=80, workers=16) == 5  # 16 processes of up to 5
+    assert default_group_size(params, runs=4, workers=2) == 2
+    assert default_group_size(params, runs=3, workers=16) == 1  # fewer runs than cores: alone
+    assert default_group_size(params, runs=80, workers=None) == 1  # Ray, its size unknown
+
+
+def test_runs_that_cannot_update_together_go_one_to_a_process() -> None:
+    assert default_group_size(paper_params(update_schedule="episode"), 80, 2) == 1
+    assert default_group_size(paper_params(precision="bf16"), 80, 2) == 1
