@@ -41,6 +41,11 @@ Seed = Annotated[int, Field(ge=0, description="seed of every random number gener
 def _registered(task: str) -> str:
     if task not in _registered_task_ids():
         raise ValueError("a registered gymnasium task id (see `ede-pipeline envs`)")
+    from ede.tasks import unusable
+
+    reason = unusable(task)
+    if reason is not None:
+        raise ValueError(f"not usable: {reason}")
     return task
 
 

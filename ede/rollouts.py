@@ -2,16 +2,22 @@
 
 A store is a Zarr group of arrays over steps (rows), one row per environment step taken:
 
-========== ============ ==========================================================
-array      shape        meaning
-========== ============ ==========================================================
-``obs``     (N, O)       the observation the action was chosen from
-``state``   (N, S)       the physics state at that moment: qpos then qvel
-``action``  (N, A)       the uniform random action taken
-``reward``  (N,)         the reward it earned
-``episode`` (N,)         global episode index; episodes are contiguous and in order
-``t``       (N,)         step within the episode, 0, 1, ...
-========== ============ ==========================================================
+=========== ======== ==========================================================================
+array       shape    meaning
+=========== ======== ==========================================================================
+``obs``     (N, O)   the observation the action was chosen from
+``state``   (N, S)   the state at that moment, which the embedding learns from (see below)
+``action``  (N, A)   the uniform random action taken
+``reward``  (N,)     the reward it earned
+``episode`` (N,)     global episode index; episodes are contiguous and in order
+``t``       (N,)     step within the episode, 0, 1, ...
+=========== ======== ==========================================================================
+
+The ``state`` of a MuJoCo task is its physics state, qpos then qvel; a task without MuJoCo physics
+(e.g. ``Pendulum-v1``) has none to read, so its state is the observation itself, as float64.
+:func:`state_source` tells the two apart by what the unwrapped environment has (MuJoCo ``data``
+with ``qpos`` and ``qvel``), and the collect stage records its answer in the ``state_source``
+attribute: ``"physics"`` or ``"observation"``.
 
 The group's attributes name the task, seed, spaces and params, ``collector`` (the store format,
 :data:`COLLECTOR_VERSION`) and ``fingerprint``: a SHA-256 over the arrays and every attribute but
@@ -45,6 +51,7 @@ from zarr.codecs import BloscCodec
 
 import ede_envs
 from ede.atomic import write_atomically
+from ede.tasks import unusable
 
 __all__ = [
     "ARRAYS",
@@ -57,10 +64,14 @@ __all__ = [
     "collect",
     "fingerprint",
     "physics_state",
+    "state_of",
+    "state_source",
     "write_store",
 ]
 
-COLLECTOR_VERSION = 2  # 2: the fingerprint covers the attributes as well as the arrays
+# 2: the fingerprint covers the attributes as well as the arrays
+# 3: a task without MuJoCo physics has its observation as state (attribute ``state_source``)
+COLLECTOR_VERSION = 3
 CHUNK_STEPS = 16_384
 ARRAYS = ("obs", "state", "action", "reward", "episode", "t")
 REQUIRED_ATTRS = ("env_id", "family", "seed", "num_envs", "steps", "spaces", "params", "fingerprint")
@@ -75,10 +86,24 @@ class RolloutsError(ValueError):
     """A store that cannot be used; the message names the path and what is wrong."""
 
 
+def state_source(env: gymnasium.Env) -> str:
+    """``"physics"`` when ``env`` runs on MuJoCo (its unwrapped environment has ``data`` with
+    ``qpos`` and ``qvel``), else ``"observation"``."""
+    data = getattr(env.unwrapped, "data", None)
+    return "physics" if hasattr(data, "qpos") and hasattr(data, "qvel") else "observation"
+
+
 def physics_state(env: gymnasium.Env) -> np.ndarray:
     """The MuJoCo state of ``env``: qpos then qvel, as one float64 vector."""
     data = env.unwrapped.data  # type: ignore[attr-defined]
     return np.concatenate((data.qpos, data.qvel))  # MuJoCo keeps both in float64
+
+
+def state_of(env: gymnasium.Env, obs: np.ndarray) -> np.ndarray:
+    """The ``state`` row of ``env`` whose observation is now ``obs`` (see :func:`state_source`)."""
+    if state_source(env) == "physics":
+        return physics_state(env)
+    return np.asarray(obs, dtype=np.float64).reshape(-1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -165,7 +190,7 @@ def _run_sub_envs(
     recorded = [0] * len(jobs)
     resetting = np.zeros(len(jobs), dtype=bool)
     while any(recorded[j] < job.quota for j, job in enumerate(jobs)):
-        states = [physics_state(env) for env in vec.envs]
+        states = [state_of(env, obs[j]) for j, env in enumerate(vec.envs)]
         # A resetting sub-env ignores its action: draw none, so its stream stays in step with a
         # plain reset-and-step loop over the same env.
         actions = np.stack([idle if resetting[j] else draw() for j, draw in enumerate(streams)])
@@ -216,9 +241,16 @@ def collect(
 
     Returns:
         The row arrays of :data:`ARRAYS`, episodes ordered by sub-environment, then by time.
+
+    Raises:
+        ValueError: non-positive ``steps`` or ``num_envs``, or a task ede cannot use
+            (:func:`ede.tasks.unusable`).
     """
     if steps <= 0 or num_envs <= 0:
         raise ValueError(f"steps and num_envs must be positive, got {steps} and {num_envs}")
+    reason = unusable(env_id)
+    if reason is not None:
+        raise ValueError(f"{env_id} cannot be used: {reason}")
     jobs = [
         _SubEnvJob(env_id, i, seed, quota) for i, quota in enumerate(_quotas(steps, num_envs))
     ]

@@ -1,7 +1,9 @@
-"""What the library needs to know about the tasks: descriptions and construction."""
+"""What the library needs to know about the tasks: descriptions, construction, and whether ede can
+use one at all."""
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import gymnasium
@@ -9,7 +11,7 @@ import numpy as np
 
 import ede_envs
 
-__all__ = ["TaskInfo", "describe_tasks", "make"]
+__all__ = ["TaskInfo", "describe_tasks", "make", "unusable"]
 
 
 @dataclass(frozen=True)
@@ -28,6 +30,39 @@ def make(task_id: str, **kwargs: object) -> gymnasium.Env:
     """``gymnasium.make`` with the ``ede/`` tasks registered."""
     ede_envs.register_envs()
     return gymnasium.make(task_id, **kwargs)
+
+
+@functools.lru_cache(maxsize=None)  # params validation asks about the same few tasks often
+def unusable(task_id: str) -> str | None:
+    """Why ede cannot use ``task_id``, in one short phrase, or None when it can.
+
+    ede draws uniform random actions from a flat Box and feeds flat observation vectors to its
+    networks, so both spaces must be rank-1 Boxes. Builds the task once to read its spaces.
+    """
+    try:
+        env = make(task_id)
+    except gymnasium.error.Error as error:  # e.g. DependencyNotInstalled
+        first_line = str(error).splitlines()[0] if str(error) else ""
+        return f"it cannot be made ({type(error).__name__}: {first_line})"
+    try:
+        action, observation = env.action_space, env.observation_space
+    finally:
+        env.close()
+    if not (isinstance(action, gymnasium.spaces.Box) and len(action.shape) == 1):
+        return f"its actions are {_describe(action)}; ede needs a flat Box action space"
+    if not action.is_bounded():
+        return "its actions are unbounded; ede draws uniform random actions from bounded ones"
+    if not (isinstance(observation, gymnasium.spaces.Box) and len(observation.shape) == 1):
+        return f"its observations are {_describe(observation)}; ede needs flat observation vectors"
+    return None
+
+
+def _describe(space: gymnasium.Space) -> str:
+    if isinstance(space, gymnasium.spaces.Box):
+        kind = "images" if len(space.shape) == 3 else "a Box"
+        return f"{kind} of shape {space.shape}"
+    text = str(space)  # Discrete(2) reads well; a Dict's full text would not fit a line
+    return text if len(text) <= 40 else type(space).__name__
 
 
 def describe_tasks() -> list[TaskInfo]:

@@ -11,7 +11,7 @@ import numpy as np
 
 from ede.config import Params
 from ede.provenance import software_versions
-from ede.rollouts import Rollouts, RolloutsError, write_store
+from ede.rollouts import Rollouts, RolloutsError, state_source, write_store
 from ede.rollouts import collect as collect_steps
 from ede.tasks import make
 from ede_pipeline import layout
@@ -53,11 +53,13 @@ def store_attrs(
             "action_high": env.action_space.high.tolist(),  # type: ignore[attr-defined]
             "state_size": int(arrays["state"].shape[1]),
         }
+        source = state_source(env)
     finally:
         env.close()
     return {
         "env_id": params.families[family].source,
         "family": family,
+        "state_source": source,  # what the state column is: "physics" or "observation"
         "seed": params.collect.seed,
         "steps": params.collect.steps,
         "num_envs": num_envs,

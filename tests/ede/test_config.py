@@ -66,6 +66,8 @@ def test_defaults_in_the_model_match_the_committed_file() -> None:
         (lambda p: p["runs"]["tasks"]["reacher"].append("ede/Pusher-v0"),
          "runs.tasks.reacher: 'ede/Pusher-v0' is not a task of that family"),
         (lambda p: p["families"]["reacher"].pop("source"), "families.reacher.source: missing"),
+        (lambda p: p["families"]["point"].update(source="CartPole-v1"),
+         "families.point.source: got 'CartPole-v1'; not usable: its actions are Discrete(2)"),
         (lambda p: p["td3"].update(discount=1.5), "td3.discount: got 1.5"),
         (lambda p: p["runs"]["budgets"].pop("ede/Striker-v0"), "no budget for ede/Striker-v0"),
         (lambda p: p["families"].pop("sevendof"), "runs.tasks.sevendof: not a family"),

@@ -14,7 +14,8 @@ from ede.rollouts import (
     Rollouts,
     RolloutsError,
     collect,
-    physics_state,
+    state_of,
+    state_source,
     write_store,
 )
 from ede.tasks import make
@@ -60,7 +61,7 @@ def direct_rollout(env_id: str, seed: int, index: int, steps: int) -> dict[str, 
     while len(rows["reward"]) < steps:
         action = rng.uniform(low, high).astype(np.float32)  # one action per call, no blocks
         rows["obs"].append(obs)
-        rows["state"].append(physics_state(env))
+        rows["state"].append(state_of(env, obs))
         rows["action"].append(action)
         obs, reward, terminated, truncated, _ = env.step(action)
         rows["reward"].append(reward)
@@ -83,12 +84,37 @@ def test_what_the_collector_stepped_is_what_the_reader_returns(tmp_path: Path) -
     np.testing.assert_array_equal(np.unique(rollouts.episode), np.arange(4))
 
 
-def test_the_state_column_is_qpos_then_qvel(tmp_path: Path) -> None:
+def test_the_state_column_of_a_mujoco_task_is_qpos_then_qvel(tmp_path: Path) -> None:
     arrays = collect("ede/PointMass-v0", steps=100, num_envs=1, seed=0, workers=1)
     env = make("ede/PointMass-v0")
     env.reset(seed=0)
     data = env.unwrapped.data
+    assert state_source(env) == "physics"
     np.testing.assert_array_equal(arrays["state"][0], np.concatenate([data.qpos, data.qvel]))
+
+
+def test_the_state_column_of_a_task_without_mujoco_physics_is_its_observation(
+    tmp_path: Path,
+) -> None:
+    assert state_source(make("Pendulum-v1")) == "observation"
+    arrays = collect("Pendulum-v1", steps=400, num_envs=2, seed=3, workers=1)
+    rollouts = Rollouts.open(store_of(tmp_path / "r.zarr", arrays, "Pendulum-v1"))
+    assert len(rollouts) == 400 and rollouts.num_episodes == 2  # 200-step episodes
+    assert rollouts.state.dtype == np.float64 and rollouts.obs.dtype == np.float32
+    np.testing.assert_array_equal(rollouts.state, rollouts.obs)
+    for index in range(2):  # the vector collector steps what a plain loop steps
+        expected = direct_rollout("Pendulum-v1", seed=3, index=index, steps=200)
+        for key, value in expected.items():
+            np.testing.assert_array_equal(
+                getattr(rollouts, key)[200 * index : 200 * (index + 1)], value, err_msg=key
+            )
+    state, actions, later = rollouts.windows(rollouts.window_starts(4), 4)
+    assert (state.shape, actions.shape, later.shape) == ((392, 3), (392, 4, 1), (392, 3))
+
+
+def test_a_task_ede_cannot_use_is_refused_before_any_step() -> None:
+    with pytest.raises(ValueError, match=r"^CartPole-v1 cannot be used: its actions are Discrete"):
+        collect("CartPole-v1", steps=10, num_envs=1, seed=0, workers=1)
 
 
 def test_episodes_stay_whole_when_steps_do_not_divide() -> None:

@@ -38,6 +38,7 @@ def test_collect_writes_a_store_the_reader_accepts(tmp_path: Path, write_params)
     assert (attrs["family"], attrs["seed"], attrs["num_envs"]) == ("reacher", 0, 2)
     assert attrs["params"]["collect"] == {"steps": 400, "num_envs": 2, "seed": 0}
     assert attrs["spaces"]["action_low"] == [-1.0, -1.0]
+    assert attrs["state_source"] == "physics"
     assert len(attrs["fingerprint"]) == 64
     assert attrs["software"] == software_versions()  # what made it: Python, numpy, torch, ...
     assert set(attrs["software"]) == {"python", "numpy", "torch", "mujoco", "gymnasium"}
@@ -46,6 +47,27 @@ def test_collect_writes_a_store_the_reader_accepts(tmp_path: Path, write_params)
 
     summary = run("inspect", "--family", "reacher", "--rollouts", str(out), "--params", str(params))
     assert summary.exit_code == 0 and "400 steps in 4 episodes" in summary.output
+
+
+def test_a_task_without_mujoco_physics_is_collected_with_its_observation_as_state(
+    tmp_path: Path, write_params
+) -> None:
+    def pendulum(params: dict) -> None:
+        tiny(params)
+        params["families"]["pendulum"] = {"source": "Pendulum-v1"}
+
+    params = write_params(pendulum)
+    out = tmp_path / "rollouts.zarr"
+    result = run("collect", "--family", "pendulum", "--out", str(out), "--params", str(params))
+    assert result.exit_code == 0, result.output
+    rollouts = Rollouts.open(out, env_id="Pendulum-v1")
+    assert rollouts.attrs["state_source"] == "observation"
+    assert rollouts.attrs["spaces"]["state_size"] == 3
+    np.testing.assert_array_equal(rollouts.state, rollouts.obs)
+
+    summary = run("inspect", "--family", "pendulum", "--rollouts", str(out),
+                  "--params", str(params))
+    assert summary.exit_code == 0 and "400 steps in 2 episodes" in summary.output, summary.output
 
 
 def test_rerunning_with_the_same_params_gives_the_same_arrays(tmp_path: Path, write_params) -> None:
