@@ -6,7 +6,7 @@ Two scratch copies of this repo (its files in a fresh git repository under a tem
 made by ``ede_pipeline.checkout.scratch_copy`` as the tests make theirs) with small params: one
 reacher task, TD3 and EDE-TD3, two seeds — four runs of ``--steps`` environment steps each. The
 embedding (collect, pretrain) is made once, untimed, and copied to both. Then, timed: ``dvc
-repro train_reacher`` in one copy (one run at a time) and ``ede-pipeline sweep train_reacher --jobs
+repro train`` in one copy (one run at a time) and ``ede-pipeline sweep train --jobs
 N`` in the other. Both include their own start-up and DVC's hashing and caching. Prints both wall
 times and the ratio; goal: >= 1.8x with 2 jobs on 2 cores. Also checks that the two copies agree on
 every run's returns.
@@ -40,7 +40,7 @@ def small_params(steps: int) -> Callable[[dict[str, Any]], None]:
         params["decoder"].update(small)
         params["td3"].update(hidden=[64, 64], start_steps=500, eval_every=steps // 4,
                              eval_episodes=2, checkpoint_every=10 * steps)
-        params["runs"].update(tasks={**params["runs"]["tasks"], "reacher": [TASK]}, seeds=[0, 1],
+        params["runs"].update(tasks={TASK: "reacher"}, seeds=[0, 1],
                               budgets={task: steps for task in params["runs"]["budgets"]})
 
     return edit
@@ -72,18 +72,18 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="ede-sweep-bench-") as tmp:
         base = Path(tmp) / "base"
         scratch_copy(base, small_params(args.steps))
-        timed(base, BIN / "dvc", "repro", "pretrain_decoder@reacher")
+        timed(base, BIN / "dvc", "repro", "task_inputs")
         repro, swept = Path(tmp) / "repro", Path(tmp) / "sweep"
         shutil.copytree(base, repro, symlinks=True)
         shutil.copytree(base, swept, symlinks=True)
-        sequential = timed(repro, BIN / "dvc", "repro", "train_reacher")
-        parallel = timed(swept, BIN / "ede-pipeline", "sweep", "train_reacher",
+        sequential = timed(repro, BIN / "dvc", "repro", "train")
+        parallel = timed(swept, BIN / "ede-pipeline", "sweep", "train",
                          "--jobs", str(args.jobs))
         if returns(repro) != returns(swept) or len(returns(swept)) != 4:
             sys.exit("the sweep's returns differ from dvc repro's")
     print(f"4 train runs of {args.steps} steps ({TASK}, td3 and ede-td3, seeds 0 and 1), "
           f"{os.cpu_count()} cores")
-    print(f"dvc repro train_reacher              {sequential:7.1f} s   1.00x")
+    print(f"dvc repro train              {sequential:7.1f} s   1.00x")
     print(f"ede-pipeline sweep --jobs {args.jobs}           {parallel:7.1f} s   "
           f"{sequential / parallel:.2f}x")
 

@@ -280,7 +280,7 @@ def params_mismatches(
         action_size: what a null ``embedding.dim`` means; default: the artifact's action size.
 
     Returns:
-        Lines such as ``data/reacher/embedding/encoder: made with embedding.k = 4, but
+        Lines such as ``data/families/reacher/embedding/encoder: made with embedding.k = 4, but
         params.yaml has embedding.k = 2``; none when the artifact agrees with the params.
     """
     lines: list[str] = []

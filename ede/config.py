@@ -15,7 +15,15 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 __all__ = [
     "ALGOS",
@@ -216,8 +224,9 @@ class EdeTD3Config(_Section):
 class RunsConfig(_Section):
     """Stage 4: which runs make up the experiment."""
 
-    tasks: dict[str, list[TaskId]] = Field(
-        min_length=1, description="per family, the tasks to train on (its embedding transfers)"
+    tasks: dict[TaskId, str] = Field(
+        min_length=1, description="the tasks to train on, each with its family: the family whose "
+        "embedding EDE-TD3 acts in there (its source, or a target it transfers to)"
     )
     algos: list[Literal["td3", "ede-td3"]] = Field(
         default_factory=lambda: list(ALGOS), min_length=1
@@ -225,16 +234,18 @@ class RunsConfig(_Section):
     seeds: list[Seed] = Field(min_length=1)
     budgets: dict[str, PositiveInt] = Field(description="environment steps per task")
 
+    @field_validator("tasks", mode="before")
+    @classmethod
+    def _task_to_family(cls, tasks: Any) -> Any:
+        if isinstance(tasks, dict) and any(isinstance(v, list) for v in tasks.values()):
+            raise ValueError("runs.tasks: expected each task mapped to its family "
+                             "(`ede/ReacherTurn-v0: reacher`), not a family to a list of tasks "
+                             "(the format before dvc.yaml had one train stage for every family)")
+        return tasks
+
     @model_validator(mode="after")
     def _every_run_is_named_once(self) -> RunsConfig:
         problems = []
-        if not self.all_tasks:
-            problems.append("runs.tasks: names no task; expected at least one task to train on")
-        for family, tasks in self.tasks.items():
-            repeated = sorted({task for task in tasks if tasks.count(task) > 1})
-            if repeated:
-                problems.append(f"runs.tasks.{family}: {', '.join(repeated)} listed twice; "
-                                "expected each task once")
         missing = [task for task in self.all_tasks if task not in self.budgets]
         if missing:
             problems.append(f"runs.budgets: no budget for {', '.join(missing)}")
@@ -249,7 +260,14 @@ class RunsConfig(_Section):
 
     @property
     def all_tasks(self) -> list[str]:
-        return [task for tasks in self.tasks.values() for task in tasks]
+        return list(self.tasks)
+
+    def by_family(self) -> dict[str, list[str]]:
+        """The tasks to train on, grouped by family, in their order."""
+        grouped: dict[str, list[str]] = {}
+        for task, family in self.tasks.items():
+            grouped.setdefault(family, []).append(task)
+        return grouped
 
     @property
     def count(self) -> int:
@@ -309,13 +327,13 @@ class Params(_Section):
     def _placement_problems(self) -> list[str]:
         """Tasks in their families, the report's families among ``families``."""
         problems = []
-        for family, tasks in self.runs.tasks.items():
+        for task, family in self.runs.tasks.items():
             if family not in self.families:
-                problems.append(f"runs.tasks.{family}: not a family of `families`")
-                continue
-            for task in tasks:
-                if task not in self.families[family].tasks:
-                    problems.append(f"runs.tasks.{family}: {task!r} is not a task of that family")
+                problems.append(f"runs.tasks.{task}: got {family!r}; expected a family of "
+                                f"`families` ({', '.join(self.families)})")
+            elif task not in self.families[family].tasks:
+                problems.append(f"runs.tasks.{task}: not a task of the {family} family "
+                                f"({', '.join(self.families[family].tasks)})")
         for task in self.report.thresholds:
             if task not in self.runs.all_tasks:
                 problems.append(f"report.thresholds.{task}: not a task of runs.tasks")

@@ -16,7 +16,16 @@ import yaml
 from pydantic import ValidationError
 
 from ede.config import Params
-from ede_pipeline import collect, experiments, pretrain, report, sweep, task_code, train
+from ede_pipeline import (
+    collect,
+    experiments,
+    pretrain,
+    report,
+    sweep,
+    task_code,
+    task_inputs,
+    train,
+)
 from ede_pipeline.common import BadInput, params_option
 
 
@@ -97,6 +106,7 @@ def envs() -> None:
 
 main.add_command(task_code.task_code)
 main.add_command(collect.collect)
+main.add_command(task_inputs.task_inputs)
 main.add_command(collect.inspect_rollouts)
 main.add_command(pretrain.pretrain)
 main.add_command(train.train)

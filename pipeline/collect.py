@@ -25,7 +25,7 @@ from ede_pipeline.progress import progress
 @click.option(
     "--out",
     type=click.Path(file_okay=False, path_type=Path),
-    help="Store to write  [default: data/<family>/rollouts.zarr]",
+    help="Store to write  [default: data/families/<family>/rollouts.zarr]",
 )
 @click.option("--workers", type=click.IntRange(min=1), help="Processes  [default: one per core]")
 @params_option

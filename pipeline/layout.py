@@ -12,6 +12,7 @@ __all__ = [
     "DATA",
     "DECODER",
     "ENCODER",
+    "FAMILIES",
     "REPORT",
     "REPORT_CURVES",
     "REPORT_METRICS",
@@ -23,9 +24,12 @@ __all__ = [
     "rollouts",
     "run",
     "task_code",
+    "task_inputs",
 ]
 
 DATA = Path("data")
+FAMILIES = DATA / "families"  # one folder per family: what its stages write
+TASKS = DATA / "tasks"  # one folder per task trained on: what its runs read from its family
 RUNS = DATA / "runs"
 REPORT = DATA / "report"
 REPORT_METRICS = DATA / "report-metrics.json"
@@ -33,9 +37,9 @@ REPORT_CURVES = DATA / "report-curves"
 ENCODER, DECODER = "encoder", "decoder"  # the two artifacts in an embedding's folder
 
 
-def code(family: str) -> Path:
+def code(family: str, families: Path = FAMILIES) -> Path:
     """The folder of the family's task records (``ede-pipeline task-code``)."""
-    return DATA / family / "code"
+    return families / family / "code"
 
 
 def task_code(family: str, task: str) -> Path:
@@ -43,14 +47,14 @@ def task_code(family: str, task: str) -> Path:
     return code(family) / f"{task}.json"
 
 
-def rollouts(family: str) -> Path:
+def rollouts(family: str, families: Path = FAMILIES) -> Path:
     """The family's random-policy rollouts (Zarr store)."""
-    return DATA / family / "rollouts.zarr"
+    return families / family / "rollouts.zarr"
 
 
-def embedding(family: str) -> Path:
+def embedding(family: str, families: Path = FAMILIES) -> Path:
     """The folder of the family's encoder and decoder artifacts, metrics and histories."""
-    return DATA / family / "embedding"
+    return families / family / "embedding"
 
 
 def encoder(family: str) -> Path:
@@ -59,6 +63,12 @@ def encoder(family: str) -> Path:
 
 def decoder(family: str) -> Path:
     return embedding(family) / DECODER
+
+
+def task_inputs(task: str) -> Path:
+    """A task's copy of its family's encoder and decoder and its own code record
+    (``ede-pipeline task-inputs``), which its runs read."""
+    return TASKS / task
 
 
 def run(task: str, algo: str, seed: int, runs: Path = RUNS) -> Path:

@@ -53,7 +53,8 @@ def _device(name: str) -> Any:
 def _paths_option(name: str) -> Any:
     def decorate(command: Any) -> Any:
         for option, what in (
-            ("--out", f"{name} artifact directory  [default: data/<family>/embedding/{name}]"),
+            ("--out", f"{name} artifact directory  "
+                      f"[default: data/families/<family>/embedding/{name}]"),
             ("--metrics", f"held-out metrics JSON  [default: …/{name}_metrics.json]"),
             ("--plots", f"per-epoch losses CSV  [default: …/{name}_history.csv]"),
         ):
@@ -65,7 +66,8 @@ def _paths_option(name: str) -> Any:
 
 def _rollouts_option(command: Any) -> Any:
     return click.option(
-        "--rollouts", type=click.Path(path_type=Path), help="[default: data/<family>/rollouts.zarr]"
+        "--rollouts", type=click.Path(path_type=Path),
+        help="[default: data/families/<family>/rollouts.zarr]"
     )(command)
 
 
@@ -91,6 +93,10 @@ def encoder(
     data = open_rollouts(params, family, rollouts)
     if len(data.window_starts(config.k)) == 0:
         raise BadInput(f"{data.path}: no episode is longer than k={config.k} steps")
+    if data.num_episodes < 2:
+        raise BadInput(f"{data.path}: {data.num_episodes} episode; expected at least 2, one to "
+                       "train on and one to hold out (embedding.holdout): raise collect.steps "
+                       f"above the length of an episode of {data.attrs['env_id']}")
     folder = layout.embedding(family)
     out = out or folder / "encoder"
     with holding(out):
@@ -121,7 +127,7 @@ def encoder(
 @family_option
 @_rollouts_option
 @click.option("--encoder", "encoder_path", type=click.Path(path_type=Path),
-              help="[default: data/<family>/embedding/encoder]")
+              help="[default: data/families/<family>/embedding/encoder]")
 @_paths_option("decoder")
 @params_option
 def decoder(

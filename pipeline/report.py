@@ -146,9 +146,13 @@ def _store_attributes(store: Path) -> dict[str, Any]:
 
 
 def read_inputs(
-    params: Params, runs: Path, embeddings: tuple[str, ...], rollouts: tuple[str, ...]
+    params: Params, runs: Path, embeddings: tuple[str, ...], rollouts: tuple[str, ...],
+    families: Path = layout.FAMILIES,
 ) -> Inputs:
     """Check every input before anything is written.
+
+    Without ``--embedding``, every family of the params whose embedding is in ``families`` (and
+    the pictured ones, which must be); without ``--rollouts``, those families' stores there.
 
     Raises:
         BadInput: naming the option (or params key) and what it expects.
@@ -158,8 +162,12 @@ def read_inputs(
                        "(<task>/<algo>/seed<N>/, written by `ede-pipeline train`)")
     figures = {key: getattr(params.report, key) for key in FIGURE_FAMILIES}
     pictured = list(dict.fromkeys(family for family in figures.values() if family is not None))
-    folders = _by_family("--embedding", embeddings, params, layout.embedding, pictured)
-    stores = _by_family("--rollouts", rollouts, params, layout.rollouts, list(folders))
+    found = [family for family in params.families
+             if family in pictured or layout.embedding(family, families).is_dir()]
+    folders = _by_family("--embedding", embeddings, params,
+                         lambda family: layout.embedding(family, families), found)
+    stores = _by_family("--rollouts", rollouts, params,
+                        lambda family: layout.rollouts(family, families), list(folders))
     loaded: dict[str, ActionEmbedding] = {}
     trained_on: dict[str, str] = {}  # per family, the rollouts' fingerprint its embedding learned from
     for family, folder in folders.items():
@@ -211,7 +219,7 @@ def build(
     missing_runs: list[str] = []
 
     page.add("<h2>Learning curves</h2>")
-    for family, tasks in params.runs.tasks.items():
+    for family, tasks in params.runs.by_family().items():
         curves: dict[tuple[str, str], list[Curve]] = {}
         diagnostics: dict[tuple[str, str], list[dict[str, np.ndarray]]] = {}
         rows: dict[str, list[TaskRow]] = {}
@@ -346,13 +354,17 @@ def _provenance(params: Params, params_text: str, inputs: Inputs) -> str:
 @click.command()
 @click.option("--runs", type=click.Path(path_type=Path), default=layout.RUNS, show_default=True,
               help="The folder of the runs (<task>/<algo>/seed<N>/); the params say which to read.")
+@click.option("--families", type=click.Path(file_okay=False, path_type=Path),
+              default=layout.FAMILIES, show_default=True,
+              help="The folder of every family's outputs (<family>/embedding, "
+              "<family>/rollouts.zarr): the provenance lists each family found there, Figures 6 "
+              "and 7 draw report.effect_space_family's and report.exploration_family's.")
 @click.option("--embedding", "embeddings", metavar="FAMILY=DIR", multiple=True,
-              help="A family's embedding folder (encoder/ and decoder/), once per family: "
-              "Figures 6 and 7 draw report.effect_space_family's and report.exploration_family's, "
-              "the provenance lists each  [default: data/<family>/embedding for those two]")
+              help="A family's embedding folder (encoder/ and decoder/), once per family, "
+              "instead of those in --families.")
 @click.option("--rollouts", metavar="FAMILY=STORE", multiple=True,
-              help="A family's rollouts store, once per family, for the provenance  "
-              "[default: data/<family>/rollouts.zarr for each family of --embedding]")
+              help="A family's rollouts store, once per family, instead of those in --families  "
+              "[default: <families>/<family>/rollouts.zarr for each family of the embeddings]")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=layout.REPORT,
               show_default=True, help="Report directory: index.html and its PNG figures.")
 @click.option("--metrics", type=click.Path(dir_okay=False, path_type=Path),
@@ -363,18 +375,17 @@ def _provenance(params: Params, params_text: str, inputs: Inputs) -> str:
               help="Mean learning curve per task, one CSV each (DVC plots).")
 @params_option
 def report(
-    params: Params, runs: Path, embeddings: tuple[str, ...], rollouts: tuple[str, ...], out: Path,
-    metrics: Path, curves: Path,
+    params: Params, runs: Path, families: Path, embeddings: tuple[str, ...],
+    rollouts: tuple[str, ...], out: Path, metrics: Path, curves: Path,
 ) -> None:
     """Stage 5: learning curves, tables, the EDE pictures and provenance in one HTML page."""
     torch.set_num_threads(params.embedding.threads)  # it only encodes and decodes small batches
     with holding(out):
-        _report(params, runs, embeddings, rollouts, out, metrics, curves)
+        _report(params, read_inputs(params, runs, embeddings, rollouts, families), out, metrics,
+                curves)
 
 
-def _report(params: Params, runs: Path, embeddings: tuple[str, ...], rollouts: tuple[str, ...],
-            out: Path, metrics: Path, curves: Path) -> None:
-    inputs = read_inputs(params, runs, embeddings, rollouts)
+def _report(params: Params, inputs: Inputs, out: Path, metrics: Path, curves: Path) -> None:
     params_path = Path(click.get_current_context().params.get("params_path") or "params.yaml")
     params_text = params_path.read_text() if params_path.is_file() else ""
     page, summary, curve_files = build(params, params_text, inputs)

@@ -56,7 +56,7 @@ if TYPE_CHECKING:
     from dvc.repo import Repo
     from dvc.stage import Stage
 
-TRAIN_STAGES = "train_*"  # the stages of dvc.yaml a sweep runs unless told others
+TRAIN_STAGES = "train*"  # dvc.yaml's train stage (one instance per run), unless told others
 LOGS = Path(".dvc") / "tmp" / "sweep"  # DVC's own git-ignored scratch folder
 TAIL = 20  # lines of a failed run's log shown in the report
 
@@ -254,7 +254,7 @@ def collect_stages(repo: Repo, targets: tuple[str, ...]) -> list[Stage]:
     stages: dict[str, Stage] = {}
     for target in targets or (TRAIN_STAGES,):
         try:
-            found = repo.stage.collect(target, glob=target == TRAIN_STAGES or "*" in target)
+            found = repo.stage.collect(target, glob="*" in target)
         except DvcException as error:
             raise BadInput(f"{target}: {error}") from None
         stages.update((stage.addressing, stage) for stage in found)
@@ -492,7 +492,8 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
           address: str | None, cpus_per_run: float, group_size: int | None, logs: Path) -> None:
     """Run the out-of-date train stages in parallel and record each with DVC.
 
-    TARGETS are stages as `dvc repro` takes them (default: every `train_*` stage of dvc.yaml).
+    TARGETS are stages as `dvc repro` takes them, `*` a wildcard (default: every run of
+    dvc.yaml's `train` stage, e.g. `'train@ede/Reacher*'` only those).
     Their upstream stages are brought up to date first with `dvc repro`. Exits 1 if any run failed;
     what succeeded is recorded all the same, and running the sweep again runs only the rest.
     """

@@ -1,9 +1,9 @@
 """``ede-pipeline task-code``: what defines each task of a family, for DVC to depend on.
 
-A stage that steps a task depends on that task's record (``data/<family>/code/<task>.json``)
-instead of on all of ``envs/``: the ``task_code`` stage reruns on any edit of ``envs/`` (it is
-cheap), but rewrites only the records whose files changed, so DVC reruns only the stages of the
-tasks that really changed (see :func:`ede_pipeline.closure.task_code`).
+A stage that steps a task depends on that task's record
+(``data/families/<family>/code/<task>.json``, or a copy of it) instead of on all of ``envs/``:
+the ``task_code`` stage reruns on any edit of ``envs/`` (it is cheap), but rewrites only the
+records whose files changed, so DVC reruns only the stages of the tasks that really changed (see :func:`ede_pipeline.closure.task_code`).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from ede_pipeline.common import check_family, family_option, params_option
 @click.command("task-code")
 @family_option
 @click.option("--out", type=click.Path(path_type=Path),
-              help="Folder of one JSON record per task  [default: data/<family>/code]")
+              help="Folder of one JSON record per task  [default: data/families/<family>/code]")
 @params_option
 def task_code(params: Params, family: str, out: Path | None) -> None:
     """Record the files and registration that define each task of a family."""

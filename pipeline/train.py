@@ -29,9 +29,11 @@ from ede_pipeline.progress import progress
               help="Run directory; with several seeds, a pattern with {seed}  "
                    "[default: data/runs/<task>/<algo>/seed<N>]")
 @click.option("--encoder", type=click.Path(path_type=Path),
-              help="EDE-TD3: the family's encoder  [default: data/<family>/embedding/encoder]")
+              help="EDE-TD3: the family's encoder  "
+                   "[default: data/families/<family>/embedding/encoder]")
 @click.option("--decoder", type=click.Path(path_type=Path),
-              help="EDE-TD3: the family's decoder  [default: data/<family>/embedding/decoder]")
+              help="EDE-TD3: the family's decoder  "
+                   "[default: data/families/<family>/embedding/decoder]")
 @click.option("--keep-checkpoint", is_flag=True,
               help="Keep the checkpoint (replay buffer included) once the run is complete.")
 @click.option("--bad-checkpoint", type=click.Choice(["restart", "refuse"]), default="restart",
@@ -52,11 +54,10 @@ def train(
     if len(seed_list) > 1 and params.td3.update_schedule != "step":
         raise BadInput("--seeds: several seeds need td3.update_schedule: step (the members of a "
                        "group update together); train them one by one")
-    families = [family for family, tasks in params.runs.tasks.items() if task in tasks]
-    if not families:
+    if task not in params.runs.tasks:
         raise BadInput(f"--task {task!r}: not in params.yaml's runs.tasks "
                        f"({', '.join(params.runs.all_tasks)})")
-    family = families[0]
+    family = params.runs.tasks[task]
     config = params.td3
     try:
         device = pick_device(config.device)

@@ -5,10 +5,10 @@
 #
 #   scripts/batch-job.sh STAGE [STAGE ...]
 #   docker run --rm --user "$(id -u):$(id -g)" -v "$PWD":/work -v "$PWD/../ede-store":/ede-store \
-#       --entrypoint batch-job ede train_reacher@ede/ReacherTurn-v0-td3-0
+#       --entrypoint batch-job ede train@ede/ReacherTurn-v0-td3-0
 #
 # STAGE is a name from `dvc stage list` (e.g. collect@reacher, pretrain_encoder@reacher,
-# train_reacher@<task>-<algo>-<seed>); several are run one after the other, each as below (e.g.
+# train@<task>-<algo>-<seed>); several are run one after the other, each as below (e.g.
 # `task_code@reacher collect@reacher`: a stage's upstream stages must have run, here or in the store). The store is DVC's default remote: ../ede-store as
 # committed in .dvc/config, or whatever `dvc remote default --local NAME` chose for this checkout.
 # Run from the repository root (the container's /work).

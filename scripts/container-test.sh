@@ -105,7 +105,7 @@ PY
     git -C "$1" -c user.name=ci -c user.email=ci@localhost commit -q -m scratch
 }
 check_store() {  # check_store REPO: the tiny collect's store, read by the host's library
-    "$python" - "$1/data/point/rollouts.zarr" <<'PY'
+    "$python" - "$1/data/families/point/rollouts.zarr" <<'PY'
 import sys
 from ede.rollouts import Rollouts
 rollouts = Rollouts.open(sys.argv[1], env_id="ede/Point-v0")
@@ -121,9 +121,9 @@ run=(run --rm -v "$work/podman/repo":/work -v "$work/podman/ede-store":/ede-stor
 mkdir -p "$work/podman/ede-store" && chown 1000:1000 "$work/podman/ede-store"
 pm "${run[@]}" localhost/ede envs | tee "$work/envs.txt"
 grep -q 'ede/Point-v0' "$work/envs.txt" || fail "envs does not list ede/Point-v0"
-pm "${run[@]}" localhost/ede collect --family point --out data/point/rollouts.zarr
+pm "${run[@]}" localhost/ede collect --family point --out data/families/point/rollouts.zarr
 check_store "$work/podman/repo"
-[[ $(stat -c %u "$work/podman/repo/data/point/rollouts.zarr") == 1000 ]] || fail "not written by uid 1000"
+[[ $(stat -c %u "$work/podman/repo/data/families/point/rollouts.zarr") == 1000 ]] || fail "not written by uid 1000"
 pm "${run[@]}" --entrypoint python localhost/ede -c '
 import gymnasium as gym, numpy as np
 env = gym.make("ede/ReacherTurn-v0", render_mode="rgb_array"); env.reset(seed=0)
@@ -142,7 +142,7 @@ copy_repo "$work/host/repo"
 # The same store: every array byte for byte and every attribute, except the recorded software
 # versions, which name what made each (Debian's Python in the image, the host's Python here).
 same_store() {  # same_store REPO_A REPO_B
-    "$python" - "$1/data/point/rollouts.zarr" "$2/data/point/rollouts.zarr" <<'PY'
+    "$python" - "$1/data/families/point/rollouts.zarr" "$2/data/families/point/rollouts.zarr" <<'PY'
 import sys
 from ede.provenance import describe_software
 from ede.rollouts import Rollouts
@@ -177,7 +177,7 @@ cd "$work/docker/repo"
 # and podman's Docker API does not reuse the layers of the podman build) ---
 docker run --rm --user "$(id -u):$(id -g)" -v "$PWD":/work ede envs | grep -q 'ede/Point-v0' \
     || fail "docker run ede envs"
-docker run --rm --user "$(id -u):$(id -g)" -v "$PWD":/work ede collect --family point --out data/point/rollouts.zarr
+docker run --rm --user "$(id -u):$(id -g)" -v "$PWD":/work ede collect --family point --out data/families/point/rollouts.zarr
 check_store "$PWD"
 rm -rf data
 mkdir -p ../ede-store

@@ -26,7 +26,7 @@ FROM_BUILD_SYSTEM = "ede (pyproject.toml::build-system.requires)"
 # (TORCH_INDEX_URL); the version is the lock's.
 BUILD_CHOSEN_AT_INSTALL = {"torch"}
 # The stages that step an environment, which must rerun when the simulator changes.
-STEPPING_STAGES = ("collect", "train_reacher", "train_sevendof", "report")
+STEPPING_STAGES = ("collect", "train", "report")
 
 
 def _lock_script():

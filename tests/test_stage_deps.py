@@ -4,8 +4,9 @@ A stage runs ``ede-pipeline <command>``: the stage's own module of ``pipeline/``
 ours it imports, transitively (imports inside functions too; ``ede_pipeline.closure``). The CLI's
 dispatcher imports every stage module but runs only one, so it contributes only its own imports
 of ``ede``. The code of ``envs/`` runs through gymnasium's entry points, one task at a time: a
-stage covers it by depending on the record of each task it steps (``data/<family>/code/<task>.json``,
-written by the ``task_code`` stage, which itself depends on all of ``envs/``). Importing
+stage covers it by depending on the record of each task it steps
+(``data/families/<family>/code/<task>.json``, written by the ``task_code`` stage, which itself
+depends on all of ``envs/``, or a folder that holds it). Importing
 ``ede_envs`` only registers the tasks (``envs/__init__.py``, ``envs/_autoregister.py``): that
 changes nothing a stage computes unless it makes a task, and a task's record holds its registration.
 """
@@ -26,16 +27,17 @@ STAGE_MODULES = {
     "collect": "ede_pipeline.collect",
     "pretrain_encoder": "ede_pipeline.pretrain",
     "pretrain_decoder": "ede_pipeline.pretrain",
-    "train_reacher": "ede_pipeline.train",
-    "train_sevendof": "ede_pipeline.train",
+    "task_inputs": "ede_pipeline.task_inputs",
+    "train": "ede_pipeline.train",
     "report": "ede_pipeline.report",
 }
-# The stages that step tasks, and the record each depends on, as dvc.yaml writes it.
+# The stages that step tasks, and what holds the record of each task they step, as dvc.yaml
+# writes it: the record itself, the task's folder (a copy of it, ``ede-pipeline task-inputs``) or
+# every family's folder (all records).
 TASK_RECORDS = {
-    "collect": "data/${key}/code/${item.source}.json",
-    "train_reacher": "data/reacher/code/${item.task}.json",
-    "train_sevendof": "data/sevendof/code/${item.task}.json",
-    "report": "data/point/code/${families.point.source}.json",
+    "collect": "data/families/${key}/code/${item.source}.json",
+    "train": "data/tasks/${item.task}",
+    "report": "data/families",
 }
 
 
@@ -57,7 +59,7 @@ def test_the_checkout_is_what_is_imported() -> None:
 def test_a_stages_deps_cover_the_code_it_runs(name: str) -> None:
     deps = stage(name)["deps"]
     paths = [REPO / d for d in deps]
-    records = [d for d in deps if "/code/" in d and d.endswith(".json")]
+    records = TASK_RECORDS.get(name) in deps
     needed = closure([STAGE_MODULES[name], *dispatcher_imports()], DIRS) | {DIRS["ede_pipeline"] / "cli.py"}
     missing = sorted(
         str(p.relative_to(REPO)) for p in needed

@@ -28,7 +28,7 @@ def tiny(params: dict) -> None:
         params[section].update(hidden=[64, 64], epochs=6, lr=1e-3)
     params["td3"].update(hidden=[64, 64], batch_size=64, start_steps=0, eval_every=500,
                          eval_episodes=3, checkpoint_every=400)
-    params["runs"].update(tasks={"point": [TASK]}, algos=["td3", "ede-td3"], seeds=[0],
+    params["runs"].update(tasks={TASK: "point"}, algos=["td3", "ede-td3"], seeds=[0],
                           budgets={TASK: BUDGET})
     params["report"].update(bootstrap_samples=100, effect_space_family="point",
                             exploration_family=None)

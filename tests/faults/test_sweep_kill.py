@@ -30,7 +30,7 @@ def two_runs(tiny_pipeline: Callable[[dict[str, Any]], None]) -> Callable[[dict[
     def edit(params: dict[str, Any]) -> None:
         tiny_pipeline(params)
         params["td3"]["checkpoint_every"] = 200
-        params["runs"]["tasks"]["reacher"] = [TASK]
+        params["runs"]["tasks"] = {TASK: "reacher"}
         params["runs"]["budgets"] = {task: 1_000 for task in params["runs"]["budgets"]}
 
     return edit
@@ -44,7 +44,7 @@ def ok(result: subprocess.CompletedProcess[str]) -> str:
 def record(copy: Path) -> dict[str, Any]:
     """Each train stage's dvc.lock entry (the timed files' hashes set aside) and returns."""
     lock = yaml.safe_load((copy / "dvc.lock").read_text())["stages"]
-    entries = {name: entry for name, entry in lock.items() if name.startswith("train_")}
+    entries = {name: entry for name, entry in lock.items() if name.startswith("train@")}
     returns = {}
     for name, entry in entries.items():
         for out in entry["outs"]:
@@ -61,7 +61,7 @@ def upstream(tmp_path_factory: pytest.TempPathFactory,
              tiny_pipeline: Callable[[dict[str, Any]], None]) -> Path:
     copy = scratch_copy(tmp_path_factory.mktemp("sweep-kill") / "upstream",
                         two_runs(tiny_pipeline))
-    ok(dvc(copy, "repro", "pretrain_decoder@reacher"))
+    ok(dvc(copy, "repro", "task_inputs"))
     return copy
 
 
@@ -71,14 +71,14 @@ def test_a_killed_sweep_resumes_to_what_dvc_repro_records(
     reference = tmp_path / "reference"
     shutil.copytree(upstream, reference, symlinks=True)
     start = time.perf_counter()
-    ok(dvc(reference, "repro", "train_reacher"))
+    ok(dvc(reference, "repro", "train"))
     seconds = time.perf_counter() - start
 
     copy = tmp_path / "swept"
     shutil.copytree(upstream, copy, symlinks=True)
     fraction = random.Random(fault_seed).uniform(0.2, 0.9)
     where = f"EDE_FAULT_SEED={fault_seed}: killed after {fraction:.0%} of the sweep"
-    sweep = [str(BIN / "ede-pipeline"), "sweep", "train_reacher", "--jobs", "2"]
+    sweep = [str(BIN / "ede-pipeline"), "sweep", "train", "--jobs", "2"]
     process = subprocess.Popen(sweep, cwd=copy, env=tool_env(), stdout=subprocess.DEVNULL,
                                stderr=subprocess.DEVNULL, start_new_session=True)
     time.sleep(fraction * seconds)
@@ -89,4 +89,4 @@ def test_a_killed_sweep_resumes_to_what_dvc_repro_records(
                            timeout=600)
     assert again.returncode == 0, f"{where}: {again.stdout[-2000:]}{again.stderr[-2000:]}"
     assert record(copy) == record(reference), where
-    assert "up to date" in ok(dvc(copy, "status", "train_reacher")), where
+    assert "up to date" in ok(dvc(copy, "status", "train")), where

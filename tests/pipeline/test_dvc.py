@@ -19,7 +19,7 @@ from ede_pipeline.cli import main
 def test_dvc_collect_stage_writes_the_store_and_is_then_up_to_date(repo_copy: Path) -> None:
     result = dvc(repo_copy, "repro", "collect@point")
     assert result.returncode == 0, result.stdout + result.stderr
-    rollouts = Rollouts.open(repo_copy / "data/point/rollouts.zarr", env_id="ede/Point-v0")
+    rollouts = Rollouts.open(repo_copy / "data/families/point/rollouts.zarr", env_id="ede/Point-v0")
     assert len(rollouts) == 200
     again = dvc(repo_copy, "repro", "collect@point")
     assert "didn't change, skipping" in again.stdout or "up to date" in again.stdout, again.stdout
@@ -54,7 +54,7 @@ def test_make_quicks_experiments_leave_the_workspace_alone_until_applied(
     # Its params, dvc.lock and outputs; only the stages it ran have outputs, hence a complaint.
     applied = dvc(repo_copy, "exp", "apply", names[1])
     assert applied.returncode == 0 or "Checkout failed" in applied.stderr, applied.stderr
-    rollouts = Rollouts.open(repo_copy / "data/point/rollouts.zarr", env_id="ede/Point-v0")
+    rollouts = Rollouts.open(repo_copy / "data/families/point/rollouts.zarr", env_id="ede/Point-v0")
     assert len(rollouts) == 300
     assert yaml.safe_load((repo_copy / "params.yaml").read_text())["collect"]["steps"] == 300
 
@@ -94,18 +94,18 @@ def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
                                                                "ede/ReacherTurn-v0": 300}}}
     params_file.write_text(yaml.safe_dump(longer, sort_keys=False))
     assert stale(repo_copy) == {"report"} | {
-        f"train_reacher@ede/ReacherTurn-v0-{algo}-0" for algo in params["runs"]["algos"]}
+        f"train@ede/ReacherTurn-v0-{algo}-0" for algo in params["runs"]["algos"]}
 
     params_file.write_text(yaml.safe_dump(params, sort_keys=False))
     # One task's code: the record task_code writes after an edit of envs/reacher_push.py (whose
-    # effect on the records tests/pipeline/test_task_code.py shows) stales that task's runs only.
-    record = repo_copy / "data/reacher/code/ede/ReacherPush-v0.json"
+    # effect on the records tests/pipeline/test_task_code.py shows) stales that task's inputs (the
+    # copy its runs read, and so its runs only) and the report (which reads every family's folder).
+    record = repo_copy / "data/families/reacher/code/ede/ReacherPush-v0.json"
     original = record.read_text()
     edited = json.loads(original)
     edited["files"]["ede_envs/reacher_push.py"] = "0" * 64
     record.write_text(json.dumps(edited, indent=2) + "\n")
-    assert stale(repo_copy) == {"task_code@reacher"} | {
-        f"train_reacher@ede/ReacherPush-v0-{algo}-0" for algo in params["runs"]["algos"]}
+    assert stale(repo_copy) == {"task_code@reacher", "task_inputs@ede/ReacherPush-v0", "report"}
     record.write_text(original)
     assert stale(repo_copy) == set()
 
@@ -114,9 +114,9 @@ def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
     second = dvc(repo_copy, "repro")
     assert second.returncode == 0, second.stdout[-3000:] + second.stderr[-3000:]
     ran = {line.split("'")[1] for line in second.stdout.splitlines() if line.startswith("Running stage")}
-    runs = sum(len(tasks) for tasks in params["runs"]["tasks"].values()) * 2
+    runs = len(params["runs"]["tasks"]) * len(params["runs"]["algos"])
     assert len(ran) == runs + 1 and "report" in ran, sorted(ran)
-    assert all(stage.startswith("train_") for stage in ran - {"report"}), sorted(ran)
+    assert all(stage.startswith("train@") for stage in ran - {"report"}), sorted(ran)
 
 
 # Settings that change how fast or where a stage runs, never its result: DVC does not track them.

@@ -34,31 +34,30 @@ def test_every_stage_command_uses_the_layouts_paths() -> None:
     assert encoder["--metrics"].startswith(str(layout.embedding(family)) + "/")
     decoder = options(stages["pretrain_decoder"]["do"]["cmd"], key=family)
     assert (decoder["--encoder"], decoder["--out"]) == (str(layout.encoder(family)), str(layout.decoder(family)))
-    for stage in ("train_reacher", "train_sevendof"):
-        fam = stage.removeprefix("train_")
-        train = options(stages[stage]["cmd"], **{"item.task": task, "item.algo": algo, "item.seed": seed})
-        assert train["--out"] == str(layout.run(task, algo, int(seed)))
-        assert (train["--encoder"], train["--decoder"]) == (str(layout.encoder(fam)), str(layout.decoder(fam)))
+    inputs = options(stages["task_inputs"]["do"]["cmd"], key=task, item=family)
+    assert inputs["--out"] == str(layout.task_inputs(task))
+    assert (inputs["--embedding"], inputs["--code"]) == (str(layout.embedding(family)), str(layout.code(family)))
+    train = options(stages["train"]["cmd"], **{"item.task": task, "item.algo": algo, "item.seed": seed})
+    assert train["--out"] == str(layout.run(task, algo, int(seed)))
+    folder = layout.task_inputs(task)
+    assert (train["--encoder"], train["--decoder"]) == (str(folder / layout.ENCODER), str(folder / layout.DECODER))
     report = options(stages["report"]["cmd"])
     assert (report["--runs"], report["--out"], report["--metrics"], report["--curves"]) == (
         str(layout.RUNS), str(layout.REPORT), str(layout.REPORT_METRICS), str(layout.REPORT_CURVES))
 
 
-def per_family(command: str, option: str) -> dict[str, str]:
-    """The ``FAMILY=PATH`` values of a repeated option, as ``{family: path}``."""
-    words = shlex.split(command)
-    pairs = [words[i + 1].partition("=") for i, w in enumerate(words) if w == option]
-    return {family: path for family, _, path in pairs}
-
-
-def test_the_report_is_handed_every_familys_embedding_and_rollouts_and_depends_on_them() -> None:
+def test_the_report_reads_every_familys_folder_and_the_runs_and_depends_on_both() -> None:
     report = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]["report"]
-    families = yaml.safe_load((REPO / "params.yaml").read_text())["families"]
-    embeddings = per_family(report["cmd"], "--embedding")
-    rollouts = per_family(report["cmd"], "--rollouts")
-    assert embeddings == {family: str(layout.embedding(family)) for family in families}
-    assert rollouts == {family: str(layout.rollouts(family)) for family in families}
-    read = [options(report["cmd"])["--runs"], *rollouts.values()]
-    read += [f"{folder}/{name}" for folder in embeddings.values()
-             for name in (layout.ENCODER, layout.DECODER)]
-    assert sorted(path for path in read if path not in report["deps"]) == []
+    given = options(report["cmd"])
+    assert (given["--families"], given["--runs"]) == (str(layout.FAMILIES), str(layout.RUNS))
+    assert {str(layout.FAMILIES), str(layout.RUNS)} <= set(report["deps"])
+
+
+def test_a_runs_inputs_are_its_tasks_folder_which_copies_its_familys() -> None:
+    stages = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
+    family, task = "${item}", "${key}"  # task_inputs: one per task of runs.tasks, mapped to its family
+    deps = stages["task_inputs"]["do"]["deps"]
+    assert {str(layout.encoder(family)), str(layout.decoder(family)),
+            str(layout.task_code(family, task))} <= set(deps)
+    assert stages["task_inputs"]["do"]["outs"] == [str(layout.task_inputs(task))]
+    assert str(layout.task_inputs("${item.task}")) in stages["train"]["deps"]

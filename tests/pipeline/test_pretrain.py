@@ -39,7 +39,7 @@ def test_encoder_then_decoder_write_artifacts_metrics_and_curves(collected: Path
     assert "x the mean-change baseline" in encoder.stdout
     decoder = run("pretrain", "decoder", "--family", "point")
     assert decoder.exit_code == 0, decoder.output
-    folder = collected / "data/point/embedding"
+    folder = collected / "data/families/point/embedding"
     metrics = json.loads((folder / "encoder_metrics.json").read_text())
     assert metrics["prediction_ratio"] < 1.0
     assert set(json.loads((folder / "decoder_metrics.json").read_text())) == {
@@ -69,9 +69,9 @@ def test_missing_rollouts_are_one_line(tmp_path: Path, write_params, monkeypatch
 
 def test_rollouts_of_another_family_are_one_line(collected: Path) -> None:
     result = run("pretrain", "encoder", "--family", "point",
-                 "--rollouts", "data/pointmass/rollouts.zarr")
+                 "--rollouts", "data/families/pointmass/rollouts.zarr")
     bad(result, "collected on ede/PointMass-v0 (family pointmass), expected ede/Point-v0")
-    assert not (collected / "data/point/embedding").exists()
+    assert not (collected / "data/families/point/embedding").exists()
 
 
 def test_episodes_shorter_than_k_are_one_line(collected: Path, write_params) -> None:
@@ -83,6 +83,21 @@ def test_a_decoder_needs_its_familys_encoder(collected: Path) -> None:
     bad(run("pretrain", "decoder", "--family", "point"), "no encoder here")
     assert run("pretrain", "encoder", "--family", "pointmass").exit_code == 0
     result = run("pretrain", "decoder", "--family", "point",
-                 "--encoder", "data/pointmass/embedding/encoder")
+                 "--encoder", "data/families/pointmass/embedding/encoder")
     bad(result, "trained on family pointmass's rollouts")
-    assert not (collected / "data/point/embedding/decoder").exists()
+    assert not (collected / "data/families/point/embedding/decoder").exists()
+
+
+def test_rollouts_of_one_episode_are_one_line(tmp_path: Path, write_params, monkeypatch) -> None:
+    """One episode leaves nothing to hold out: the line says to collect more."""
+    monkeypatch.chdir(tmp_path)
+    def one_episode(params: dict) -> None:
+        tiny(params)
+        params["collect"]["steps"] = 100  # one of ede/Point-v0's 100-step episodes
+        for section in ("embedding", "decoder"):
+            params[section]["batch_size"] = 16
+
+    write_params(one_episode)
+    assert run("collect", "--family", "point").exit_code == 0
+    bad(run("pretrain", "encoder", "--family", "point"), "1 episode; expected at least 2")
+    assert not (tmp_path / "data/families/point/embedding").exists()

@@ -24,7 +24,7 @@ from ede_pipeline.checkout import REPO, dvc, run
 BUCKET = "ede-store"
 STAGE = "collect@point"
 UPSTREAM = ["task_code@point"]  # the stages STAGE depends on, each a batch job of its own first
-OUT = "data/point/rollouts.zarr"
+OUT = "data/families/point/rollouts.zarr"
 
 
 @pytest.fixture

@@ -19,9 +19,10 @@ from ede.config import DecoderConfig, EmbeddingConfig
 from ede.embedding import train_decoder, train_encoder
 from ede.provenance import describe_software, software_versions
 from ede.rollouts import Rollouts, collect, write_store
+from ede_pipeline import layout
 from ede_pipeline.cli import main
 
-TASKS = {"reacher": ["ede/ReacherVertical-v0"], "sevendof": ["ede/Pusher-v0"]}
+TASKS = {"ede/ReacherVertical-v0": "reacher", "ede/Pusher-v0": "sevendof"}
 
 
 def fake_run(root: Path, task: str, algo: str, seed: int, returns: list[float]) -> None:
@@ -42,7 +43,7 @@ def fake_run(root: Path, task: str, algo: str, seed: int, returns: list[float]) 
 def embedding(root: Path, family: str, env_id: str) -> None:
     """A family's rollouts and a small trained embedding, where the pipeline would put them."""
     torch.set_num_threads(1)
-    store = root / "data" / family / "rollouts.zarr"
+    store = root / layout.rollouts(family)
     write_store(store, collect(env_id, 2_000, 1, 0, workers=1),
                 {"env_id": env_id, "family": family, "seed": 0, "num_envs": 1, "steps": 2000,
                  "spaces": {}, "params": {}, "software": software_versions()})
@@ -51,7 +52,7 @@ def embedding(root: Path, family: str, env_id: str) -> None:
     encoded = train_encoder(rollouts, EmbeddingConfig(**small))
     low, high = -np.ones(2), np.ones(2)
     decoded = train_decoder(rollouts, encoded, DecoderConfig(**small), 4, low, high)
-    folder = root / "data" / family / "embedding"
+    folder = root / layout.embedding(family)
     save_encoder(folder / "encoder", encoded, family=family, env_id=env_id, low=low, high=high,
                  params={}, data_fingerprint=rollouts.attrs["fingerprint"])
     save_decoder(folder / "decoder", decoded.decoder, decoded.bound,
@@ -104,10 +105,10 @@ def test_every_section_with_runs_missing_and_of_unequal_length(project: Path, em
     assert "7 of 12 runs have no results" in page
     # provenance: each input's SHA-256 beside the versions that made it
     here = describe_software(software_versions())
-    meta = json.loads((project / "data/point/embedding/encoder/meta.json").read_text())
+    meta = json.loads((project / "data/families/point/embedding/encoder/meta.json").read_text())
     assert f"<td>point encoder weights</td><td><code>{meta['weights_sha256']}</code></td><td>{here}</td>" in page
     assert f"<td>point rollouts</td><td><code>{meta['data_fingerprint']}</code></td><td>{here}</td>" in page
-    assert "reacher encoder weights" not in page  # by default, the embeddings of the figures only
+    assert "reacher encoder weights" not in page  # every family in data/families: none there
     assert "<td>5 training runs</td><td></td><td>" + here.replace(
         software_versions()["torch"], "9.9") in page
     assert "data/runs/ede/Pusher-v0/td3/seed0" in page and "data/runs/ede/ReacherVertical-v0/td3/seed2" in page
@@ -154,10 +155,13 @@ def test_the_inputs_are_the_command_lines_and_the_figures_families_the_params(
 
     write_params(swapped)
     _, page = report(project, "--runs", "elsewhere/runs",
-                     "--embedding", "pointmass=elsewhere/pointmass/embedding",
-                     "--rollouts", "pointmass=elsewhere/pointmass/rollouts.zarr")
+                     "--embedding", "pointmass=elsewhere/families/pointmass/embedding",
+                     "--rollouts", "pointmass=elsewhere/families/pointmass/rollouts.zarr")
     assert "random 4-step sequences on ede/PointMass-v0" in page and "Positions over ten" in page
     assert "pointmass rollouts" in page and "point encoder weights" not in page
+    # Without --embedding, every family found in --families: both, in the provenance.
+    _, page = report(project, "--runs", "elsewhere/runs", "--families", "elsewhere/families")
+    assert "pointmass rollouts" in page and "point encoder weights" in page
     assert "<code>elsewhere/runs/ede/Pusher-v0/td3/seed0</code>" in page  # missing, by its path
     metrics = json.loads((project / "data/report-metrics.json").read_text())
     assert metrics["ede/ReacherVertical-v0"]["td3"]["seeds"] == 1
@@ -174,16 +178,16 @@ def bad(result: Result, message: str) -> None:
     [
         (["--runs", "nowhere"], "--runs nowhere: no such directory; expected the folder of the runs"),
         (["--embedding", "point=nowhere"], "--embedding point=nowhere: no such directory"),
-        (["--embedding", "data/point/embedding"], "--embedding 'data/point/embedding': expected "
+        (["--embedding", "data/families/point/embedding"], "--embedding 'data/families/point/embedding': expected "
          "FAMILY=PATH"),
-        (["--embedding", "moon=data/point/embedding"], "unknown family 'moon'"),
-        (["--embedding", "pointmass=data/pointmass/embedding"],
+        (["--embedding", "moon=data/families/point/embedding"], "unknown family 'moon'"),
+        (["--embedding", "pointmass=data/families/pointmass/embedding"],
          "report.effect_space_family: point, but no --embedding point=DIR is given"),
-        (["--embedding", "point=data/pointmass/embedding", "--embedding",
-          "pointmass=data/pointmass/embedding"], "the embedding of family pointmass, not point"),
-        (["--rollouts", "point=data/pointmass/rollouts.zarr"],
+        (["--embedding", "point=data/families/pointmass/embedding", "--embedding",
+          "pointmass=data/families/pointmass/embedding"], "the embedding of family pointmass, not point"),
+        (["--rollouts", "point=data/families/pointmass/rollouts.zarr"],
          "but the point embedding was trained on"),
-        (["--rollouts", "point=data/point/embedding"], "--rollouts point=data/point/embedding: no "
+        (["--rollouts", "point=data/families/point/embedding"], "--rollouts point=data/families/point/embedding: no "
          "rollouts store here"),
     ],
 )
@@ -193,7 +197,7 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(
     shutil.copytree(embeddings / "data", project / "data")
     fake_run(project, "ede/Pusher-v0", "td3", 0, [-50, -40])
     bad(CliRunner().invoke(main, ["report", *args]), message)
-    assert sorted(p.name for p in (project / "data").iterdir()) == ["point", "pointmass", "runs"]
+    assert sorted(p.name for p in (project / "data").iterdir()) == ["families", "runs"]
 
 
 def test_a_figures_family_must_be_a_family_of_the_params(project: Path, write_params) -> None:

@@ -1,7 +1,7 @@
 """``ede-pipeline sweep`` records exactly what ``dvc repro`` would, in parallel, run by run.
 
 Scratch copies of the repo with tiny params and four train runs (one task, both algorithms, two
-seeds): ``dvc repro train_reacher`` in one copy is the reference; the sweeps in others must leave
+seeds): ``dvc repro train`` in one copy is the reference; the sweeps in others must leave
 the same ``dvc.lock`` entries and the same returns. Runs are deterministic on CPU; only the wall
 times they write (``eval.csv``'s ``wall_seconds``, ``metrics.json``'s speed) differ, so the hashes
 of those two files are compared by content minus the times instead.
@@ -29,8 +29,8 @@ from ede_pipeline.sweep import Job, group_jobs
 pytestmark = pytest.mark.slow
 
 TASK = "ede/ReacherVertical-v0"
-STAGES = [f"train_reacher@{TASK}-{algo}-{seed}" for algo in ("td3", "ede-td3") for seed in (0, 1)]
-BROKEN = "train_reacher@ede/ReacherVertical-v0-td3-1"
+STAGES = [f"train@{TASK}-{algo}-{seed}" for algo in ("td3", "ede-td3") for seed in (0, 1)]
+BROKEN = "train@ede/ReacherVertical-v0-td3-1"
 BROKEN_RUN = f"data/runs/{TASK}/td3/seed1"
 HELD = "being written by process"  # what the held run's command says
 UNTIMED = {"metrics.json", "eval.csv"}  # the run's files that hold wall times
@@ -53,11 +53,11 @@ def upstream(tmp_path_factory: pytest.TempPathFactory,
 
     def one_task(params: dict[str, Any]) -> None:
         tiny_pipeline(params)
-        params["runs"]["tasks"]["reacher"] = [TASK]
+        params["runs"]["tasks"] = {TASK: "reacher"}
         params["runs"]["seeds"] = [0, 1]
 
     copy = scratch_copy(tmp_path_factory.mktemp("upstream") / "repo", one_task)
-    ok(dvc(copy, "repro", "pretrain_decoder@reacher"))
+    ok(dvc(copy, "repro", "task_inputs"))
     return copy
 
 
@@ -66,7 +66,7 @@ def reference(upstream: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[
     """What ``dvc repro`` of the four train stages records, one at a time."""
     copy = tmp_path_factory.mktemp("reference") / "repo"
     shutil.copytree(upstream, copy, symlinks=True)
-    ok(dvc(copy, "repro", "train_reacher"))
+    ok(dvc(copy, "repro", "train"))
     return record_of(copy)
 
 
@@ -96,7 +96,7 @@ def record_of(copy: Path, stages: list[str] = STAGES) -> dict[str, Any]:
 
 
 def assert_up_to_date(copy: Path) -> None:
-    status = ok(dvc(copy, "status", "train_reacher"))
+    status = ok(dvc(copy, "status", "train"))
     assert "up to date" in status, status
 
 
@@ -105,9 +105,10 @@ def test_sweep_with_two_jobs_records_what_dvc_repro_records(
 ) -> None:
     copy = copy_of_upstream
     # An upstream stage out of date (its output gone): the sweep has `dvc repro` bring it back.
-    shutil.rmtree(copy / "data/reacher/embedding/decoder")
-    out = ok(sweep(copy, "train_reacher", "--jobs", "2", "--group-size", "1"))
-    assert "sweep: dvc repro pretrain_decoder@reacher" in out, out
+    shutil.rmtree(copy / "data/families/reacher/embedding/decoder")
+    out = ok(sweep(copy, "train", "--jobs", "2", "--group-size", "1"))
+    upstream = next(line for line in out.splitlines() if line.startswith("sweep: dvc repro"))
+    assert "pretrain_decoder@reacher" in upstream.split(), out
     assert "4 of 4 stages out of date" in out, out
     assert out.count(" ok ") == 4 and "[4/4]" in out and "ETA" in out, out
     overall = [line for line in out.splitlines() if line.startswith("sweep: 4/4 runs")]
@@ -121,7 +122,7 @@ def test_sweep_in_groups_of_seeds_records_what_dvc_repro_records(
     copy_of_upstream: Path, reference: dict[str, Any]
 ) -> None:
     copy = copy_of_upstream
-    out = ok(sweep(copy, "train_reacher", "--jobs", "2", "--group-size", "2"))
+    out = ok(sweep(copy, "train", "--jobs", "2", "--group-size", "2"))
     assert out.count("(one process for 2)") == 4 and "[4/4]" in out, out
     assert record_of(copy) == reference
     assert_up_to_date(copy)
@@ -157,7 +158,7 @@ def test_a_failed_run_is_reported_and_the_others_recorded_then_resumed(
 ) -> None:
     copy = copy_of_upstream
     with break_one_run(copy):
-        failed = sweep(copy, "train_reacher", "--jobs", "2", "--group-size", "1")
+        failed = sweep(copy, "train", "--jobs", "2", "--group-size", "1")
     out = failed.stdout + failed.stderr
     assert failed.returncode == 1, out
     log = copy / ".dvc/tmp/sweep" / (BROKEN.replace("/", "_").replace("@", "__") + ".log")
@@ -169,7 +170,7 @@ def test_a_failed_run_is_reported_and_the_others_recorded_then_resumed(
     assert BROKEN not in lock
     assert record_of(copy, others) == {stage: reference[stage] for stage in others}
 
-    again = ok(sweep(copy, "train_reacher", "--jobs", "2", "--group-size", "1"))
+    again = ok(sweep(copy, "train", "--jobs", "2", "--group-size", "1"))
     assert "1 of 4 stages out of date" in again and f"ok     {BROKEN}" in again, again
     assert record_of(copy) == reference
     assert_up_to_date(copy)
@@ -193,7 +194,7 @@ def test_sweep_on_a_ray_cluster_records_what_dvc_repro_records(
 ) -> None:
     copy = copy_of_upstream
     with break_one_run(copy):
-        failed = sweep(copy, "train_reacher", "--executor", "ray", "--address", ray_cluster)
+        failed = sweep(copy, "train", "--executor", "ray", "--address", ray_cluster)
     out = failed.stdout + failed.stderr
     assert failed.returncode == 1 and f"FAILED {BROKEN}" in out, out
     assert "3 recorded, 1 failed" in out and "[4/4]" in out, out

@@ -30,7 +30,7 @@ def tiny(params: dict) -> None:
         params[section].update(hidden=[64, 64], epochs=10, lr=1e-3)
     params["td3"].update(hidden=[64, 64], batch_size=64, start_steps=500, eval_every=500,
                          eval_episodes=5, checkpoint_every=400)
-    params["runs"].update(tasks={"point": ["ede/Point-v0"], "reacher": ["ede/ReacherVertical-v0"]},
+    params["runs"].update(tasks={"ede/Point-v0": "point", "ede/ReacherVertical-v0": "reacher"},
                           seeds=[0], budgets={"ede/Point-v0": BUDGET, "ede/ReacherVertical-v0": 600})
 
 
@@ -190,7 +190,7 @@ def bad(result: Result, message: str) -> None:
         (["--task", "ede/ReacherVertical-v0", "--algo", "ede-td3", "--seed", "0"],
          "needs the reacher family's embedding"),
         (["--task", "ede/ReacherVertical-v0", "--algo", "ede-td3", "--seed", "0",
-          "--encoder", "data/point/embedding/encoder", "--decoder", "data/point/embedding/decoder"],
+          "--encoder", "data/families/point/embedding/encoder", "--decoder", "data/families/point/embedding/decoder"],
          "the embedding of family point, but ede/ReacherVertical-v0 is in family reacher"),
     ],
 )
