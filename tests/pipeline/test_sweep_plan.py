@@ -109,7 +109,9 @@ with tally.watch():
 
 
 def paper_params(**td3: str) -> Params:
+    """The committed params (8 seeds) with the per-step schedule unless told otherwise."""
     params = read_params(Path(__file__).resolve().parents[2] / "params.yaml")
+    td3 = {"update_schedule": "step", **td3}
     return params.model_copy(update={"td3": params.td3.model_copy(update=td3)})
 
 
