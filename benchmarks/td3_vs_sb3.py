@@ -79,7 +79,8 @@ def run_sb3(seed: int, steps: int) -> list[tuple[int, float]]:
 
 def run_ours(seed: int, steps: int, out: Path) -> list[tuple[int, float]]:
     config = TD3Config(hidden=[400, 300], batch_size=100, start_steps=START, eval_every=EVAL_EVERY,
-                       eval_episodes=EVAL_EPISODES, checkpoint_every=5_000)
+                       eval_episodes=EVAL_EPISODES, checkpoint_every=5_000,
+                       update_schedule="step")  # SB3 updates after every step (train_freq=1)
     spec = RunSpec(TASK, "td3", seed, steps, config, EdeTD3Config())
     train_run(spec, out / f"ours-seed{seed}-run", None)
     lines = (out / f"ours-seed{seed}-run" / "eval.csv").read_text().splitlines()[1:]

@@ -77,7 +77,7 @@ def ours(steps: int, shape: Shape, algo: str, precision: str) -> float:
     config = TD3Config(hidden=shape.hidden, batch_size=shape.batch_size, start_steps=START,
                        buffer_size=steps,
                        eval_every=10**9, eval_episodes=1, checkpoint_every=10**9,
-                       precision=precision)
+                       precision=precision, update_schedule="step")  # as SB3: train_freq=1
     embedding = None
     if algo == "ede-td3":
         torch.manual_seed(0)
@@ -96,7 +96,7 @@ def runs(steps: int, shape: Shape, members: int, device: str, grouped: bool) -> 
     """Aggregate steps/s of ``members`` TD3 runs, as one group or one after another."""
     config = TD3Config(hidden=shape.hidden, batch_size=shape.batch_size, start_steps=START,
                        buffer_size=steps, eval_every=10**9, eval_episodes=1,
-                       checkpoint_every=10**9, device=device)
+                       checkpoint_every=10**9, device=device, update_schedule="step")
     specs = [RunSpec(TASK, "td3", seed, steps, config, EdeTD3Config()) for seed in range(members)]
     with tempfile.TemporaryDirectory() as tmp:
         outs = [Path(tmp) / f"seed{spec.seed}" for spec in specs]

@@ -181,9 +181,10 @@ class TD3Config(_Section):
         "start as soon as a batch can be sampled"
     )
     update_schedule: Literal["step", "episode"] = Field(
-        "step", description="step: one update after every environment step (the paper's text); "
-        "episode: at each episode's end as many updates as it had steps, the policy fixed while "
-        "it collects (the authors' code; docs/fidelity.md, row 2)"
+        "episode", description="episode (the authors' code): at each episode's end as many "
+        "updates as it had steps, the policy fixed while it collects; step: one update after "
+        "every environment step (the paper's text, standard TD3; needed by groups of seeds). "
+        "docs/fidelity.md, row 2: it moves TD3's result"
     )
     buffer_size: PositiveInt = 1_000_000
     eval_every: PositiveInt = Field(1_000, description="steps between evaluations (the authors' code)")

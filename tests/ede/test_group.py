@@ -15,6 +15,7 @@ pytestmark = pytest.mark.slow
 
 SEEDS = [0, 1, 2, 3]
 CONFIG = TD3Config(hidden=[64, 64], batch_size=32, eval_every=200, eval_episodes=2,
+                   update_schedule="step",
                    checkpoint_every=200)
 CPU = torch.device("cpu")
 

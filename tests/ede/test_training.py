@@ -12,7 +12,7 @@ from ede.training import RunSpec, _Run
 
 def schedule(start_steps: int, steps: int, monkeypatch: pytest.MonkeyPatch) -> tuple[list, list]:
     """Which behaviour chose each step's code, and at which steps updates ran."""
-    config = TD3Config(hidden=[16, 16], batch_size=8, start_steps=start_steps)
+    config = TD3Config(hidden=[16, 16], batch_size=8, start_steps=start_steps, update_schedule="step")
     run = _Run(RunSpec("ede/Point-v0", "td3", 0, 1_000, config, EdeTD3Config()), None, torch.device("cpu"))
     chosen_by, updated_at = [], []
     act, random_code, update = run.agent.act, run.agent.random_code, run.agent.update
@@ -67,7 +67,8 @@ def test_the_episode_schedule_updates_once_per_step_when_an_episode_ends(
 def test_diagnostics_are_the_means_of_the_updates_since_the_last_evaluation(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    config = TD3Config(hidden=[16, 16], batch_size=8, start_steps=0, eval_episodes=1)
+    config = TD3Config(hidden=[16, 16], batch_size=8, start_steps=0, eval_episodes=1,
+                       update_schedule="step")
     run = _Run(RunSpec("ede/Point-v0", "td3", 0, 1_000, config, EdeTD3Config()), None, torch.device("cpu"))
     losses = []  # what each step added to the sums
 
