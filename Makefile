@@ -59,10 +59,10 @@ lock:
 		--output-file $(LOCK) pyproject.toml
 	$(BIN)/python scripts/lock.py simulator $(LOCK) $(SIMULATOR_LOCK)
 
-# The pipeline through the sweep (README.md, "Running many runs at once"): the collect and pretrain
-# stages with dvc repro, the out-of-date runs side by side on every core (or grouped by seed on a
-# GPU) with one overall progress line, then what is left (the report) with dvc repro. Plain
-# `dvc repro` is the serial way, with the same record.
+# The pipeline through the sweep (README.md, "Sweeps: in parallel and on a cluster"): the collect
+# and pretrain stages with dvc repro, the out-of-date runs side by side on every core (seeds grouped
+# into one process where that is faster) with one overall progress line, then what is left (the
+# report) with dvc repro. Plain `dvc repro` is the serial way, with the same record.
 repro: install
 	$(BIN)/ede-pipeline sweep
 	$(BIN)/dvc repro
