@@ -428,7 +428,10 @@ def train_group(
 ) -> list[dict[str, Any]]:
     """Train runs of one task and algorithm that differ only in their seeds, each into its
     ``out``, in one process: their environments stepped in turn, their updates as one
-    (:class:`ede.group.GroupAgent`). Each member's outputs are those it gets alone.
+    (:class:`ede.group.GroupAgent`). Each member's outputs are those it gets alone. With
+    ``td3.update_schedule: episode`` the members' episodes end together on tasks that never end
+    early (all of the paper's), and their per-episode batches are one; where episodes end at
+    different steps, the group dissolves and its members go on one by one, still exactly.
 
     Each resumes from its ``out/checkpoint`` when there is one; members that resume from
     earlier steps than others first catch up alone. A checkpoint that cannot be used
@@ -451,8 +454,6 @@ def train_group(
     alike = all(replace(s, seed=0) == replace(spec, seed=0) for s in specs)
     if not alike or len({s.seed for s in specs}) != len(specs):
         raise ValueError("a group's runs must differ in their seeds only")
-    if len(specs) > 1 and spec.td3.update_schedule != "step":
-        raise ValueError("a group needs td3.update_schedule: step (its members update together)")
     sessions = [_Session.start(s, out, embedding, device, bad_checkpoint, notice)
                 for s, out in zip(specs, outs)]
     if progress is not None:
@@ -462,7 +463,11 @@ def train_group(
         while session.run.step < ahead:
             session.run.env_step()
             session.after_step(progress)
-    group = GroupAgent([s.run.agent for s in sessions]) if len(sessions) > 1 else None
+    group = None
+    if len({session.run.agent.updates for session in sessions}) > 1:  # dissolved before
+        notice("the members have updated different numbers of times: they go on one by one")
+    elif len(sessions) > 1:
+        group = GroupAgent([s.run.agent for s in sessions])
     if group is not None:
         for j, session in enumerate(sessions):
             session.run.actor = _Member(group, j)
@@ -470,7 +475,16 @@ def train_group(
     runs = [session.run for session in sessions]
     while runs[0].step < spec.budget:
         due = [run.env_step(update=group is None) for run in runs]
-        if group is not None:
+        if group is not None and len(set(due)) > 1:
+            # Per-episode batches of episodes that ended at different steps (a task that can end
+            # early): the members cannot update as one any more, so they go on one by one.
+            notice("episodes of different lengths: the group's members go on one by one")
+            _dissolve(group, sessions)
+            group = None
+            for run, updates in zip(runs, due):
+                for _ in range(updates):
+                    run.agent.update(run.sample())
+        elif group is not None:
             for _ in range(due[0]):
                 group.update([run.sample() for run in runs])
         for session in sessions:
@@ -478,6 +492,14 @@ def train_group(
     if group is not None:
         group.sync()
     return [session.finish(keep_checkpoint) for session in sessions]
+
+
+def _dissolve(group: GroupAgent, sessions: list[_Session]) -> None:
+    """Hand each member's state back to its own agent, which acts and updates from now on."""
+    group.sync()
+    for session in sessions:
+        session.run.actor = session.run.agent
+        session.group = None
 
 
 @dataclass

@@ -484,7 +484,7 @@ def _tail(text: str) -> str:
 @click.option("--group-size", type=click.IntRange(min=1),
               help="Runs of one task and algorithm trained by one process (`train --seeds`)  "
                    "[default: on CUDA (td3.device cuda, or auto with a GPU) every seed; on CPU as "
-                   "many as leave every job a process; 1 with td3.update_schedule episode]")
+                   "many as leave every job a process]")
 @click.option("--logs", type=click.Path(file_okay=False, path_type=Path), default=LOGS,
               show_default=True, help="Where each run's output goes, one file per stage.")
 @click.pass_context
@@ -613,10 +613,10 @@ def default_group_size(params: Params, runs: int, workers: int | None) -> int:
     (``runs // workers``): batching saves per-operation overhead (1.2x aggregate at 4 members on
     one core, ``benchmarks/train_throughput.py --members``), but a group runs on one core; on Ray
     without ``--jobs`` (workers unknown) one. Runs that cannot share their updates
-    (``td3.update_schedule: episode``, ``td3.precision: bf16``) go one to a process.
+    (``td3.precision: bf16``) go one to a process.
     """
     seeds = len(params.runs.seeds)
-    if params.td3.update_schedule != "step" or params.td3.precision == "bf16":
+    if params.td3.precision == "bf16":
         return 1
     if _on_cuda(params.td3.device):
         return seeds

@@ -51,9 +51,6 @@ def train(
         raise BadInput(f"--algo {algo!r}: unknown; expected one of {', '.join(ALGOS)}")
     seed_list = parse_seeds(seeds)
     outs = run_dirs(task, algo, seed_list, out)
-    if len(seed_list) > 1 and params.td3.update_schedule != "step":
-        raise BadInput("--seeds: several seeds need td3.update_schedule: step (the members of a "
-                       "group update together); train them one by one")
     if task not in params.runs.tasks:
         raise BadInput(f"--task {task!r}: not in params.yaml's runs.tasks "
                        f"({', '.join(params.runs.all_tasks)})")

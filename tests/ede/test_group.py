@@ -63,7 +63,20 @@ def test_a_group_is_one_task_and_algorithm_differing_in_seeds_only(tmp_path: Pat
     other = CONFIG.model_copy(update={"lr": 3e-4})
     with pytest.raises(ValueError, match="differ in their seeds only"):
         train_group([spec(0), spec(1, other)], [tmp_path / "a", tmp_path / "b"], device=CPU)
-    episodes = CONFIG.model_copy(update={"update_schedule": "episode"})
-    with pytest.raises(ValueError, match="update_schedule: step"):
-        train_group([spec(0, episodes), spec(1, episodes)], [tmp_path / "a", tmp_path / "b"],
-                    device=CPU)
+
+
+@pytest.mark.parametrize("task", [
+    "ede/Point-v0",  # never ends early: every member's episode ends together, one batch for all
+    "InvertedPendulum-v5",  # ends when the pole falls: the group dissolves, members go on alone
+])
+def test_per_episode_batches_in_a_group_are_each_members_own(task: str, tmp_path: Path) -> None:
+    config = CONFIG.model_copy(update={"update_schedule": "episode", "eval_every": 100,
+                                       "checkpoint_every": 150})
+    specs = [RunSpec(task, "td3", seed, 300, config, EdeTD3Config()) for seed in (0, 1)]
+    notices: list[str] = []
+    train_group(specs, [tmp_path / f"group{s}" for s in (0, 1)], device=CPU,
+                notice=notices.append)
+    assert any("go on one by one" in n for n in notices) == (task == "InvertedPendulum-v5")
+    for seed in (0, 1):
+        train_run(specs[seed], tmp_path / f"alone{seed}", device=CPU)
+        assert outputs(tmp_path / f"group{seed}") == outputs(tmp_path / f"alone{seed}"), seed

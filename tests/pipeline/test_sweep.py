@@ -54,7 +54,6 @@ def upstream(tmp_path_factory: pytest.TempPathFactory,
     def one_task(params: dict[str, Any]) -> None:
         tiny_pipeline(params)
         params["runs"]["tasks"] = {TASK: "reacher"}
-        params["td3"]["update_schedule"] = "step"  # so that seeds can share a process
         params["runs"]["seeds"] = [0, 1]
 
     copy = scratch_copy(tmp_path_factory.mktemp("upstream") / "repo", one_task)
