@@ -183,7 +183,7 @@ class TD3Config(_Section):
     update_schedule: Literal["step", "episode"] = Field(
         "episode", description="episode (the authors' code): at each episode's end as many "
         "updates as it had steps, the policy fixed while it collects; step: one update after "
-        "every environment step (the paper's text, standard TD3; needed by groups of seeds). "
+        "every environment step (the paper's text, standard TD3). "
         "docs/fidelity.md, row 2: it moves TD3's result"
     )
     buffer_size: PositiveInt = 1_000_000

@@ -176,10 +176,11 @@ class GroupAgent:
     def sync(self) -> None:
         """Write every member's weights and Adam state back into its own agent."""
         for j, agent in enumerate(self.agents):
-            pairs: list[tuple[StackedMLP, nn.Module]] = [(self.actor, agent.actor.net), (self.actor_target, agent.actor_target.net),
-                     (self.q1, agent.critic.q1), (self.q2, agent.critic.q2),
-                     (self.q1_target, agent.critic_target.q1),
-                     (self.q2_target, agent.critic_target.q2)]
+            pairs: list[tuple[StackedMLP, nn.Module]] = [
+                (self.actor, agent.actor.net), (self.actor_target, agent.actor_target.net),
+                (self.q1, agent.critic.q1), (self.q2, agent.critic.q2),
+                (self.q1_target, agent.critic_target.q1), (self.q2_target, agent.critic_target.q2),
+            ]
             for stacked, module in pairs:
                 for mine, theirs in zip(_linear_params(stacked), module.parameters()):
                     theirs.copy_(mine[j])

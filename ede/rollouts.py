@@ -99,9 +99,10 @@ def physics_state(env: gymnasium.Env) -> np.ndarray:
     return np.concatenate((data.qpos, data.qvel))  # MuJoCo keeps both in float64
 
 
-def state_of(env: gymnasium.Env, obs: np.ndarray) -> np.ndarray:
-    """The ``state`` row of ``env`` whose observation is now ``obs`` (see :func:`state_source`)."""
-    if state_source(env) == "physics":
+def state_of(env: gymnasium.Env, obs: np.ndarray, source: str | None = None) -> np.ndarray:
+    """The ``state`` row of ``env`` whose observation is now ``obs``; ``source`` is
+    :func:`state_source` of ``env``, found here unless given (a loop asks once per env)."""
+    if (source or state_source(env)) == "physics":
         return physics_state(env)
     return np.asarray(obs, dtype=np.float64).reshape(-1)
 
@@ -189,8 +190,9 @@ def _run_sub_envs(
     current: list[dict[str, list[Any]]] = [_empty_episode() for _ in jobs]
     recorded = [0] * len(jobs)
     resetting = np.zeros(len(jobs), dtype=bool)
+    sources = [state_source(env) for env in vec.envs]
     while any(recorded[j] < job.quota for j, job in enumerate(jobs)):
-        states = [state_of(env, obs[j]) for j, env in enumerate(vec.envs)]
+        states = [state_of(env, obs[j], sources[j]) for j, env in enumerate(vec.envs)]
         # A resetting sub-env ignores its action: draw none, so its stream stays in step with a
         # plain reset-and-step loop over the same env.
         actions = np.stack([idle if resetting[j] else draw() for j, draw in enumerate(streams)])

@@ -107,17 +107,25 @@ def group_jobs(jobs: list[Job], size: int) -> list[Job]:
     return alone + grouped
 
 
-def _group_key(job: Job) -> tuple[tuple[str, ...], int] | None:
-    """(the argv with its seed and run folder made patterns, the seed), for a train job.
-
-    DVC runs a command through a shell (``sh -c CMD``): the pattern is made in CMD's words.
-    """
+def _train_words(job: Job) -> list[str] | None:
+    """The words of a one-line ``train`` command; DVC runs a command through a shell
+    (``sh -c CMD``), so those are CMD's words. None for any other job."""
     if len(job.argvs) != 1:
         return None
-    argv = list(job.argvs[0])
-    shell = len(argv) >= 2 and argv[-2] == "-c"
-    words = shlex.split(argv[-1]) if shell else argv
-    if "train" not in words:
+    argv = job.argvs[0]
+    words = shlex.split(argv[-1]) if _through_shell(argv) else list(argv)
+    return words if "train" in words else None
+
+
+def _through_shell(argv: list[str]) -> bool:
+    return len(argv) >= 2 and argv[-2] == "-c"
+
+
+def _group_key(job: Job) -> tuple[tuple[str, ...], int] | None:
+    """(the argv with its seed and run folder made patterns, the seed), for a train job;
+    the pattern is made in the command's words (:func:`_train_words`)."""
+    words = _train_words(job)
+    if words is None:
         return None
     try:
         at, out_at = words.index("--seed"), words.index("--out")
@@ -129,7 +137,8 @@ def _group_key(job: Job) -> tuple[tuple[str, ...], int] | None:
         return None
     words[at], words[at + 1] = "--seeds", "{seeds}"
     words[out_at + 1] = out.removesuffix(str(seed)) + "{seed}"
-    if shell:
+    argv = job.argvs[0]
+    if _through_shell(argv):
         return (*argv[:-1], shlex.join(words)), seed
     return tuple(words), seed
 
@@ -326,11 +335,8 @@ def progress_file(job: Job) -> Path:
 
 def job_steps(job: Job, budgets: dict[str, int]) -> int:
     """The environment steps a train job runs: its task's budget times its seeds (0: unknown)."""
-    if len(job.argvs) != 1:
-        return 0
-    argv = job.argvs[0]
-    words = shlex.split(argv[-1]) if len(argv) >= 2 and argv[-2] == "-c" else list(argv)
-    if "train" not in words or "--task" not in words:
+    words = _train_words(job)
+    if words is None or "--task" not in words:
         return 0
     task = words[words.index("--task") + 1] if words.index("--task") + 1 < len(words) else ""
     return budgets.get(task, 0) * max(len(job.members), 1)
@@ -378,8 +384,8 @@ class Tally:
             before += self.resumed.get(name, 0)
         return done, total, before
 
-    def _eta(self, elapsed: float) -> str:
-        done, total, before = self._counts()
+    def _eta(self, elapsed: float, counts: tuple[int, int, int]) -> str:
+        done, total, before = counts
         if total and done > before:
             rate = (done - before) / elapsed
             return f"ETA {_duration((total - done) / rate)}" if total > done else "done"
@@ -391,13 +397,13 @@ class Tally:
     def overall(self) -> str:
         """The one line: runs, steps, rate, ETA."""
         elapsed = max(time.perf_counter() - self.start, 1e-9)
-        done, total, before = self._counts()
+        counts = done, total, before = self._counts()
         steps = ""
         if total:
             rate = (done - before) / elapsed
             steps = f", {_count(done)}/{_count(total)} steps ({done / total:.0%}), {rate:,.0f} steps/s"
         return (f"sweep: {self.done}/{self.total} runs{steps}, elapsed {_duration(elapsed)}, "
-                f"{self._eta(elapsed)}")
+                f"{self._eta(elapsed, counts)}")
 
     # Output ------------------------------------------------------------------------------
 
@@ -409,7 +415,7 @@ class Tally:
                 self.finished.add(job)
             elapsed = time.perf_counter() - self.start
             return (f"[{self.done}/{self.total}] {status:<6} {stage}  {detail}  "
-                    f"(elapsed {_duration(elapsed)}, {self._eta(elapsed)})")
+                    f"(elapsed {_duration(elapsed)}, {self._eta(elapsed, self._counts())})")
 
     def echo(self, text: str) -> None:
         with self.lock:
