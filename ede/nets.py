@@ -68,6 +68,33 @@ def matmul_precision(precision: str) -> Iterator[None]:
         torch.set_float32_matmul_precision(before)
 
 
+def flushes_denormals() -> bool:
+    """Whether this thread's float arithmetic flushes subnormal numbers to zero, as observed."""
+    return torch.tensor([1e-39]).mul(1.0).item() == 0.0
+
+
+@contextmanager
+def flush_denormals() -> Iterator[None]:
+    """Within the block, CPU float arithmetic of this thread (and of threads it starts) treats
+    subnormal numbers (below 1.2e-38 in fp32) as zero.
+
+    A long TD3 run needs this for speed, not accuracy: Adam's first moment of a weight whose
+    gradient is zero (a dead ReLU unit's) decays by ``beta1`` each update down into the
+    subnormal range, where rounding keeps it a few units above zero for ever, and x86 CPUs
+    compute on subnormals through a slow microcode path. Measured on a HalfCheetah-v5 run's
+    state after 50,000 updates (7 % of the critic's first moments subnormal): the critic's
+    fused Adam step took 2.35 ms instead of 0.32 ms. Values this small change no update that
+    matters. Where the CPU cannot flush, nothing changes. The setting found on entry is restored
+    on leaving.
+    """
+    before = flushes_denormals()
+    torch.set_flush_denormal(True)
+    try:
+        yield
+    finally:
+        torch.set_flush_denormal(before)
+
+
 @cache
 def product_error(precision: str, device: str = "cpu") -> float:
     """The relative error of a product as an update under ``precision`` computes it, here.

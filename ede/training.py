@@ -41,6 +41,7 @@ from ede.atomic import remove_stale_temporaries, sha256, write_atomically, write
 from ede.config import EdeTD3Config, TD3Config
 from ede.embedding import ActionEmbedding
 from ede.group import GroupAgent
+from ede.nets import flush_denormals
 from ede.provenance import software_versions
 from ede.stats import area_under_curve
 from ede.tasks import make
@@ -416,6 +417,7 @@ def train_run(
                        bad_checkpoint, notice)[0]
 
 
+@flush_denormals()
 def train_group(
     specs: list[RunSpec],
     outs: list[Path],
@@ -432,6 +434,7 @@ def train_group(
     ``td3.update_schedule: episode`` the members' episodes end together on tasks that never end
     early (all of the paper's), and their per-episode batches are one; where episodes end at
     different steps, the group dissolves and its members go on one by one, still exactly.
+    CPU arithmetic flushes subnormal numbers to zero throughout (:func:`ede.nets.flush_denormals`).
 
     Each resumes from its ``out/checkpoint`` when there is one; members that resume from
     earlier steps than others first catch up alone. A checkpoint that cannot be used
