@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from pathlib import Path
 
 import pytest
@@ -9,7 +10,8 @@ import torch
 
 from ede.config import EdeTD3Config, TD3Config
 from ede.nets import flush_denormals, flushes_denormals
-from ede.training import RunSpec, train_run
+from ede.td3 import Agent
+from ede.training import RunSpec, _Run, train_run
 
 SUBNORMAL = 1e-40  # below fp32's smallest normal number, 1.18e-38
 
@@ -62,3 +64,30 @@ def test_a_run_trains_with_flushing_and_leaves_it_off(tmp_path: Path) -> None:
               progress=lambda steps: observed.append(flushes_denormals()))
     assert observed and all(flushing == cpu_can_flush() for flushing in observed)
     assert not flushes_denormals()
+
+
+def subnormal_first_moments(agent: Agent) -> int:
+    moments = [state["exp_avg"] for optimizer in (agent.actor_optimizer, agent.critic_optimizer)
+               for state in optimizer.state.values()]
+    values = torch.cat([m.flatten() for m in moments]).abs()
+    return int(((values > 0) & (values < torch.finfo(torch.float32).tiny)).sum())
+
+
+def test_flushing_changes_no_weight_where_moments_sink_below_normal() -> None:
+    """Dead units' first moments sink to subnormals within ~800 updates; what an Adam step makes
+    of them is below a weight's last bit, so flushing them leaves every weight as it was."""
+    config = TD3Config(hidden=[32, 32], batch_size=16, start_steps=0, update_schedule="step")
+    spec = RunSpec("ede/Point-v0", "td3", 0, 1_500, config, EdeTD3Config())
+    agents = []
+    for flush in (False, True):
+        run = _Run(spec, None, torch.device("cpu"))
+        with flush_denormals() if flush else nullcontext():
+            while run.step < spec.budget:
+                run.env_step()
+        agents.append(run.agent)
+    kept, flushed = agents
+    assert subnormal_first_moments(kept) > 0
+    assert (subnormal_first_moments(flushed) == 0) == cpu_can_flush()
+    for network in ("actor", "critic", "actor_target", "critic_target"):
+        for name, weight in getattr(kept, network).state_dict().items():
+            assert torch.equal(weight, getattr(flushed, network).state_dict()[name]), f"{network}.{name}"
