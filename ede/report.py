@@ -141,6 +141,12 @@ def curve_band(
     return steps, mean, low, high, n
 
 
+def _panels_width(panels: int) -> float:
+    """Inches for a row of task panels: 4.2 each, and never too narrow for the two-line title
+    (a family of one task, as "Your own task" makes, would cut it off)."""
+    return max(4.2 * panels, 6.4)
+
+
 def learning_curve_figure(
     family: str,
     tasks: list[str],
@@ -154,7 +160,8 @@ def learning_curve_figure(
 
     With ``bin_steps`` the curves are binned as the paper's figures (:func:`curve_band`).
     """
-    figure, axes = plt.subplots(1, len(tasks), figsize=(4.2 * len(tasks), 3.4), squeeze=False)
+    figure, axes = plt.subplots(1, len(tasks), figsize=(_panels_width(len(tasks)), 3.4),
+                                squeeze=False)
     for ax, task in zip(axes[0], tasks):
         for algo, (label, colour) in ALGO_STYLE.items():
             runs = curves.get((task, algo), [])
@@ -194,8 +201,8 @@ def diagnostics_figure(
     family: str, tasks: list[str], runs: dict[tuple[str, str], list[dict[str, np.ndarray]]]
 ) -> Figure:
     """Per task, the mean over seeds of Q(s, μ(s)) (top) and of the critic loss (bottom, log)."""
-    figure, axes = plt.subplots(2, len(tasks), figsize=(4.2 * len(tasks), 4.4), squeeze=False,
-                                sharex="col")
+    figure, axes = plt.subplots(2, len(tasks), figsize=(_panels_width(len(tasks)), 4.6),
+                                squeeze=False, sharex="col")
     for column, task in enumerate(tasks):
         for algo, (label, colour) in ALGO_STYLE.items():
             found = runs.get((task, algo), [])
@@ -214,7 +221,8 @@ def diagnostics_figure(
             axes[0][column].legend(fontsize=8)
     axes[0][0].set_ylabel("mean Q(s, μ(s))")
     axes[1][0].set_ylabel("critic loss")
-    figure.suptitle(f"{family} family: training diagnostics, mean over seeds per evaluation interval")
+    figure.suptitle(f"{family} family: training diagnostics\nmean over seeds per evaluation interval",
+                    fontsize=10)
     figure.tight_layout()
     return figure
 
