@@ -355,9 +355,14 @@ class _Run:
             self.obs = step.next_obs
         if self.step < config.start_steps or self.buffer.sampleable < config.batch_size:
             return 0
-        for _ in range(updates if update else 0):
-            self.agent.update(self.sample())
+        if update:
+            self.update(updates)
         return updates
+
+    def update(self, times: int) -> None:
+        """``times`` updates of this run's own agent, each on a batch sampled for it."""
+        for _ in range(times):
+            self.agent.update(self.sample())
 
     def sample(self) -> ReplayBatch:
         return self.buffer.sample(self.spec.td3.batch_size, self.agent.generator)
@@ -485,8 +490,7 @@ def train_group(
             _dissolve(group, sessions)
             group = None
             for run, updates in zip(runs, due):
-                for _ in range(updates):
-                    run.agent.update(run.sample())
+                run.update(updates)
         elif group is not None:
             for _ in range(due[0]):
                 group.update([run.sample() for run in runs])
