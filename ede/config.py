@@ -197,6 +197,11 @@ class TD3Config(_Section):
     )
     device: Device = "cpu"
     threads: Threads = 1
+    compile: Literal["none", "default", "reduce-overhead"] = Field(
+        "none", description="how the update runs: eager (none), compiled whole with "
+        "torch.compile (default), or compiled and captured as a CUDA graph on a GPU "
+        "(reduce-overhead); leaves results alone beyond rounding (README, \"Stage 4: train\")"
+    )
 
 
 class EdeTD3Config(_Section):

@@ -23,7 +23,7 @@ one place a code becomes K environment steps, for training, evaluation and the r
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple, Protocol
 
@@ -35,7 +35,7 @@ from torch import nn
 
 from ede.config import TD3Config
 from ede.embedding import ActionEmbedding
-from ede.nets import initial_weights, matmul_precision, mlp
+from ede.nets import Layers, StackedMLP, flatten, gradients, matmul_precision
 
 __all__ = [
     "ActionAdapter",
@@ -44,10 +44,12 @@ __all__ = [
     "CodeExecutor",
     "CodeStep",
     "Critic",
+    "MemberAdam",
     "EmbeddingAdapter",
     "IdentityAdapter",
     "ReplayBatch",
     "ReplayBuffer",
+    "Streams",
     "k_step_targets",
 ]
 
@@ -185,17 +187,61 @@ class CodeExecutor:
             obs = step.next_obs
 
 
-class Actor(nn.Module):
-    """μ(s): a code inside [low, high] through a tanh."""
+# Random streams -------------------------------------------------------------------------------
 
-    def __init__(self, obs_size: int, low: torch.Tensor, high: torch.Tensor, hidden: list[int]):
+# Each purpose's key in a member's seed sequence: a new purpose takes a new key and shifts none.
+PURPOSES = {"weights": 0, "exploration": 1, "target_noise": 2, "replay": 3, "start_codes": 4}
+
+
+class Streams:
+    """One member's random streams: a generator per purpose, each seeded from (seed, purpose)
+    by numpy's ``SeedSequence``, so that no stream depends on another member, another purpose,
+    or how many of either there are. Initial weights are drawn on the CPU (the same weights on
+    every device); the others live on the training device."""
+
+    def __init__(self, seed: int, device: torch.device) -> None:
+        for purpose, key in PURPOSES.items():
+            state = np.random.SeedSequence(seed, spawn_key=(key,)).generate_state(2, np.uint32)
+            where = torch.device("cpu") if purpose == "weights" else device
+            generator = torch.Generator(device=where)
+            generator.manual_seed(int(state[0]) | int(state[1]) << 32)
+            setattr(self, purpose, generator)
+
+    weights: torch.Generator
+    exploration: torch.Generator
+    target_noise: torch.Generator
+    replay: torch.Generator
+    start_codes: torch.Generator
+
+    SAVED = ("exploration", "target_noise", "replay", "start_codes")  # what a checkpoint keeps
+
+
+# Networks -------------------------------------------------------------------------------------
+
+
+class Actor(nn.Module):
+    """μ(s) of every member: a code inside [low, high] through a tanh."""
+
+    def __init__(self, obs_size: int, low: torch.Tensor, high: torch.Tensor, hidden: list[int],
+                 generators: Sequence[torch.Generator]) -> None:
         super().__init__()
-        self.net = mlp(obs_size, hidden, len(low))
+        self.net = StackedMLP(obs_size, hidden, len(low), generators)
         self.register_buffer("centre", (high + low) / 2)
         self.register_buffer("half_range", (high - low) / 2)
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.centre + self.half_range * torch.tanh(self.net(obs))  # (B, O) -> (B, C)
+    def forward(self, obs: torch.Tensor, layers: Layers | None = None) -> torch.Tensor:
+        """``(M, B, O) -> (M, B, C)``, member m on its own batch."""
+        return self.centre + self.half_range * torch.tanh(self.net(obs, layers, halves=True))
+
+    def one(self, member: int, obs: torch.Tensor) -> torch.Tensor:
+        """Member ``member`` alone: ``(B, O) -> (B, C)``."""
+        return self.centre + self.half_range * torch.tanh(self.net.one(member, obs))
+
+    def state_of(self, member: int) -> dict[str, torch.Tensor]:
+        """One member's actor as the single-network ``Actor`` of ``policy.safetensors`` names it:
+        ``net.0.weight``, ..., ``centre``, ``half_range``."""
+        state = {f"net.{k}": v for k, v in self.net.state_of(self.net.flat[member]).items()}
+        return state | {"centre": self.centre, "half_range": self.half_range}
 
 
 def critic_repeat(setting: int | str, obs_size: int, pair_size: int) -> int:
@@ -207,7 +253,8 @@ def critic_repeat(setting: int | str, obs_size: int, pair_size: int) -> int:
 
 
 class Critic(nn.Module):
-    """Twin Q(s, c, i): two MLPs over (observation, then ``repeat`` copies of (code, i)).
+    """Twin Q(s, c, i) of every member: one stacked network of 2M rows, Q1 of every member
+    then Q2, over (observation, then ``repeat`` copies of (code, i)).
 
     i is a one-hot of size K (``plan_step="onehot"``) or the raw count as one input ("scalar", the
     authors' code); it is absent when K = 1.
@@ -221,176 +268,301 @@ class Critic(nn.Module):
         hidden: list[int],
         plan_step: str = "onehot",
         repeat: int | str = 1,
+        generators: Sequence[torch.Generator] = (),
     ) -> None:
         super().__init__()
-        self.k, self.plan_step = k, plan_step
+        self.k, self.plan_step, self.members = k, plan_step, len(generators)
         step_size = 0 if k == 1 else (k if plan_step == "onehot" else 1)
         self.repeat = critic_repeat(repeat, obs_size, code_size + step_size)
         in_size = obs_size + self.repeat * (code_size + step_size)
-        self.q1 = mlp(in_size, hidden, 1)
-        self.q2 = mlp(in_size, hidden, 1)
+        # Each member draws Q1's weights, then Q2's, from its own generator.
+        self.net = StackedMLP(in_size, hidden, 1, [*generators, *generators])
 
-    def _inputs(self, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor) -> torch.Tensor:
+    def inputs(self, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor) -> torch.Tensor:
         pair = [code]
         if self.k > 1 and self.plan_step == "onehot":
-            pair.append(F.one_hot(i, self.k).to(obs.dtype))  # (B,) -> (B, K)
+            pair.append(F.one_hot(i, self.k).to(obs.dtype))  # (..., B) -> (..., B, K)
         elif self.k > 1:
-            pair.append(i.to(obs.dtype)[..., None])  # (B,) -> (B, 1)
+            pair.append(i.to(obs.dtype)[..., None])  # (..., B) -> (..., B, 1)
         return torch.cat([obs, *pair * self.repeat], dim=-1)
 
-    def forward(
-        self, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        x = self._inputs(obs, code, i)
-        return self.q1(x).squeeze(-1), self.q2(x).squeeze(-1)  # (B,), (B,)
+    def forward(self, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor,
+                layers: Layers | None = None) -> torch.Tensor:
+        """``(M, B, ·) -> (2, M, B)``: Q1 and Q2 of every member."""
+        x = self.inputs(obs, code, i)
+        q = self.net(torch.cat([x, x]), layers)  # (2M, B, 1): one product per layer for both
+        return q.view(2, self.members, -1)
 
-    def first(self, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor) -> torch.Tensor:
-        return self.q1(self._inputs(obs, code, i)).squeeze(-1)
+    def first(self, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor,
+              flat: torch.Tensor) -> torch.Tensor:
+        """Q1 alone, ``(M, B)``, with the weights ``flat`` (every row of the critic)."""
+        q1 = self.net.layers(flat[:self.members])
+        return self.net(self.inputs(obs, code, i), q1, halves=True).squeeze(-1)
+
+    def state_of(self, member: int) -> dict[str, torch.Tensor]:
+        """One member's twins as the single-run ``Critic`` named them (``q1.0.weight``, ...)."""
+        rows = (member, self.members + member)
+        return {f"q{j + 1}.{k}": v for j, row in enumerate(rows)
+                for k, v in self.net.state_of(self.net.flat[row]).items()}
+
+
+# Replay ---------------------------------------------------------------------------------------
 
 
 class ReplayBatch(NamedTuple):
-    """Sampled steps and, for each, the K steps from it on (for the k-step target)."""
+    """Sampled steps of every member and, for each, the K steps from it on (the k-step target).
 
-    obs: torch.Tensor  # (B, O)
-    code: torch.Tensor  # (B, C)
-    i: torch.Tensor  # (B,) int64
-    rewards: torch.Tensor  # (B, K): r_t ... r_{t+K-1}
-    terminated: torch.Tensor  # (B, K) bool
-    truncated: torch.Tensor  # (B, K) bool
-    next_obs: torch.Tensor  # (B, K, O): s_{t+1} ... s_{t+K}
+    Leading dimensions ``(M, B)``: member, sample.
+    """
+
+    obs: torch.Tensor  # (M, B, O)
+    code: torch.Tensor  # (M, B, C)
+    i: torch.Tensor  # (M, B) int64
+    rewards: torch.Tensor  # (M, B, K): r_t ... r_{t+K-1}
+    terminated: torch.Tensor  # (M, B, K) bool
+    truncated: torch.Tensor  # (M, B, K) bool
+    next_obs: torch.Tensor  # (M, B, K, O): s_{t+1} ... s_{t+K}
 
 
 class ReplayBuffer:
-    """A circular buffer of steps; samples come with the K steps that follow them.
+    """Every member's steps, stored step-first: row t mod N of each field holds step t of every
+    member (``(N, M, …)``), so members in step share one write head.
 
     Each step stores the code being executed and its index i. A sample's K-step future is read by
-    index arithmetic (``idx[:, None] + arange(K)``), never by a Python loop; the newest K − 1 steps
-    are not sampled because their future is not written yet.
+    index arithmetic (``idx[..., None] + arange(K)``), never by a Python loop; the newest K − 1
+    steps are not sampled because their future is not written yet. ``count[m]`` is the number of
+    steps member m has written: its head is ``count[m] mod N``.
     """
-
-    def __init__(
-        self, capacity: int, obs_size: int, code_size: int, k: int, device: torch.device
-    ) -> None:
-        self.capacity, self.k, self.device = capacity, k, device
-        self.obs = torch.zeros((capacity, obs_size), device=device)
-        self.next_obs = torch.zeros((capacity, obs_size), device=device)
-        self.code = torch.zeros((capacity, code_size), device=device)
-        self.i = torch.zeros(capacity, dtype=torch.int64, device=device)
-        self.reward = torch.zeros(capacity, device=device)
-        self.terminated = torch.zeros(capacity, dtype=torch.bool, device=device)
-        self.truncated = torch.zeros(capacity, dtype=torch.bool, device=device)
-        self.head = 0  # where the next step goes
-        self.size = 0
 
     FIELDS = ("obs", "next_obs", "code", "i", "reward", "terminated", "truncated")
 
-    def add(
-        self,
-        obs: np.ndarray,
-        code: torch.Tensor,
-        i: int,
-        reward: float,
-        next_obs: np.ndarray,
-        terminated: bool,
-        truncated: bool,
-    ) -> None:
-        h = self.head
-        self.obs[h] = torch.as_tensor(obs, dtype=torch.float32)
-        self.next_obs[h] = torch.as_tensor(next_obs, dtype=torch.float32)
-        self.code[h] = code
-        self.i[h] = i
-        self.reward[h] = reward
-        self.terminated[h] = terminated
-        self.truncated[h] = truncated
-        self.head = (h + 1) % self.capacity
-        self.size = min(self.size + 1, self.capacity)
+    def __init__(self, capacity: int, obs_size: int, code_size: int, k: int,
+                 device: torch.device, members: int = 1) -> None:
+        self.capacity, self.k, self.device, self.members = capacity, k, device, members
+        shape = (capacity, members)
+        self.obs = torch.zeros((*shape, obs_size), device=device)
+        self.next_obs = torch.zeros((*shape, obs_size), device=device)
+        self.code = torch.zeros((*shape, code_size), device=device)
+        self.i = torch.zeros(shape, dtype=torch.int64, device=device)
+        self.reward = torch.zeros(shape, device=device)
+        self.terminated = torch.zeros(shape, dtype=torch.bool, device=device)
+        self.truncated = torch.zeros(shape, dtype=torch.bool, device=device)
+        self.count = np.zeros(members, dtype=np.int64)
 
-    @property
-    def sampleable(self) -> int:
-        return max(0, self.size - (self.k - 1))
+    def add(self, member: int, obs: np.ndarray, code: torch.Tensor, i: int, reward: float,
+            next_obs: np.ndarray, terminated: bool, truncated: bool) -> None:
+        row = int(self.count[member] % self.capacity)
+        self.obs[row, member] = torch.as_tensor(obs, dtype=torch.float32)
+        self.next_obs[row, member] = torch.as_tensor(next_obs, dtype=torch.float32)
+        self.code[row, member] = code
+        self.i[row, member] = i
+        self.reward[row, member] = reward
+        self.terminated[row, member] = terminated
+        self.truncated[row, member] = truncated
+        self.count[member] += 1
 
-    def sample(self, batch_size: int, generator: torch.Generator) -> ReplayBatch:
-        if self.sampleable == 0:
-            raise ValueError("the buffer holds no step whose K-step future is written")
-        offset = torch.randint(
-            self.sampleable, (batch_size,), generator=generator, device=generator.device
-        )
-        oldest = self.head - self.size  # the oldest step, mod capacity
-        idx = ((oldest + offset) % self.capacity).to(self.device)  # (B,)
-        steps = (idx[:, None] + torch.arange(self.k, device=self.device)) % self.capacity  # (B, K)
+    def size(self, member: int) -> int:
+        return int(min(self.count[member], self.capacity))
+
+    def sampleable(self, member: int) -> int:
+        return max(0, self.size(member) - (self.k - 1))
+
+    def indices(self, batch_size: int, generators: Sequence[torch.Generator | None]) -> torch.Tensor:
+        """``(M, B)`` rows to sample: member m's drawn from ``generators[m]``, uniform over its
+        sampleable steps; a member given ``None`` draws nothing (it is not updated) and gets
+        row 0."""
+        rows = []
+        for member, generator in enumerate(generators):
+            if generator is None:
+                rows.append(torch.zeros(batch_size, dtype=torch.int64, device=self.device))
+                continue
+            if self.sampleable(member) == 0:
+                raise ValueError("the buffer holds no step whose K-step future is written")
+            offset = torch.randint(self.sampleable(member), (batch_size,), generator=generator,
+                                   device=generator.device)
+            oldest = int(self.count[member]) - self.size(member)
+            rows.append(((oldest + offset) % self.capacity).to(self.device))
+        return torch.stack(rows)
+
+    def gather(self, idx: torch.Tensor) -> ReplayBatch:
+        """The batch at rows ``idx`` ``(M, B)``, every member from its own column."""
+        member = torch.arange(self.members, device=self.device)[:, None]  # (M, 1)
+        steps = (idx[..., None] + torch.arange(self.k, device=self.device)) % self.capacity
         return ReplayBatch(
-            obs=self.obs[idx],
-            code=self.code[idx],
-            i=self.i[idx],
-            rewards=self.reward[steps],
-            terminated=self.terminated[steps],
-            truncated=self.truncated[steps],
-            next_obs=self.next_obs[steps],
+            obs=self.obs[idx, member],
+            code=self.code[idx, member],
+            i=self.i[idx, member],
+            rewards=self.reward[steps, member[..., None]],
+            terminated=self.terminated[steps, member[..., None]],
+            truncated=self.truncated[steps, member[..., None]],
+            next_obs=self.next_obs[steps, member[..., None]],
         )
 
-    def state(self) -> tuple[dict[str, torch.Tensor], dict[str, int]]:
-        """Tensors and counters to checkpoint (only the filled part)."""
-        n = self.size
-        tensors = {name: getattr(self, name)[:n].cpu() for name in self.FIELDS}
-        return tensors, {"head": self.head, "size": self.size}
+    def sample(self, batch_size: int, generators: Sequence[torch.Generator | None]) -> ReplayBatch:
+        return self.gather(self.indices(batch_size, generators))
 
-    def load(self, tensors: dict[str, torch.Tensor], counters: dict[str, int]) -> None:
-        n = counters["size"]
+    def state_dict(self, member: int) -> dict[str, torch.Tensor]:
+        """Member ``member``'s filled rows (row order) and its step count."""
+        n = self.size(member)
+        state = {name: getattr(self, name)[:n, member].cpu() for name in self.FIELDS}
+        return state | {"count": torch.tensor(int(self.count[member]))}
+
+    def load_state_dict(self, member: int, state: dict[str, torch.Tensor]) -> None:
+        count = int(state["count"])
+        n = min(count, self.capacity)
         for name in self.FIELDS:
-            getattr(self, name)[:n] = tensors[name].to(self.device)
-        self.head, self.size = counters["head"], n
+            if state[name].shape[0] != n:
+                raise ValueError(f"buffer.{name}: {state[name].shape[0]} rows, expected {n}")
+            getattr(self, name)[:n, member] = state[name].to(self.device)
+        self.count[member] = count
+
+
+# The update -----------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
 class TargetParts:
     """Equation 1 split into what the networks must evaluate and what they multiply."""
 
-    returns: torch.Tensor  # (B,) discounted rewards of the steps that remain
-    discount: torch.Tensor  # (B,) γ^n, zero where the episode terminated
-    bootstrap_obs: torch.Tensor  # (B, O) s_{t+n}
-    keep_code: torch.Tensor  # (B,) bool: a time limit cut the code short, it goes on
-    next_i: torch.Tensor  # (B,) 0 where a new code is chosen, i + n where it goes on
+    returns: torch.Tensor  # (..., B) discounted rewards of the steps that remain
+    discount: torch.Tensor  # (..., B) γ^n, zero where the episode terminated
+    bootstrap_obs: torch.Tensor  # (..., B, O) s_{t+n}
+    keep_code: torch.Tensor  # (..., B) bool: a time limit cut the code short, it goes on
+    next_i: torch.Tensor  # (..., B) 0 where a new code is chosen, i + n where it goes on
 
 
 def k_step_targets(batch: ReplayBatch, gamma: float) -> TargetParts:
     """The parts of Equation 1 that need no network, for a batch, all batched.
 
     n = the steps that remain of each sample's code (K − i), cut after the first step where the
-    episode ended (terminated or truncated).
+    episode ended (terminated or truncated). Powers of γ come from a table of K + 1 entries,
+    indexed: elementwise and the same for every member whatever their number.
     """
-    k = batch.rewards.shape[1]
-    m = torch.arange(k, dtype=batch.rewards.dtype, device=batch.rewards.device)  # (K,)
-    remaining = k - batch.i  # (B,)
-    ended = batch.terminated | batch.truncated  # (B, K)
-    ended_before = ended.cumsum(dim=1) > ended  # an earlier step ended the episode
-    valid = (m < remaining[:, None]) & ~ended_before  # (B, K)
-    n = valid.sum(dim=1)  # (B,), >= 1
-    returns = (valid * gamma**m * batch.rewards).sum(dim=1)  # (B,)
-    last = (n - 1)[:, None]  # (B, 1)
-    terminal = batch.terminated.gather(1, last).squeeze(1)  # (B,)
-    cut_short = batch.truncated.gather(1, last).squeeze(1) & (n < remaining)
+    k = batch.rewards.shape[-1]
+    powers = gamma ** torch.arange(k + 1, dtype=batch.rewards.dtype, device=batch.rewards.device)
+    m = torch.arange(k, device=batch.rewards.device)  # (K,)
+    remaining = k - batch.i  # (..., B)
+    ended = batch.terminated | batch.truncated  # (..., B, K)
+    ended_before = ended.cumsum(dim=-1) > ended  # an earlier step ended the episode
+    valid = (m < remaining[..., None]) & ~ended_before  # (..., B, K)
+    n = valid.sum(dim=-1)  # (..., B), >= 1
+    returns = (valid * powers[:k] * batch.rewards).sum(dim=-1)  # (..., B)
+    last = (n - 1)[..., None]  # (..., B, 1)
+    terminal = batch.terminated.gather(-1, last).squeeze(-1)
+    cut_short = batch.truncated.gather(-1, last).squeeze(-1) & (n < remaining)
     bootstrap_obs = batch.next_obs.gather(
-        1, last[:, :, None].expand(-1, 1, batch.next_obs.shape[2])
-    ).squeeze(1)  # (B, K, O) -> (B, O)
-    discount = torch.where(terminal, 0.0, gamma**n)
+        -2, last[..., None].expand(*last.shape, batch.next_obs.shape[-1])
+    ).squeeze(-2)  # (..., B, K, O) -> (..., B, O)
+    discount = torch.where(terminal, 0.0, powers[n])
     next_i = torch.where(cut_short, batch.i + n, torch.zeros_like(n))
     return TargetParts(returns, discount, bootstrap_obs, cut_short, next_i)
 
 
-def polyak(target: list[torch.Tensor], source: list[torch.Tensor], tau: float) -> None:
-    """target ← (1 − τ) target + τ source, in place, tensor by tensor."""
+@torch.library.custom_op("ede::member_adam_", mutates_args=("param", "exp_avg", "exp_avg_sq",
+                                                            "steps"))
+def _member_adam(param: torch.Tensor, grad: torch.Tensor, exp_avg: torch.Tensor,
+                 exp_avg_sq: torch.Tensor, steps: torch.Tensor, mask: torch.Tensor | None,
+                 lr: float, beta1: float, beta2: float, eps: float) -> None:
+    """torch's fused Adam kernel on each row of ``param`` as a tensor of its own, with the step
+    count of the row's member; members where ``mask`` is false keep everything bit for bit.
+
+    An operator of its own so that ``torch.compile`` keeps the kernel whole (it cannot trace the
+    fused kernel on views of a parameter); in eager mode it is the same call.
+    """
+    members = steps.shape[0]
+    if mask is not None:
+        kept = (param.clone(), exp_avg.clone(), exp_avg_sq.clone())
+        steps.add_(mask.to(steps.dtype))
+    else:
+        steps.add_(1)
+    rows = range(param.shape[0])
+    torch._fused_adam_(
+        [param[r] for r in rows], [grad[r] for r in rows], [exp_avg[r] for r in rows],
+        [exp_avg_sq[r] for r in rows], [], [steps[r % members] for r in rows],
+        lr=lr, beta1=beta1, beta2=beta2, weight_decay=0.0, eps=eps, amsgrad=False,
+        maximize=False,
+    )
+    if mask is not None:
+        keep = ~mask.repeat(param.shape[0] // members)[:, None]
+        for tensor, old in zip((param, exp_avg, exp_avg_sq), kept):
+            torch.where(keep, old, tensor, out=tensor)
+
+
+@_member_adam.register_fake
+def _(param, grad, exp_avg, exp_avg_sq, steps, mask, lr, beta1, beta2, eps) -> None:  # noqa: ANN001
+    return None
+
+
+class MemberAdam:
+    """Adam with a step count per member, on a stacked parameter whose rows belong to members.
+
+    ``param`` is ``(R·M, N)``: row r belongs to member r mod M (R = 2 for the twin critics).
+    Each row is stepped by torch's fused Adam kernel as a tensor of its own, so a member gets
+    the bits torch's ``Adam(fused=True)`` gives its weights alone, whatever M is (the kernel
+    splits a tensor into vector and scalar parts by its size). torch's optimisers keep one step
+    count per tensor and step every tensor they hold; here a member masked out of a step keeps
+    its weights, moments and step count bit for bit.
+    """
+
+    def __init__(self, param: torch.Tensor, members: int, lr: float,
+                 betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8) -> None:
+        self.param, self.members = param, members
+        self.lr, self.betas, self.eps = lr, betas, eps
+        self.exp_avg = torch.zeros_like(param, memory_format=torch.contiguous_format)
+        self.exp_avg_sq = torch.zeros_like(self.exp_avg)
+        self.steps = torch.zeros(members, device=param.device)  # per member
+
+    def rows(self, per_member: torch.Tensor) -> torch.Tensor:
+        """``(M,)`` -> ``(R·M, 1)``, each row its member's value."""
+        return per_member.repeat(self.param.shape[0] // self.members)[:, None]
+
+    def step(self, grad: torch.Tensor, mask: torch.Tensor | None = None) -> None:
+        """One Adam step with ``grad`` for every member, or for those where ``mask`` (``(M,)``
+        bool) is true."""
+        _member_adam(self.param.detach(), grad, self.exp_avg, self.exp_avg_sq, self.steps, mask,
+                     self.lr, *self.betas, self.eps)
+
+    def state_of(self, member: int) -> dict[str, torch.Tensor]:
+        rows = list(range(member, self.param.shape[0], self.members))
+        return {"exp_avg": self.exp_avg[rows], "exp_avg_sq": self.exp_avg_sq[rows],
+                "step": self.steps[member]}
+
+    def load_state_of(self, member: int, state: dict[str, torch.Tensor]) -> None:
+        rows = list(range(member, self.param.shape[0], self.members))
+        self.exp_avg[rows] = state["exp_avg"].to(self.exp_avg.device)
+        self.exp_avg_sq[rows] = state["exp_avg_sq"].to(self.exp_avg.device)
+        self.steps[member] = state["step"].to(self.steps.device)
+
+
+def polyak(target: torch.Tensor, source: torch.Tensor, tau: float,
+           mask: torch.Tensor | None = None) -> None:
+    """target ← (1 − τ) target + τ source, in place, for every row or the rows where ``mask``
+    (``(rows, 1)`` bool) is true."""
     with torch.no_grad():
-        torch._foreach_lerp_(target, source, tau)
+        if mask is None:
+            target.lerp_(source, tau)
+        else:
+            target.copy_(torch.where(mask, target.lerp(source, tau), target))
 
 
-def _clear_grads(params: list[torch.Tensor]) -> None:
-    """``optimizer.zero_grad(set_to_none=True)`` without its per-call bookkeeping."""
-    for p in params:
-        p.grad = None
+def _tensors(layers: Layers) -> list[torch.Tensor]:
+    return [t.detach() for layer in layers for t in layer]
+
+
+def _layers(tensors: list[torch.Tensor]) -> Layers:
+    return list(zip(tensors[::2], tensors[1::2]))
 
 
 class Agent:
-    """The TD3 learner over any :class:`ActionAdapter` (TD3: identity, EDE-TD3: the decoder)."""
+    """The TD3 learner of M members over any :class:`ActionAdapter` (TD3: identity, EDE-TD3: the
+    decoder). A single run is M = 1; member m is the run of seed ``seeds[m]``.
+
+    Every network holds its members on a leading axis (:class:`ede.nets.StackedMLP`); an update
+    is one function of tensors (:meth:`step`) for every member at once, each on its own batch
+    and target noise, drawn from its own generators (:meth:`draw`), each with the gradient it
+    would get alone (losses are means over B, summed over members). Members not due an update
+    are masked: they keep their weights and optimiser states.
+    """
 
     def __init__(
         self,
@@ -398,123 +570,161 @@ class Agent:
         adapter: ActionAdapter,
         config: TD3Config,
         device: torch.device,
-        seed: int,
+        seeds: Sequence[int] = (0,),
     ) -> None:
         self.adapter, self.config, self.device = adapter, config, device
-        low, high = adapter.code_low, adapter.code_high
+        self.members = len(seeds)
+        self.streams = [Streams(seed, device) for seed in seeds]
+        low, high = adapter.code_low.cpu(), adapter.code_high.cpu()
         self.scale = adapter.noise_scale  # (C,) the unit of the noise stds
         self.target_scale = self.scale * adapter.target_noise_scale
-        with initial_weights(seed):
-            self.actor = Actor(obs_size, low, high, config.hidden).to(device)
-            self.critic = Critic(
-                obs_size, adapter.code_size, adapter.k, config.hidden, adapter.plan_step,
-                config.critic_action_repeat,
-            ).to(device)
+        weights = [s.weights for s in self.streams]
+        self.actor = Actor(obs_size, low, high, config.hidden, weights).to(device)
+        self.critic = Critic(obs_size, adapter.code_size, adapter.k, config.hidden,
+                             adapter.plan_step, config.critic_action_repeat, weights).to(device)
         self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        # One fused kernel per step instead of a Python loop over tensors: a third of an update's
-        # time on CPU for networks this small.
-        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=config.lr, fused=True)
-        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=config.lr, fused=True)
-        self.generator = torch.Generator(device=device).manual_seed(seed)
-        self.updates = 0
-        # Listed once: walking the module trees every update costs more than the moves themselves.
-        self._critic_params = list(self.critic.parameters())
-        self._actor_params = list(self.actor.parameters())
-        self._polyak_pairs = [
-            (list(self.critic_target.parameters()), self._critic_params),
-            (list(self.actor_target.parameters()), self._actor_params),
-        ]
+        self.actor_optimizer = MemberAdam(self.actor.net.flat, self.members, config.lr)
+        self.critic_optimizer = MemberAdam(self.critic.net.flat, self.members, config.lr)
+        self.updates = np.zeros(self.members, dtype=np.int64)  # critic steps, per member
         self.autocast = config.precision == "bf16"
-        # Sums since the last take_diagnostics(), kept on the device so that no update waits for
-        # the host: critic loss, critic steps, actor loss (−mean Q(s, μ(s), 0)), actor steps.
-        self.loss_sums = torch.zeros(4, device=device)
-
-    def _noise(self, shape: torch.Size, std: float, scale: torch.Tensor) -> torch.Tensor:
-        return torch.randn(shape, generator=self.generator, device=self.device) * std * scale
+        # Sums per member since the last take_diagnostics(), kept on the device so that no
+        # update waits for the host: critic loss, critic steps, actor loss (−mean Q(s, μ(s), 0)),
+        # actor steps.
+        self.loss_sums = torch.zeros(4, self.members, device=device)
+        self._step = self._step_eager if config.compile == "none" else torch.compile(
+            self._step_eager, fullgraph=True,
+            mode=None if config.compile == "default" else config.compile)
 
     def clip(self, codes: torch.Tensor) -> torch.Tensor:
         return codes.clamp(self.adapter.code_low, self.adapter.code_high)
 
+    # Acting, one member at a time ----------------------------------------------------------
+
     @torch.no_grad()
-    def act(self, obs: np.ndarray, explore: bool) -> torch.Tensor:
-        """The code for one observation: μ(s), plus exploration noise when ``explore``."""
-        c = self.config
-        code = self.actor(torch.as_tensor(obs, dtype=torch.float32, device=self.device)[None])[0]
+    def act(self, member: int, obs: np.ndarray, explore: bool) -> torch.Tensor:
+        """Member ``member``'s code for one observation: μ(s), plus exploration noise from its
+        own stream when ``explore``."""
+        x = torch.as_tensor(obs, dtype=torch.float32, device=self.device)[None]
+        code = self.actor.one(member, x)[0]
         if explore:
-            code = self.clip(code + self._noise(code.shape, c.exploration_noise, self.scale))
+            noise = torch.randn(code.shape, generator=self.streams[member].exploration,
+                                device=self.device)
+            code = self.clip(code + noise * self.config.exploration_noise * self.scale)
         return code
 
-    def random_code(self) -> torch.Tensor:
+    def random_code(self, member: int) -> torch.Tensor:
         """A code uniform in the box: the start-steps behaviour."""
         low, high = self.adapter.code_low, self.adapter.code_high
-        u = torch.rand(low.shape, generator=self.generator, device=self.device)
+        u = torch.rand(low.shape, generator=self.streams[member].start_codes, device=self.device)
         return low + u * (high - low)
+
+    # Updating, every member at once ----------------------------------------------------------
+
+    def draw(self, buffer: ReplayBuffer, due: np.ndarray) -> tuple[ReplayBatch, torch.Tensor]:
+        """The random part of an update: each due member's batch and target noise, drawn from
+        its own generators (members not due draw nothing)."""
+        c = self.config
+        replay = [s.replay if d else None for s, d in zip(self.streams, due)]
+        batch = buffer.sample(c.batch_size, replay)
+        shape = (c.batch_size, self.adapter.code_size)
+        noise = torch.stack([
+            torch.randn(shape, generator=s.target_noise, device=self.device) if d
+            else torch.zeros(shape, device=self.device)
+            for s, d in zip(self.streams, due)
+        ])
+        return batch, noise
+
+    def update(self, buffer: ReplayBuffer, due: np.ndarray | None = None) -> None:
+        """One TD3 update of the members where ``due`` (``(M,)`` bool; every member by default):
+        a critic step, and every ``policy_delay`` of a member's critic steps an actor step and
+        target moves. Its matrix products follow ``td3.precision``."""
+        due = np.ones(self.members, dtype=bool) if due is None else np.asarray(due, dtype=bool)
+        batch, noise = self.draw(buffer, due)
+        self.step(batch, noise, due)
+
+    def step(self, batch: ReplayBatch, noise: torch.Tensor, due: np.ndarray) -> None:
+        """:meth:`update` on a drawn batch and raw (unit) target noise ``(M, B, C)``."""
+        actor_due = due & ((self.updates + 1) % self.config.policy_delay == 0)
+        self.updates += due
+        masks = torch.as_tensor(np.stack([due, actor_due]), device=self.device)
+        with matmul_precision(self.config.precision):
+            self._step(batch, noise, masks, bool(actor_due.any()), not due.all(),
+                       not actor_due.all())
 
     def _autocast(self) -> torch.autocast:
         return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.autocast)
 
-    def target(self, batch: ReplayBatch) -> torch.Tensor:
-        """Equation 1 with TD3's clipped double-Q and target policy smoothing."""
+    def target(self, batch: ReplayBatch, noise: torch.Tensor) -> torch.Tensor:
+        """Equation 1 with TD3's clipped double-Q and target policy smoothing, ``(M, B)``;
+        ``noise`` is unit normal ``(M, B, C)``."""
         c = self.config
         parts = k_step_targets(batch, c.discount)
         with torch.no_grad(), self._autocast():
-            noise = self._noise(batch.code.shape, c.policy_noise, self.target_scale)
+            noise = noise * c.policy_noise * self.target_scale
             clip = c.noise_clip * self.adapter.clip_scale
             noise = torch.maximum(torch.minimum(noise, clip), -clip)
             chosen = self.clip(self.actor_target(parts.bootstrap_obs) + noise)
-            next_code = torch.where(parts.keep_code[:, None], batch.code, chosen)
-            q1, q2 = self.critic_target(parts.bootstrap_obs, next_code, parts.next_i)
-            return parts.returns + parts.discount * torch.minimum(q1, q2).float()
+            next_code = torch.where(parts.keep_code[..., None], batch.code, chosen)
+            q = self.critic_target(parts.bootstrap_obs, next_code, parts.next_i)
+            return parts.returns + parts.discount * q.amin(0).float()
 
-    def update(self, batch: ReplayBatch) -> None:
-        """One critic step, and every ``policy_delay`` steps an actor step and target moves.
-
-        Its matrix products follow ``td3.precision`` (see :func:`ede.nets.matmul_precision`).
-        """
-        with matmul_precision(self.config.precision):
-            return self._update(batch)
-
-    def _update(self, batch: ReplayBatch) -> None:
-        c = self.config
-        target = self.target(batch)
+    def _critic_losses(self, params: list[torch.Tensor], batch: ReplayBatch,
+                       target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         with self._autocast():
-            q1, q2 = self.critic(batch.obs, batch.code, batch.i)
-            critic_loss = F.mse_loss(q1.float(), target) + F.mse_loss(q2.float(), target)
-        _clear_grads(self._critic_params)
-        critic_loss.backward()
-        self.critic_optimizer.step()
-        self.loss_sums[0] += critic_loss.detach()
-        self.loss_sums[1] += 1
-        self.updates += 1
-        if self.updates % c.policy_delay:
+            q = self.critic(batch.obs, batch.code, batch.i, _layers(params)).float()  # (2, M, B)
+        losses = ((q - target) ** 2).mean(-1).sum(0)  # (M,): each member's two MSEs
+        return losses.sum(), losses
+
+    def _actor_losses(self, params: list[torch.Tensor], obs: torch.Tensor,
+                      critic: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        # The actor follows ∇_c Q_1(s, c, 0) (Equation 2); Q's weights are constants here.
+        with self._autocast():
+            codes = self.actor(obs, _layers(params))
+            start = torch.zeros(obs.shape[:2], dtype=torch.int64, device=obs.device)
+            losses = -self.critic.first(obs, codes, start, critic).float().mean(-1)  # (M,)
+        return losses.sum(), losses
+
+    def _step_eager(self, batch: ReplayBatch, noise: torch.Tensor, masks: torch.Tensor,
+                    actor: bool, critic_masked: bool, actor_masked: bool) -> None:
+        """The update as one function of tensors (no host synchronisation): what
+        ``td3.compile`` compiles. ``masks``: ``(2, M)`` bool, the members due a critic step
+        and an actor step; the flags say, from the host, whether any actor step is due and
+        whether either mask leaves a member out."""
+        c, due, actor_due = self.config, masks[0], masks[1]
+        target = self.target(batch, noise)
+        # Gradients by layer (views of the flat rows), then flat: one copy, not a scatter each.
+        critic, actor = self.critic.net, self.actor.net
+        grads, losses = gradients(self._critic_losses, _tensors(critic.layers(critic.flat)),
+                                  batch, target)
+        self.critic_optimizer.step(flatten(grads, critic.flat.shape[1]),
+                                   due if critic_masked else None)
+        self.loss_sums[0] += torch.where(due, losses, 0.0)
+        self.loss_sums[1] += due
+        if not actor:
             return
-        # The actor follows ∇_c Q_1(s, c, 0) (Equation 2); Q's own weights get no gradient here,
-        # which also spares the backward pass their weight products.
-        for p in self._critic_params:
-            p.requires_grad_(False)
-        with self._autocast():
-            start = torch.zeros_like(batch.i)  # a new code is chosen: i = 0
-            actor_loss = -self.critic.first(batch.obs, self.actor(batch.obs), start).float().mean()
-        _clear_grads(self._actor_params)
-        actor_loss.backward()
-        self.actor_optimizer.step()
-        for p in self._critic_params:
-            p.requires_grad_(True)
-        self.loss_sums[2] += actor_loss.detach()
-        self.loss_sums[3] += 1
-        for target, source in self._polyak_pairs:
-            polyak(target, source, c.tau)
+        grads, losses = gradients(self._actor_losses, _tensors(actor.layers(actor.flat)),
+                                  batch.obs, critic.flat.detach())
+        self.actor_optimizer.step(flatten(grads, actor.flat.shape[1]),
+                                  actor_due if actor_masked else None)
+        self.loss_sums[2] += torch.where(actor_due, losses, 0.0)
+        self.loss_sums[3] += actor_due
+        mask = None if not actor_masked else actor_due
+        polyak(self.critic_target.net.flat, self.critic.net.flat, c.tau,
+               None if mask is None else self.critic_optimizer.rows(mask))
+        polyak(self.actor_target.net.flat, self.actor.net.flat, c.tau,
+               None if mask is None else self.actor_optimizer.rows(mask))
 
-    def take_diagnostics(self) -> dict[str, float]:
-        """Means over the updates since the last call (one host synchronisation), then reset.
+    def take_diagnostics(self, member: int) -> dict[str, float]:
+        """Member ``member``'s means over its updates since its last call (one host
+        synchronisation), then its sums reset.
 
         Returns:
             ``updates`` (critic steps), ``critic_loss``, ``actor_loss`` and ``mean_q``, the mean
             of Q_1(s, μ(s), 0) over the actor steps' batches (NaN where there was no step).
         """
-        critic, critic_steps, actor, actor_steps = self.loss_sums.tolist()
-        self.loss_sums.zero_()
+        critic, critic_steps, actor, actor_steps = self.loss_sums[:, member].tolist()
+        self.loss_sums[:, member] = 0
         nan = float("nan")
         return {
             "updates": int(critic_steps),
@@ -523,15 +733,41 @@ class Agent:
             "mean_q": -actor / actor_steps if actor_steps else nan,
         }
 
-    # Checkpoints -------------------------------------------------------------------------
+    # State, one member at a time ---------------------------------------------------------------
 
-    def modules(self) -> dict[str, nn.Module]:
-        return {
-            "actor": self.actor,
-            "critic": self.critic,
-            "actor_target": self.actor_target,
-            "critic_target": self.critic_target,
+    def state_dict(self, member: int) -> dict[str, torch.Tensor]:
+        """Member ``member``'s learner state, as a run alone holds it (``docs/``: checkpoint
+        format): each network's row(s) of flat weights, each optimiser's moments and step,
+        its counters, diagnostics sums and generator states."""
+        rows = [member, self.members + member]
+        state = {
+            "actor": self.actor.net.flat[member],
+            "actor_target": self.actor_target.net.flat[member],
+            "critic": self.critic.net.flat[rows],
+            "critic_target": self.critic_target.net.flat[rows],
+            "updates": torch.tensor(int(self.updates[member])),
+            "loss_sums": self.loss_sums[:, member],
         }
+        for name, optimizer in (("actor_optimizer", self.actor_optimizer),
+                                ("critic_optimizer", self.critic_optimizer)):
+            state |= {f"{name}.{k}": v for k, v in optimizer.state_of(member).items()}
+        for purpose in Streams.SAVED:
+            state[f"generator.{purpose}"] = getattr(self.streams[member], purpose).get_state()
+        return {k: v.detach().cpu().clone() for k, v in state.items()}
 
-    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        return {"actor_optimizer": self.actor_optimizer, "critic_optimizer": self.critic_optimizer}
+    @torch.no_grad()
+    def load_state_dict(self, member: int, state: dict[str, torch.Tensor]) -> None:
+        """Member ``member`` continues from ``state`` (:meth:`state_dict`'s, from any M)."""
+        rows = [member, self.members + member]
+        for name, module in (("actor", self.actor), ("actor_target", self.actor_target)):
+            module.net.flat[member] = state[name].to(self.device)
+        for name, module in (("critic", self.critic), ("critic_target", self.critic_target)):
+            module.net.flat[rows] = state[name].to(self.device)
+        self.updates[member] = int(state["updates"])
+        self.loss_sums[:, member] = state["loss_sums"].to(self.device)
+        for name, optimizer in (("actor_optimizer", self.actor_optimizer),
+                                ("critic_optimizer", self.critic_optimizer)):
+            optimizer.load_state_of(member, {k: state[f"{name}.{k}"]
+                                             for k in ("exp_avg", "exp_avg_sq", "step")})
+        for purpose in Streams.SAVED:
+            getattr(self.streams[member], purpose).set_state(state[f"generator.{purpose}"])

@@ -11,17 +11,22 @@ writes, into its directory:
 * ``metrics.json``: final and best return, area under the curve, steps per second, episodes;
   written last, so a run with ``metrics.json`` is complete;
 * ``policy/``: the final actor as safetensors beside its JSON metadata;
-* ``checkpoint/`` while it runs: everything needed to continue exactly (networks, optimisers,
-  replay buffer, generator states, counters, the evaluation history, and the current episode as
-  its start plus the actions taken since, replayed on resume). A run started where a checkpoint of
-  the same configuration exists continues from it; on CPU a run killed at any point and resumed
+* ``checkpoint/`` while it runs: everything needed to continue exactly — its member's slice of
+  the agent (``agent.*``: networks, optimiser moments and step, counters, diagnostics sums,
+  generator states; :meth:`ede.td3.Agent.state_dict`) and of the replay buffer (``buffer.*``),
+  the code under way, the evaluation history, and the current episode as its start plus the
+  actions taken since, replayed on resume. The format is the same for a run trained alone and
+  for a member of a group, so either resumes the other. A run started where a checkpoint of the
+  same configuration exists continues from it; on CPU a run killed at any point and resumed
   ends with the same ``eval.csv`` returns as an uninterrupted one.
+
+A group of runs (several seeds of one task and algorithm) is one :class:`ede.td3.Agent` with a
+member per run; a run alone is a group of one. Each run's outputs are what it gets alone.
 """
 
 from __future__ import annotations
 
 import csv
-import functools
 import hashlib
 import io
 import json
@@ -30,7 +35,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import gymnasium
 import numpy as np
@@ -40,7 +45,6 @@ from safetensors.torch import load_file, save_file
 from ede.atomic import remove_stale_temporaries, sha256, write_atomically, write_json, write_text
 from ede.config import EdeTD3Config, TD3Config
 from ede.embedding import ActionEmbedding
-from ede.group import GroupAgent
 from ede.nets import flush_denormals
 from ede.provenance import software_versions
 from ede.stats import area_under_curve
@@ -51,7 +55,6 @@ from ede.td3 import (
     CodeExecutor,
     EmbeddingAdapter,
     IdentityAdapter,
-    ReplayBatch,
     ReplayBuffer,
 )
 
@@ -69,11 +72,11 @@ class CheckpointWriteError(Exception):
     """A checkpoint could not be written (a full disk, ...); the previous one is intact."""
 
 
-CHECKPOINT_VERSION = 3  # 2: training diagnostics; 3: checksums, the run's identity
+CHECKPOINT_VERSION = 4  # 2: diagnostics; 3: checksums, identity; 4: a member's slice
 EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes are seeded apart from training ones
 EVAL_COLUMNS = ("step", "episode", "mean_return", "std_return", "wall_seconds")
 DIAGNOSTIC_COLUMNS = ("step", "updates", "critic_loss", "actor_loss", "mean_q")
-RESOURCES = {"threads", "device", "checkpoint_every"}  # td3 settings that leave results alone
+RESOURCES = {"threads", "device", "checkpoint_every", "compile"}  # td3 settings that leave results alone
 
 
 @dataclass(frozen=True)
@@ -106,31 +109,18 @@ class RunSpec:
 
 
 def evaluate(
-    env: gymnasium.Env, agent: Agent | _Actor, adapter: ActionAdapter, episodes: int, seed: int
+    env: gymnasium.Env, policy: Callable[[np.ndarray], torch.Tensor], adapter: ActionAdapter,
+    episodes: int, seed: int,
 ) -> np.ndarray:
-    """Returns of ``episodes`` deterministic episodes; episode e starts from ``reset(seed + e)``."""
-    executor, policy = CodeExecutor(env, adapter), functools.partial(agent.act, explore=False)
+    """Returns of ``episodes`` episodes of ``policy`` (deterministic: μ(s)); episode e starts
+    from ``reset(seed + e)``."""
+    executor = CodeExecutor(env, adapter)
     returns = np.zeros(episodes)
     for e in range(episodes):
         obs, _ = env.reset(seed=seed + e)
         for step in executor.episode(obs, policy):
             returns[e] += step.reward
     return returns
-
-
-class _Actor(Protocol):
-    def act(self, obs: np.ndarray, explore: bool) -> torch.Tensor: ...
-
-
-@dataclass
-class _Member:
-    """Member j of a group, acting as its agent alone would (``GroupAgent.act``)."""
-
-    group: GroupAgent
-    j: int
-
-    def act(self, obs: np.ndarray, explore: bool) -> torch.Tensor:
-        return self.group.act(self.j, obs, explore)
 
 
 @dataclass
@@ -172,32 +162,25 @@ def _csv(rows: list[dict[str, float]], columns: tuple[str, ...] = EVAL_COLUMNS) 
     return out.getvalue()
 
 
-class _Run:
-    """The mutable state of a run, and its checkpoint."""
+def _adapter(spec: RunSpec, space: gymnasium.spaces.Box, embedding: ActionEmbedding | None,
+             device: torch.device) -> ActionAdapter:
+    if spec.algo == "td3":
+        return IdentityAdapter(space.low, space.high, device, spec.td3.noise_units)
+    assert embedding is not None
+    ede = spec.ede_td3
+    return EmbeddingAdapter(embedding, ede.bound_scale, ede.target_noise_scale,
+                            ede.target_noise_clip, ede.plan_step_input)
 
-    def __init__(self, spec: RunSpec, embedding: ActionEmbedding | None, device: torch.device):
-        self.spec = spec
+
+class _Run:
+    """One run of a group: its environments, the episode under way, its counters and history.
+    Its learner state is member ``index`` of the group's agent and replay buffer."""
+
+    def __init__(self, index: int, spec: RunSpec, group: _Group) -> None:
+        self.index, self.spec, self.group = index, spec, group
         self.env = make(spec.task)
         self.eval_env = make(spec.task)
-        space = self.env.action_space
-        assert isinstance(space, gymnasium.spaces.Box)
-        obs_size = int(np.prod(self.env.observation_space.shape))
-        if spec.algo == "td3":
-            self.adapter: ActionAdapter = IdentityAdapter(
-                space.low, space.high, device, spec.td3.noise_units
-            )
-        else:
-            assert embedding is not None
-            ede = spec.ede_td3
-            self.adapter = EmbeddingAdapter(
-                embedding, ede.bound_scale, ede.target_noise_scale, ede.target_noise_clip,
-                ede.plan_step_input,
-            )
-        self.agent = Agent(obs_size, self.adapter, spec.td3, device, spec.seed)
-        self.actor: Agent | _Actor = self.agent  # who acts: the agent, or its seat in a group
-        capacity = min(spec.td3.buffer_size, spec.budget)
-        self.buffer = ReplayBuffer(capacity, obs_size, self.adapter.code_size, self.adapter.k, device)
-        self.executor = CodeExecutor(self.env, self.adapter)
+        self.executor = CodeExecutor(self.env, group.adapter)
         self.step = 0
         self.episodes = 0
         self.history: list[dict[str, float]] = []
@@ -205,20 +188,66 @@ class _Run:
         self.wall = 0.0  # seconds spent, over every session of this run
         self.obs, self.episode = _reset(self.env, spec.seed)
 
+    # The loop ------------------------------------------------------------------------------
+
+    def act(self, obs: np.ndarray) -> torch.Tensor:
+        """μ(s) of this run's member: what evaluation executes."""
+        return self.group.agent.act(self.index, obs, explore=False)
+
+    def _behaviour(self, obs: np.ndarray) -> torch.Tensor:
+        """The code training acts with: uniform for ``td3.start_steps`` steps, then μ(s) + noise."""
+        agent = self.group.agent
+        if self.step < self.spec.td3.start_steps:
+            return agent.random_code(self.index)
+        return agent.act(self.index, obs, explore=True)
+
+    def env_step(self) -> int:
+        """One environment step (Section 3: learn from every step).
+
+        Returns:
+            The number of updates due after it: with ``td3.update_schedule: step`` one; with
+            ``episode`` none until the episode ends, then one per step of it; none while the
+            start steps last or no batch can be sampled yet.
+        """
+        config, buffer = self.spec.td3, self.group.buffer
+        step = self.executor.step(self.obs, self._behaviour)
+        buffer.add(self.index, self.obs, step.code, step.i, step.reward, step.next_obs,
+                   step.terminated, step.truncated)
+        self.episode.actions.append(step.action)
+        self.episode.ret += step.reward
+        self.step += 1
+        updates = 1 if config.update_schedule == "step" else 0
+        if step.ended:
+            if config.update_schedule == "episode":
+                updates = len(self.episode.actions)  # one per step of the episode just ended
+            self.episodes += 1
+            self.obs, self.episode = _reset(self.env, None)
+        else:
+            self.obs = step.next_obs
+        if self.step < config.start_steps or buffer.sampleable(self.index) < config.batch_size:
+            return 0
+        return updates
+
+    def evaluate(self) -> dict[str, float]:
+        returns = evaluate(self.eval_env, self.act, self.group.adapter,
+                           self.spec.td3.eval_episodes, EVAL_SEED_OFFSET * (self.spec.seed + 1))
+        row = {"step": self.step, "episode": self.episodes, "mean_return": float(returns.mean()),
+               "std_return": float(returns.std()), "wall_seconds": round(self.wall, 3)}
+        self.history.append(row)
+        trained = self.group.agent.take_diagnostics(self.index)
+        if trained["updates"]:
+            self.diagnostics.append({"step": self.step, **trained})
+        return row
+
     # Checkpoints ---------------------------------------------------------------------------
 
     def save(self, path: Path) -> None:
-        tensors: dict[str, torch.Tensor] = {}
-        for name, module in self.agent.modules().items():
-            for key, value in module.state_dict().items():
-                tensors[f"{name}.{key}"] = value
-        for name, optimizer in self.agent.optimizers().items():
-            for index, state in optimizer.state_dict()["state"].items():
-                for key, value in state.items():
-                    tensors[f"{name}.{index}.{key}"] = value
-        buffer_tensors, buffer_counters = self.buffer.state()
-        tensors |= {f"buffer.{key}": value for key, value in buffer_tensors.items()}
-        tensors["generator"] = self.agent.generator.get_state()
+        """This run's checkpoint: its member's slice of the agent and the replay buffer
+        (``Agent.state_dict``, ``ReplayBuffer.state_dict``), its episode and its history — the
+        same whether it trained alone or in a group, so either can resume the other."""
+        group = self.group
+        tensors = {f"agent.{k}": v for k, v in group.agent.state_dict(self.index).items()}
+        tensors |= {f"buffer.{k}": v for k, v in group.buffer.state_dict(self.index).items()}
         plan = self.executor.plan
         tensors["code"] = self.executor.code
         tensors["plan"] = torch.as_tensor(plan)
@@ -226,7 +255,6 @@ class _Run:
             np.array(self.episode.actions, dtype=plan.dtype).reshape(-1, plan.shape[1])
         )
         tensors["obs"] = torch.as_tensor(np.asarray(self.obs))
-        tensors["loss_sums"] = self.agent.loss_sums
         state = {
             "version": CHECKPOINT_VERSION,
             "fingerprint": self.spec.fingerprint(),
@@ -234,9 +262,7 @@ class _Run:
             "step": self.step,
             "episodes": self.episodes,
             "i": self.executor.i,
-            "updates": self.agent.updates,
             "wall_seconds": self.wall,
-            "buffer": buffer_counters,
             "episode_start": self.episode.start,
             "episode_return": self.episode.ret,
             "history": self.history,
@@ -258,8 +284,8 @@ class _Run:
         Raises:
             CheckpointError: it cannot be used — a file missing, damaged or changed (its checksum),
                 an older format, another run's (another seed, task, params or embedding), or a
-                state its episode's replay does not reach. This run's state may then be partly
-                overwritten: the caller starts from a fresh run.
+                state its episode's replay does not reach. This run's member may then be partly
+                overwritten: the caller resets it (:meth:`_Group.reset`).
         """
         if not path.exists():
             return False
@@ -276,96 +302,77 @@ class _Run:
         return True
 
     def _restore(self, path: Path, state: dict[str, Any]) -> None:
-        tensors = load_file(path / "state.safetensors", device=str(self.agent.device))
-        for name, module in self.agent.modules().items():
-            module.load_state_dict({k.removeprefix(f"{name}."): v for k, v in tensors.items()
-                                    if k.startswith(f"{name}.")})
-        for name, optimizer in self.agent.optimizers().items():
-            saved = optimizer.state_dict()
-            per_param: dict[int, dict[str, torch.Tensor]] = {}
-            for key, value in tensors.items():
-                parts = key.split(".")
-                if parts[0] == name:
-                    per_param.setdefault(int(parts[1]), {})[parts[2]] = value
-            saved["state"] = per_param
-            optimizer.load_state_dict(saved)
-        self.buffer.load({k.removeprefix("buffer."): v for k, v in tensors.items()
-                          if k.startswith("buffer.")}, state["buffer"])
-        self.agent.generator.set_state(tensors["generator"].cpu())
-        self.agent.updates = state["updates"]
-        self.executor.code = tensors["code"]
-        self.executor.plan = tensors["plan"].cpu().numpy()
+        tensors = load_file(path / "state.safetensors")
+        group = self.group
+        group.agent.load_state_dict(self.index, {k.removeprefix("agent."): v
+                                                 for k, v in tensors.items()
+                                                 if k.startswith("agent.")})
+        group.buffer.load_state_dict(self.index, {k.removeprefix("buffer."): v
+                                                  for k, v in tensors.items()
+                                                  if k.startswith("buffer.")})
+        if int(group.buffer.count[self.index]) != state["step"]:
+            raise RuntimeError("the replay buffer does not hold the run's steps")
+        self.executor.code = tensors["code"].to(group.device)
+        self.executor.plan = tensors["plan"].numpy()
         self.executor.i = state["i"]
         self.step, self.episodes = state["step"], state["episodes"]
         self.wall, self.history = state["wall_seconds"], state["history"]
         self.diagnostics = state["diagnostics"]
-        self.agent.loss_sums.copy_(tensors["loss_sums"])
         self.episode = _Episode(
-            state["episode_start"], list(tensors["episode_actions"].cpu().numpy()),
+            state["episode_start"], list(tensors["episode_actions"].numpy()),
             state["episode_return"],
         )
         self.obs = _replay(self.env, self.episode)
-        if not np.array_equal(self.obs, tensors["obs"].cpu().numpy()):
+        if not np.array_equal(self.obs, tensors["obs"].numpy()):
             raise RuntimeError("replaying the episode did not reach the saved state")
 
 
-    # The loop ------------------------------------------------------------------------------
+class _Group:
+    """The runs of one task and algorithm that differ in their seeds, as one agent with a
+    member per run (M = 1 for a run alone) and one replay buffer."""
 
-    def evaluate(self) -> dict[str, float]:
-        returns = evaluate(self.eval_env, self.actor, self.adapter, self.spec.td3.eval_episodes,
-                           EVAL_SEED_OFFSET * (self.spec.seed + 1))
-        row = {"step": self.step, "episode": self.episodes, "mean_return": float(returns.mean()),
-               "std_return": float(returns.std()), "wall_seconds": round(self.wall, 3)}
-        self.history.append(row)
-        trained = self.agent.take_diagnostics()
-        if trained["updates"]:
-            self.diagnostics.append({"step": self.step, **trained})
-        return row
+    def __init__(self, specs: list[RunSpec], embedding: ActionEmbedding | None,
+                 device: torch.device) -> None:
+        spec, self.device = specs[0], device
+        probe = make(spec.task)
+        space = probe.action_space
+        assert isinstance(space, gymnasium.spaces.Box)
+        obs_size = int(np.prod(probe.observation_space.shape))
+        probe.close()
+        self.adapter = _adapter(spec, space, embedding, device)
+        self.agent = Agent(obs_size, self.adapter, spec.td3, device, [s.seed for s in specs])
+        capacity = min(spec.td3.buffer_size, spec.budget)
+        self.buffer = ReplayBuffer(capacity, obs_size, self.adapter.code_size, self.adapter.k,
+                                   device, len(specs))
+        self.runs = [_Run(j, s, self) for j, s in enumerate(specs)]
+        self._fresh = [self.agent.state_dict(j) for j in range(len(specs))]
 
-    def _behaviour(self, obs: np.ndarray) -> torch.Tensor:
-        """The code training acts with: uniform for ``td3.start_steps`` steps, then μ(s) + noise."""
-        if self.step < self.spec.td3.start_steps:
-            return self.agent.random_code()
-        return self.actor.act(obs, explore=True)
+    def reset(self, index: int) -> _Run:
+        """Run ``index`` from its start again (after a checkpoint that could not be used)."""
+        self.agent.load_state_dict(index, self._fresh[index])
+        self.buffer.count[index] = 0
+        self.runs[index] = _Run(index, self.runs[index].spec, self)
+        return self.runs[index]
 
-    def env_step(self, update: bool = True) -> int:
-        """One environment step and its updates (Section 3: learn from every step).
+    def update(self, due: np.ndarray) -> None:
+        """The updates due after a step, ``due[m]`` for member m: as many batched updates as
+        the most any member is due, each member masked out once it has had its own."""
+        for u in range(int(due.max(initial=0))):
+            self.agent.update(self.buffer, due > u)
 
-        With ``td3.update_schedule: step``, one update after the step; with ``episode``, none
-        until the episode ends, then one per step of it. With ``update=False`` the updates are
-        left to the caller (a group updates its members together).
-
-        Returns:
-            The number of updates due after this step.
-        """
-        config = self.spec.td3
-        step = self.executor.step(self.obs, self._behaviour)
-        self.buffer.add(self.obs, step.code, step.i, step.reward, step.next_obs, step.terminated,
-                        step.truncated)
-        self.episode.actions.append(step.action)
-        self.episode.ret += step.reward
-        self.step += 1
-        updates = 1 if config.update_schedule == "step" else 0
-        if step.ended:
-            if config.update_schedule == "episode":
-                updates = len(self.episode.actions)  # one per step of the episode just ended
-            self.episodes += 1
-            self.obs, self.episode = _reset(self.env, None)
-        else:
-            self.obs = step.next_obs
-        if self.step < config.start_steps or self.buffer.sampleable < config.batch_size:
-            return 0
-        if update:
-            self.update(updates)
-        return updates
-
-    def update(self, times: int) -> None:
-        """``times`` updates of this run's own agent, each on a batch sampled for it."""
-        for _ in range(times):
-            self.agent.update(self.sample())
-
-    def sample(self) -> ReplayBatch:
-        return self.buffer.sample(self.spec.td3.batch_size, self.agent.generator)
+    def advance(self) -> list[_Run]:
+        """One step of the runs furthest behind (all of them while they are in step, every one
+        while the group is in step) and their updates; returns the runs that stepped."""
+        active = [run for run in self.runs if run.step < run.spec.budget]
+        if not active:
+            return []
+        behind = min(run.step for run in active)
+        stepping = [run for run in active if run.step == behind]
+        due = np.zeros(len(self.runs), dtype=np.int64)
+        for run in stepping:
+            due[run.index] = run.env_step()
+        self.update(due)
+        return stepping
 
 
 def _first_line(error: BaseException) -> str:
@@ -434,18 +441,17 @@ def train_group(
     notice: Callable[[str], None] = print,
 ) -> list[dict[str, Any]]:
     """Train runs of one task and algorithm that differ only in their seeds, each into its
-    ``out``, in one process: their environments stepped in turn, their updates as one
-    (:class:`ede.group.GroupAgent`). Each member's outputs are those it gets alone. With
-    ``td3.update_schedule: episode`` the members' episodes end together on tasks that never end
-    early (all of the paper's), and their per-episode batches are one; where episodes end at
-    different steps, the group dissolves and its members go on one by one, still exactly.
+    ``out``, in one process: one agent with a member per run (:class:`ede.td3.Agent`), their
+    environments stepped in turn, their updates as one. Each member's outputs are those it gets
+    alone. Members due different numbers of updates (per-episode batches of episodes that ended
+    apart) are masked in the updates they are not due; members resumed from different steps
+    step in turn, the ones behind first, until they are in step.
     CPU arithmetic flushes subnormal numbers to zero throughout (:func:`ede.nets.flush_denormals`).
 
-    Each resumes from its ``out/checkpoint`` when there is one; members that resume from
-    earlier steps than others first catch up alone. A checkpoint that cannot be used
-    (:meth:`_Run.load`) is reported through ``notice`` and moved aside to
-    ``out/checkpoint.bad-<time>``, and that run starts over; with ``bad_checkpoint="refuse"``
-    it raises :class:`CheckpointError` instead, touching nothing.
+    Each resumes from its ``out/checkpoint`` when there is one (written alone or in a group).
+    A checkpoint that cannot be used (:meth:`_Run.load`) is reported through ``notice`` and
+    moved aside to ``out/checkpoint.bad-<time>``, and that run starts over; with
+    ``bad_checkpoint="refuse"`` it raises :class:`CheckpointError` instead, touching nothing.
 
     Returns:
         Each member's metrics, as written to its ``metrics.json``.
@@ -462,71 +468,39 @@ def train_group(
     alike = all(replace(s, seed=0) == replace(spec, seed=0) for s in specs)
     if not alike or len({s.seed for s in specs}) != len(specs):
         raise ValueError("a group's runs must differ in their seeds only")
-    sessions = [_Session.start(s, out, embedding, device, bad_checkpoint, notice)
-                for s, out in zip(specs, outs)]
+    group = _Group(specs, embedding, device)
+    sessions = [_Session.start(group, j, out, bad_checkpoint, notice)
+                for j, out in enumerate(outs)]
     if progress is not None:
-        progress(sum(session.run.step for session in sessions))
-    ahead = max(session.run.step for session in sessions)
-    for session in sessions:  # members resumed from earlier checkpoints catch up alone
-        while session.run.step < ahead:
-            session.run.env_step()
-            session.after_step(progress)
-    group = None
-    if len({session.run.agent.updates for session in sessions}) > 1:  # dissolved before
-        notice("the members have updated different numbers of times: they go on one by one")
-    elif len(sessions) > 1:
-        group = GroupAgent([s.run.agent for s in sessions])
-    if group is not None:
-        for j, session in enumerate(sessions):
-            session.run.actor = _Member(group, j)
-            session.group = group
-    runs = [session.run for session in sessions]
-    while runs[0].step < spec.budget:
-        due = [run.env_step(update=group is None) for run in runs]
-        if group is not None and len(set(due)) > 1:
-            # Per-episode batches of episodes that ended at different steps (a task that can end
-            # early): the members cannot update as one any more, so they go on one by one.
-            notice("episodes of different lengths: the group's members go on one by one")
-            _dissolve(group, sessions)
-            group = None
-            for run, updates in zip(runs, due):
-                run.update(updates)
-        elif group is not None:
-            for _ in range(due[0]):
-                group.update([run.sample() for run in runs])
-        for session in sessions:
-            session.after_step(progress)
-    if group is not None:
-        group.sync()
+        progress(sum(run.step for run in group.runs))
+    while stepped := group.advance():
+        for run in stepped:
+            sessions[run.index].after_step(progress)
     return [session.finish(keep_checkpoint) for session in sessions]
-
-
-def _dissolve(group: GroupAgent, sessions: list[_Session]) -> None:
-    """Hand each member's state back to its own agent, which acts and updates from now on."""
-    group.sync()
-    for session in sessions:
-        session.run.actor = session.run.agent
-        session.group = None
 
 
 @dataclass
 class _Session:
-    """One run of a group in this process: its run, outputs, and wall clock."""
+    """One run of a group in this process: its outputs and wall clock."""
 
-    run: _Run
+    group: _Group
+    index: int
     out: Path
     resumed: bool
     started: float = field(default_factory=time.perf_counter)
     steps_at_start: int = 0
     wall_at_start: float = 0.0
-    group: GroupAgent | None = None
+
+    @property
+    def run(self) -> _Run:
+        return self.group.runs[self.index]
 
     @classmethod
-    def start(cls, spec: RunSpec, out: Path, embedding: ActionEmbedding | None,
-              device: torch.device, bad_checkpoint: str, notice: Callable[[str], None]) -> _Session:
+    def start(cls, group: _Group, index: int, out: Path, bad_checkpoint: str,
+              notice: Callable[[str], None]) -> _Session:
         out.mkdir(parents=True, exist_ok=True)
         checkpoint = out / "checkpoint"
-        run = _Run(spec, embedding, device)
+        run = group.runs[index]
         try:
             resumed = run.load(checkpoint)
         except CheckpointError as error:
@@ -534,8 +508,8 @@ class _Session:
                 raise CheckpointError(f"{checkpoint}: {error}") from None
             aside = _move_aside(checkpoint)
             notice(f"{checkpoint}: {error}; moved aside to {aside.name}, starting over")
-            run, resumed = _Run(spec, embedding, device), False
-        session = cls(run, out, resumed, steps_at_start=run.step, wall_at_start=run.wall)
+            run, resumed = group.reset(index), False
+        session = cls(group, index, out, resumed, steps_at_start=run.step, wall_at_start=run.wall)
         if not run.history:
             run.evaluate()
             _write_curves(out, run)
@@ -555,8 +529,6 @@ class _Session:
             _write_curves(self.out, run)
         if run.step % config.checkpoint_every == 0 and run.step < run.spec.budget:
             self.clock()
-            if self.group is not None:
-                self.group.sync()
             checkpoint = self.out / "checkpoint"
             try:
                 run.save(checkpoint)
@@ -581,7 +553,7 @@ class _Session:
             "episodes": run.episodes,
             "resumed_from_step": self.steps_at_start if self.resumed else None,
         }
-        save_policy(out / "policy", run.agent, spec, run.adapter)
+        save_policy(out / "policy", self.group.agent, self.index, spec, self.group.adapter)
         write_json(out / "run.json", {**spec.identity(), "software": software_versions()})
         write_json(out / "metrics.json", metrics)  # last: a run with metrics.json is complete
         checkpoint = out / "checkpoint"
@@ -602,11 +574,14 @@ def _move_aside(checkpoint: Path) -> Path:
     return aside
 
 
-def save_policy(path: Path, agent: Agent, spec: RunSpec, adapter: ActionAdapter) -> None:
-    """The final actor: ``policy.safetensors`` beside ``policy.json``."""
+def save_policy(path: Path, agent: Agent, member: int, spec: RunSpec,
+                adapter: ActionAdapter) -> None:
+    """Member ``member``'s final actor: ``policy.safetensors`` (the single-network ``Actor``'s
+    tensors: ``net.0.weight``, ``net.0.bias``, ..., ``centre``, ``half_range``; an
+    ``ede.nets.mlp`` of ``hidden`` loads ``net.*``) beside ``policy.json``."""
 
     def write(tmp: Path) -> None:
-        state = {k: v.detach().cpu().contiguous() for k, v in agent.actor.state_dict().items()}
+        state = {k: v.detach().cpu().contiguous() for k, v in agent.actor.state_of(member).items()}
         save_file(state, tmp / "policy.safetensors")
         meta = {
             **spec.identity(),

@@ -40,7 +40,7 @@ class FixedAdapter:
 
 def agent_for(k_adapter, **overrides) -> Agent:
     config = TD3Config(hidden=[16, 16], policy_noise=0.0, discount=GAMMA, **overrides)
-    return Agent(OBS, k_adapter, config, torch.device("cpu"), seed=0)
+    return Agent(OBS, k_adapter, config, torch.device("cpu"), seeds=[0])
 
 
 def filled_buffer(rewards, terminated=(), truncated=(), i=None) -> ReplayBuffer:
@@ -49,6 +49,7 @@ def filled_buffer(rewards, terminated=(), truncated=(), i=None) -> ReplayBuffer:
     buffer = ReplayBuffer(32, OBS, CODE, K, torch.device("cpu"))
     for t in range(n):
         buffer.add(
+            0,
             obs=np.full(OBS, t, dtype=np.float32),
             code=torch.tensor([t / 10, -t / 10]),
             i=(t % K) if i is None else i[t],
@@ -61,24 +62,22 @@ def filled_buffer(rewards, terminated=(), truncated=(), i=None) -> ReplayBuffer:
 
 
 def batch_at(buffer: ReplayBuffer, index: int):
-    """The batch of one sample at ``index``: sample() with the random offset pinned."""
-    generator = torch.Generator().manual_seed(0)
-    batch = buffer.sample(1, generator)
-    steps = (torch.tensor([index])[:, None] + torch.arange(K)) % buffer.capacity
-    return batch._replace(
-        obs=buffer.obs[[index]], code=buffer.code[[index]], i=buffer.i[[index]],
-        rewards=buffer.reward[steps], terminated=buffer.terminated[steps],
-        truncated=buffer.truncated[steps], next_obs=buffer.next_obs[steps],
-    )
+    """The batch of one sample (one member) at row ``index``."""
+    return buffer.gather(torch.tensor([[index]]))
+
+
+def target(agent: Agent, batch) -> torch.Tensor:
+    """Equation 1 without target noise (the agents here have policy_noise 0)."""
+    return agent.target(batch, torch.zeros_like(batch.code))
 
 
 def q_min(agent: Agent, obs: torch.Tensor, code: torch.Tensor, i: int) -> float:
-    q1, q2 = agent.critic_target(obs[None], code[None], torch.tensor([i]))
-    return torch.minimum(q1, q2).item()
+    q = agent.critic_target(obs[None, None], code[None, None], torch.tensor([[i]]))
+    return q.amin(0).item()
 
 
 def next_code(agent: Agent, obs: torch.Tensor) -> torch.Tensor:
-    return agent.clip(agent.actor_target(obs[None]))[0]
+    return agent.clip(agent.actor_target(obs[None, None]))[0, 0]
 
 
 REWARDS = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0]
@@ -91,7 +90,7 @@ def test_equation_1_at_i_0_sums_k_rewards_and_bootstraps_at_the_next_choice() ->
     s8 = torch.full((OBS,), 8.0)
     expected = sum(GAMMA**m * REWARDS[4 + m] for m in range(4))
     expected += GAMMA**4 * q_min(agent, s8, next_code(agent, s8), 0)
-    assert agent.target(batch).item() == pytest.approx(expected, rel=1e-6)
+    assert target(agent, batch).item() == pytest.approx(expected, rel=1e-6)
     parts = k_step_targets(batch, GAMMA)
     assert parts.next_i.item() == 0 and not parts.keep_code.item()
 
@@ -102,7 +101,7 @@ def test_equation_1_at_i_3_has_one_step_left() -> None:
     batch = batch_at(buffer, 3)  # i = 3: only r_3 remains, then s_4
     s4 = torch.full((OBS,), 4.0)
     expected = REWARDS[3] + GAMMA * q_min(agent, s4, next_code(agent, s4), 0)
-    assert agent.target(batch).item() == pytest.approx(expected, rel=1e-6)
+    assert target(agent, batch).item() == pytest.approx(expected, rel=1e-6)
 
 
 def test_an_episode_that_terminates_inside_the_code_is_cut_without_bootstrap() -> None:
@@ -111,7 +110,7 @@ def test_an_episode_that_terminates_inside_the_code_is_cut_without_bootstrap() -
     buffer = filled_buffer(REWARDS, terminated={5}, i=[0, 1, 2, 3, 0, 1, 0, 1, 2, 3, 0, 1])
     batch = batch_at(buffer, 4)
     expected = REWARDS[4] + GAMMA * REWARDS[5]  # r_6, r_7 belong to the next episode
-    assert agent.target(batch).item() == pytest.approx(expected, rel=1e-6)
+    assert target(agent, batch).item() == pytest.approx(expected, rel=1e-6)
     assert k_step_targets(batch, GAMMA).discount.item() == 0.0
 
 
@@ -119,9 +118,9 @@ def test_a_time_limit_inside_the_code_bootstraps_with_the_code_going_on() -> Non
     agent = agent_for(FixedAdapter())
     buffer = filled_buffer(REWARDS, truncated={5}, i=[0, 1, 2, 3, 0, 1, 0, 1, 2, 3, 0, 1])
     batch = batch_at(buffer, 4)  # code of step 4 ran 2 of its 4 steps when time ran out
-    s6, code = torch.full((OBS,), 6.0), buffer.code[4]
+    s6, code = torch.full((OBS,), 6.0), buffer.code[4, 0]
     expected = REWARDS[4] + GAMMA * REWARDS[5] + GAMMA**2 * q_min(agent, s6, code, 2)
-    assert agent.target(batch).item() == pytest.approx(expected, rel=1e-6)
+    assert target(agent, batch).item() == pytest.approx(expected, rel=1e-6)
     parts = k_step_targets(batch, GAMMA)
     assert parts.keep_code.item() and parts.next_i.item() == 2
 
@@ -133,7 +132,7 @@ def test_a_time_limit_at_the_codes_last_step_chooses_a_new_code() -> None:
     s8 = torch.full((OBS,), 8.0)
     expected = sum(GAMMA**m * REWARDS[4 + m] for m in range(4))
     expected += GAMMA**4 * q_min(agent, s8, next_code(agent, s8), 0)
-    assert agent.target(batch).item() == pytest.approx(expected, rel=1e-6)
+    assert target(agent, batch).item() == pytest.approx(expected, rel=1e-6)
 
 
 def test_with_k_1_the_target_is_td3s() -> None:
@@ -141,21 +140,21 @@ def test_with_k_1_the_target_is_td3s() -> None:
     agent = agent_for(adapter)
     buffer = ReplayBuffer(8, OBS, CODE, 1, torch.device("cpu"))
     for t in range(4):
-        buffer.add(np.full(OBS, t, dtype=np.float32), torch.zeros(CODE), 0, float(t), 
+        buffer.add(0, np.full(OBS, t, dtype=np.float32), torch.zeros(CODE), 0, float(t), 
                    np.full(OBS, t + 1, dtype=np.float32), t == 2, False)
-    batch = buffer.sample(64, torch.Generator().manual_seed(1))
-    targets = agent.target(batch)
-    for obs, target, reward in zip(batch.obs, targets, batch.rewards[:, 0]):
+    batch = buffer.sample(64, [torch.Generator().manual_seed(1)])
+    targets = target(agent, batch)
+    for obs, y, reward in zip(batch.obs[0], targets[0], batch.rewards[0, :, 0]):
         t = int(obs[0].item())
         s1 = torch.full((OBS,), t + 1.0)
         bootstrap = 0.0 if t == 2 else GAMMA * q_min(agent, s1, next_code(agent, s1), 0)
-        assert target.item() == pytest.approx(reward.item() + bootstrap, rel=1e-6)
+        assert y.item() == pytest.approx(reward.item() + bootstrap, rel=1e-6)
 
 
 def test_the_newest_k_minus_1_steps_are_never_sampled() -> None:
     buffer = filled_buffer(REWARDS[:6])
-    batch = buffer.sample(500, torch.Generator().manual_seed(0))
-    assert set(batch.obs[:, 0].long().tolist()) == {0, 1, 2}
+    batch = buffer.sample(500, [torch.Generator().manual_seed(0)])
+    assert set(batch.obs[0, :, 0].long().tolist()) == {0, 1, 2}
 
 
 def test_the_actor_learns_only_through_the_critic_at_i_0(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -164,9 +163,9 @@ def test_the_actor_learns_only_through_the_critic_at_i_0(monkeypatch: pytest.Mon
     seen_i = []
     original = type(agent.critic).first
 
-    def spy(self, obs, code, i):
+    def spy(self, obs, code, i, flat):
         seen_i.append(i.clone())
-        return original(self, obs, code, i)
+        return original(self, obs, code, i, flat)
 
     monkeypatch.setattr(type(agent.critic), "first", spy)
     critic_after_its_step = {}
@@ -179,7 +178,7 @@ def test_the_actor_learns_only_through_the_critic_at_i_0(monkeypatch: pytest.Mon
     step = agent.critic_optimizer.step
     agent.critic_optimizer.step = snapshot
     actor_before = [p.clone() for p in agent.actor.parameters()]
-    agent.update(buffer.sample(16, torch.Generator().manual_seed(0)))
+    agent.update(buffer)
     assert len(seen_i) == 1 and torch.all(seen_i[0] == 0)
     assert any(not torch.equal(a, b) for a, b in zip(actor_before, agent.actor.parameters()))
     for key, value in agent.critic.state_dict().items():  # the actor step left Q alone
@@ -191,10 +190,10 @@ def test_actor_updates_wait_for_the_policy_delay_and_targets_move_by_tau() -> No
     buffer = filled_buffer(REWARDS)
     actor_before = [p.clone() for p in agent.actor.parameters()]
     target_before = [p.clone() for p in agent.critic_target.parameters()]
-    agent.update(buffer.sample(16, torch.Generator().manual_seed(0)))  # update 1: critic only
+    agent.update(buffer)  # update 1: critic only
     assert all(torch.equal(a, b) for a, b in zip(actor_before, agent.actor.parameters()))
     assert all(torch.equal(a, b) for a, b in zip(target_before, agent.critic_target.parameters()))
-    agent.update(buffer.sample(16, torch.Generator().manual_seed(1)))  # update 2: actor, targets
+    agent.update(buffer)  # update 2: actor, targets
     for old, new, online in zip(target_before, agent.critic_target.parameters(),
                                 agent.critic.parameters()):
         torch.testing.assert_close(new, 0.75 * old + 0.25 * online)
@@ -212,14 +211,15 @@ class BoxEmbedding:
 def largest_target_noise(adapter, noise_clip: float = 0.5, **overrides) -> float:
     """The largest |c' − μ'(s')| over a batch, with a target noise std far above its clip."""
     config = TD3Config(hidden=[16, 16], policy_noise=1e3, noise_clip=noise_clip, **overrides)
-    agent = Agent(OBS, adapter, config, torch.device("cpu"), seed=0)
+    agent = Agent(OBS, adapter, config, torch.device("cpu"), seeds=[0])
     buffer = filled_buffer(REWARDS) if adapter.k == K else filled_buffer_k1()
     seen = []
     forward = agent.critic_target.forward
     agent.critic_target.forward = (
         lambda obs, code, i: seen.append((obs, code)) or forward(obs, code, i)
     )
-    agent.target(buffer.sample(64, torch.Generator().manual_seed(0)))
+    batch = buffer.sample(64, [torch.Generator().manual_seed(0)])
+    agent.target(batch, torch.randn(batch.code.shape, generator=torch.Generator().manual_seed(1)))
     obs, code = seen[0]
     return (code - agent.clip(agent.actor_target(obs))).abs().max().item()
 
@@ -227,7 +227,7 @@ def largest_target_noise(adapter, noise_clip: float = 0.5, **overrides) -> float
 def filled_buffer_k1() -> ReplayBuffer:
     buffer = ReplayBuffer(32, OBS, CODE, 1, torch.device("cpu"))
     for t in range(8):
-        buffer.add(np.full(OBS, t, dtype=np.float32), torch.zeros(CODE), 0, 0.0,
+        buffer.add(0, np.full(OBS, t, dtype=np.float32), torch.zeros(CODE), 0, 0.0,
                    np.full(OBS, t + 1, dtype=np.float32), False, False)
     return buffer
 
@@ -247,17 +247,17 @@ def test_td3_noise_is_absolute_or_relative_to_the_action_box(units, expected) ->
     adapter = IdentityAdapter(-2 * np.ones(CODE), 2 * np.ones(CODE), torch.device("cpu"), units)
     assert largest_target_noise(adapter) == pytest.approx(expected, abs=1e-5)
     config = TD3Config(hidden=[16, 16], exploration_noise=0.1)
-    agent = Agent(OBS, adapter, config, torch.device("cpu"), seed=0)
+    agent = Agent(OBS, adapter, config, torch.device("cpu"), seeds=[0])
     obs = np.zeros(OBS, dtype=np.float32)
-    mean = agent.act(obs, explore=False)
-    noise = torch.stack([agent.act(obs, explore=True) - mean for _ in range(4000)])
+    mean = agent.act(0, obs, explore=False)
+    noise = torch.stack([agent.act(0, obs, explore=True) - mean for _ in range(4000)])
     assert noise.std().item() == pytest.approx(0.1 * expected / 0.5, rel=0.05)
 
 
 def test_critic_sees_the_plan_step_as_a_one_hot_or_a_scalar() -> None:
     obs, code, i = torch.zeros(3, OBS), torch.ones(3, CODE), torch.tensor([0, 2, 3])
-    onehot = Critic(OBS, CODE, K, [8], "onehot")._inputs(obs, code, i)
-    scalar = Critic(OBS, CODE, K, [8], "scalar")._inputs(obs, code, i)
+    onehot = Critic(OBS, CODE, K, [8], "onehot").inputs(obs, code, i)
+    scalar = Critic(OBS, CODE, K, [8], "scalar").inputs(obs, code, i)
     assert onehot[:, OBS + CODE:].tolist() == torch.eye(K)[i].tolist()
     assert scalar[:, OBS + CODE:].tolist() == [[0.0], [2.0], [3.0]]
 
@@ -276,9 +276,9 @@ def test_critic_repeats_its_action_input_as_asked(obs_size, code_size, k, plan_s
                                                   copies) -> None:
     critic = Critic(obs_size, code_size, k, [8], plan_step, repeat)
     step_size = 0 if k == 1 else (k if plan_step == "onehot" else 1)
-    assert critic.q1[0].in_features == obs_size + copies * (code_size + step_size)
+    assert critic.net.shapes[0][1] == obs_size + copies * (code_size + step_size)
     obs, code = torch.randn(2, obs_size), torch.randn(2, code_size)
-    x = critic._inputs(obs, code, torch.tensor([0, k - 1]))
+    x = critic.inputs(obs, code, torch.tensor([0, k - 1]))
     pair = x[:, obs_size:].reshape(2, copies, -1)
     assert torch.equal(pair, pair[:, :1].expand_as(pair)) and torch.equal(pair[:, 0, :code_size], code)
 
