@@ -23,23 +23,27 @@ import torch
 
 from ede.config import EdeTD3Config, TD3Config
 from ede.nets import flush_denormals
-from ede.td3 import Agent, ReplayBatch
-from ede.training import RunSpec, _Run
+import numpy as np
+
+from ede.td3 import Agent, MemberAdam, ReplayBatch
+from ede.training import RunSpec, _Group
 
 SMALLEST_NORMAL = torch.finfo(torch.float32).tiny
 
 
-def subnormal_share(optimizer: torch.optim.Optimizer, moment: str) -> float:
-    values = torch.cat([state[moment].flatten() for state in optimizer.state.values()]).abs()
+def subnormal_share(optimizer: MemberAdam, moment: str) -> float:
+    values = getattr(optimizer, moment).abs()
     return ((values > 0) & (values < SMALLEST_NORMAL)).float().mean().item()
 
 
-def updates_per_second(agent: Agent, batches: list[ReplayBatch], flush: bool) -> float:
+def updates_per_second(agent: Agent, batches: list[tuple[ReplayBatch, torch.Tensor]],
+                       flush: bool) -> float:
     agent = copy.deepcopy(agent)
+    due = np.ones(1, dtype=bool)
     with flush_denormals() if flush else nullcontext():
         start = time.perf_counter()
-        for batch in batches:
-            agent.update(batch)
+        for batch, noise in batches:
+            agent.step(batch, noise, due)
     return len(batches) / (time.perf_counter() - start)
 
 
@@ -52,18 +56,19 @@ def main() -> None:
     torch.set_num_threads(1)
     config = TD3Config(hidden=[400, 300], batch_size=100, update_schedule="step",
                        buffer_size=args.steps)
-    run = _Run(RunSpec(args.task, "td3", 0, args.steps, config, EdeTD3Config()), None,
-               torch.device("cpu"))
+    group = _Group([RunSpec(args.task, "td3", 0, args.steps, config, EdeTD3Config())], None,
+                   torch.device("cpu"))
     start = time.perf_counter()
-    while run.step < args.steps:
-        run.env_step()
+    while group.advance():
+        pass
     print(f"{args.task}: {args.steps} steps of TD3 (400-300, batch 100) without flushing in "
           f"{time.perf_counter() - start:.0f} s")
-    agent = run.agent
+    agent = group.agent
     for name, optimizer in (("critic", agent.critic_optimizer), ("actor", agent.actor_optimizer)):
         print(f"  {name} Adam moments subnormal: first {subnormal_share(optimizer, 'exp_avg'):.1%}, "
               f"second {subnormal_share(optimizer, 'exp_avg_sq'):.1%}")
-    batches = [run.sample() for _ in range(args.updates)]
+    everyone = np.ones(1, dtype=bool)
+    batches = [agent.draw(group.buffer, everyone) for _ in range(args.updates)]
     rates = {False: [], True: []}
     for _ in range(3):
         for flush in (False, True):

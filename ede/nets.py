@@ -90,6 +90,7 @@ class StackedMLP(nn.Module):
                 bound = 1 / math.sqrt(weight.shape[1])
                 nn.init.uniform_(bias, -bound, bound, generator=generator)
         self.flat = nn.Parameter(flat)
+        self._views: tuple[int, Layers] | None = None  # the layers of ``flat``, listed once
 
     def layers(self, flat: torch.Tensor) -> Layers:
         """Views of each layer's weight ``(..., out, in)`` and bias ``(..., out)`` in ``flat``
@@ -118,7 +119,12 @@ class StackedMLP(nn.Module):
         into two products of one batch, which keeps every batch at two matrices or more when G
         may be 1.
         """
-        layers = self.layers(self.flat) if layers is None else layers
+        if layers is None and torch.compiler.is_compiling():
+            layers = self.layers(self.flat.detach())
+        elif layers is None:
+            if self._views is None or self._views[0] != self.flat.data_ptr():
+                self._views = (self.flat.data_ptr(), self.layers(self.flat.detach()))
+            layers = self._views[1]  # the parameter's own layers: constants (no gradient)
         groups, rows = x.shape[:2]
         if halves:
             if rows % 2:

@@ -190,6 +190,7 @@ class CodeExecutor:
 # Random streams -------------------------------------------------------------------------------
 
 # Each purpose's key in a member's seed sequence: a new purpose takes a new key and shifts none.
+HALVES = True
 PURPOSES = {"weights": 0, "exploration": 1, "target_noise": 2, "replay": 3, "start_codes": 4}
 
 
@@ -231,7 +232,7 @@ class Actor(nn.Module):
 
     def forward(self, obs: torch.Tensor, layers: Layers | None = None) -> torch.Tensor:
         """``(M, B, O) -> (M, B, C)``, member m on its own batch."""
-        return self.centre + self.half_range * torch.tanh(self.net(obs, layers, halves=True))
+        return self.centre + self.half_range * torch.tanh(self.net(obs, layers, halves=HALVES))
 
     def one(self, member: int, obs: torch.Tensor) -> torch.Tensor:
         """Member ``member`` alone: ``(B, O) -> (B, C)``."""
@@ -297,7 +298,7 @@ class Critic(nn.Module):
               flat: torch.Tensor) -> torch.Tensor:
         """Q1 alone, ``(M, B)``, with the weights ``flat`` (every row of the critic)."""
         q1 = self.net.layers(flat[:self.members])
-        return self.net(self.inputs(obs, code, i), q1, halves=True).squeeze(-1)
+        return self.net(self.inputs(obs, code, i), q1, halves=HALVES).squeeze(-1)
 
     def state_of(self, member: int) -> dict[str, torch.Tensor]:
         """One member's twins as the single-run ``Critic`` named them (``q1.0.weight``, ...)."""
@@ -458,34 +459,44 @@ def k_step_targets(batch: ReplayBatch, gamma: float) -> TargetParts:
     return TargetParts(returns, discount, bootstrap_obs, cut_short, next_i)
 
 
+def _adam_rows(params: list[torch.Tensor], grads: list[torch.Tensor],
+               exp_avgs: list[torch.Tensor], exp_avg_sqs: list[torch.Tensor],
+               steps: torch.Tensor, mask: torch.Tensor | None, lr: float, beta1: float,
+               beta2: float, eps: float) -> None:
+    """torch's fused Adam kernel on each row of each stacked tensor in ``params`` as a tensor of
+    its own, with the step count of the row's member (row r of a tensor belongs to member
+    r mod M); members where ``mask`` is false keep everything bit for bit."""
+    members = steps.shape[0]
+    if mask is not None:
+        kept = [t.clone() for t in (*params, *exp_avgs, *exp_avg_sqs)]
+        steps.add_(mask.to(steps.dtype))
+    else:
+        steps.add_(1)
+
+    def rows(tensors: list[torch.Tensor]) -> list[torch.Tensor]:
+        return [t[r] for t in tensors for r in range(t.shape[0])]
+
+    torch._fused_adam_(
+        rows(params), rows(grads), rows(exp_avgs), rows(exp_avg_sqs), [],
+        [steps[r % members] for t in params for r in range(t.shape[0])],
+        lr=lr, beta1=beta1, beta2=beta2, weight_decay=0.0, eps=eps, amsgrad=False,
+        maximize=False,
+    )
+    if mask is not None:
+        for tensor, old in zip((*params, *exp_avgs, *exp_avg_sqs), kept):
+            keep = ~mask.repeat(tensor.shape[0] // members).view(-1, *[1] * (tensor.dim() - 1))
+            torch.where(keep, old, tensor, out=tensor)
+
+
 @torch.library.custom_op("ede::member_adam_", mutates_args=("param", "exp_avg", "exp_avg_sq",
                                                             "steps"))
 def _member_adam(param: torch.Tensor, grad: torch.Tensor, exp_avg: torch.Tensor,
                  exp_avg_sq: torch.Tensor, steps: torch.Tensor, mask: torch.Tensor | None,
                  lr: float, beta1: float, beta2: float, eps: float) -> None:
-    """torch's fused Adam kernel on each row of ``param`` as a tensor of its own, with the step
-    count of the row's member; members where ``mask`` is false keep everything bit for bit.
-
-    An operator of its own so that ``torch.compile`` keeps the kernel whole (it cannot trace the
-    fused kernel on views of a parameter); in eager mode it is the same call.
-    """
-    members = steps.shape[0]
-    if mask is not None:
-        kept = (param.clone(), exp_avg.clone(), exp_avg_sq.clone())
-        steps.add_(mask.to(steps.dtype))
-    else:
-        steps.add_(1)
-    rows = range(param.shape[0])
-    torch._fused_adam_(
-        [param[r] for r in rows], [grad[r] for r in rows], [exp_avg[r] for r in rows],
-        [exp_avg_sq[r] for r in rows], [], [steps[r % members] for r in rows],
-        lr=lr, beta1=beta1, beta2=beta2, weight_decay=0.0, eps=eps, amsgrad=False,
-        maximize=False,
-    )
-    if mask is not None:
-        keep = ~mask.repeat(param.shape[0] // members)[:, None]
-        for tensor, old in zip((param, exp_avg, exp_avg_sq), kept):
-            torch.where(keep, old, tensor, out=tensor)
+    """:func:`_adam_rows` on whole flat tensors, as an operator of its own: what a compiled
+    update calls (``torch.compile`` cannot trace the fused kernel on views of a parameter, and
+    keeps an operator whole)."""
+    _adam_rows([param], [grad], [exp_avg], [exp_avg_sq], steps, mask, lr, beta1, beta2, eps)
 
 
 @_member_adam.register_fake
@@ -494,33 +505,46 @@ def _(param, grad, exp_avg, exp_avg_sq, steps, mask, lr, beta1, beta2, eps) -> N
 
 
 class MemberAdam:
-    """Adam with a step count per member, on a stacked parameter whose rows belong to members.
+    """Adam with a step count per member, on a :class:`ede.nets.StackedMLP`'s parameter, whose
+    rows belong to members.
 
-    ``param`` is ``(R·M, N)``: row r belongs to member r mod M (R = 2 for the twin critics).
-    Each row is stepped by torch's fused Adam kernel as a tensor of its own, so a member gets
-    the bits torch's ``Adam(fused=True)`` gives its weights alone, whatever M is (the kernel
-    splits a tensor into vector and scalar parts by its size). torch's optimisers keep one step
-    count per tensor and step every tensor they hold; here a member masked out of a step keeps
-    its weights, moments and step count bit for bit.
+    The parameter is ``(R·M, N)``: row r belongs to member r mod M (R = 2 for the twin critics).
+    Each layer of each row is stepped by torch's fused Adam kernel as a tensor of its own, so a
+    member gets the same bits whatever M is (the kernel splits a tensor into vector and scalar
+    parts by its size), in eager mode; compiled, each row is one tensor. torch's optimisers keep
+    one step count per tensor and step every tensor they hold; here a member masked out of a
+    step keeps its weights, moments and step count bit for bit.
     """
 
-    def __init__(self, param: torch.Tensor, members: int, lr: float,
+    def __init__(self, net: StackedMLP, members: int, lr: float,
                  betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8) -> None:
-        self.param, self.members = param, members
+        self.net, self.param, self.members = net, net.flat, members
         self.lr, self.betas, self.eps = lr, betas, eps
-        self.exp_avg = torch.zeros_like(param, memory_format=torch.contiguous_format)
+        self.exp_avg = torch.zeros_like(self.param, memory_format=torch.contiguous_format)
         self.exp_avg_sq = torch.zeros_like(self.exp_avg)
-        self.steps = torch.zeros(members, device=param.device)  # per member
+        self.steps = torch.zeros(members, device=self.param.device)  # per member
+        # Each layer's views of the weights and moments, listed once (they stay valid: every
+        # change is in place).
+        self._views = [_tensors(net.layers(t)) for t in
+                       (self.param.detach(), self.exp_avg, self.exp_avg_sq)]
 
     def rows(self, per_member: torch.Tensor) -> torch.Tensor:
         """``(M,)`` -> ``(R·M, 1)``, each row its member's value."""
         return per_member.repeat(self.param.shape[0] // self.members)[:, None]
 
-    def step(self, grad: torch.Tensor, mask: torch.Tensor | None = None) -> None:
-        """One Adam step with ``grad`` for every member, or for those where ``mask`` (``(M,)``
-        bool) is true."""
-        _member_adam(self.param.detach(), grad, self.exp_avg, self.exp_avg_sq, self.steps, mask,
-                     self.lr, *self.betas, self.eps)
+    def step(self, grads: list[torch.Tensor], mask: torch.Tensor | None = None) -> None:
+        """One Adam step for every member, or for those where ``mask`` (``(M,)`` bool) is true;
+        ``grads``: the gradient of each layer's weight and bias (``StackedMLP.layers``)."""
+        hyper = (self.lr, *self.betas, self.eps)
+        if torch.compiler.is_compiling():
+            _member_adam(self.param.detach(), flatten(grads, self.param.shape[1]), self.exp_avg,
+                         self.exp_avg_sq, self.steps, mask, *hyper)
+            return
+        params, exp_avgs, exp_avg_sqs = self._views
+        # The fused kernel reads a tensor's memory in order: a weight's gradient from a batched
+        # product comes transposed in memory.
+        grads = [g.contiguous() for g in grads]
+        _adam_rows(params, grads, exp_avgs, exp_avg_sqs, self.steps, mask, *hyper)
 
     def state_of(self, member: int) -> dict[str, torch.Tensor]:
         rows = list(range(member, self.param.shape[0], self.members))
@@ -584,8 +608,8 @@ class Agent:
                              adapter.plan_step, config.critic_action_repeat, weights).to(device)
         self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.actor_optimizer = MemberAdam(self.actor.net.flat, self.members, config.lr)
-        self.critic_optimizer = MemberAdam(self.critic.net.flat, self.members, config.lr)
+        self.actor_optimizer = MemberAdam(self.actor.net, self.members, config.lr)
+        self.critic_optimizer = MemberAdam(self.critic.net, self.members, config.lr)
         self.updates = np.zeros(self.members, dtype=np.int64)  # critic steps, per member
         self.autocast = config.precision == "bf16"
         # Sums per member since the last take_diagnostics(), kept on the device so that no
@@ -693,20 +717,19 @@ class Agent:
         whether either mask leaves a member out."""
         c, due, actor_due = self.config, masks[0], masks[1]
         target = self.target(batch, noise)
-        # Gradients by layer (views of the flat rows), then flat: one copy, not a scatter each.
-        critic, actor = self.critic.net, self.actor.net
+        # Gradients by layer: of views of the flat rows (a gradient of the flat parameter itself
+        # would be scattered layer by layer into zeros).
+        critic, policy = self.critic.net, self.actor.net
         grads, losses = gradients(self._critic_losses, _tensors(critic.layers(critic.flat)),
                                   batch, target)
-        self.critic_optimizer.step(flatten(grads, critic.flat.shape[1]),
-                                   due if critic_masked else None)
+        self.critic_optimizer.step(grads, due if critic_masked else None)
         self.loss_sums[0] += torch.where(due, losses, 0.0)
         self.loss_sums[1] += due
         if not actor:
             return
-        grads, losses = gradients(self._actor_losses, _tensors(actor.layers(actor.flat)),
+        grads, losses = gradients(self._actor_losses, _tensors(policy.layers(policy.flat)),
                                   batch.obs, critic.flat.detach())
-        self.actor_optimizer.step(flatten(grads, actor.flat.shape[1]),
-                                  actor_due if actor_masked else None)
+        self.actor_optimizer.step(grads, actor_due if actor_masked else None)
         self.loss_sums[2] += torch.where(actor_due, losses, 0.0)
         self.loss_sums[3] += actor_due
         mask = None if not actor_masked else actor_due

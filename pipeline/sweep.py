@@ -616,14 +616,11 @@ def default_group_size(params: Params, runs: int, workers: int | None) -> int:
 
     On CUDA every seed of a task and algorithm: the update is bound by kernel launches, so a group
     costs about what one run costs. On CPU as many as still leave every worker a process
-    (``runs // workers``): batching saves per-operation overhead (1.2x aggregate at 4 members on
-    one core, ``benchmarks/train_throughput.py --members``), but a group runs on one core; on Ray
-    without ``--jobs`` (workers unknown) one. Runs that cannot share their updates
-    (``td3.precision: bf16``) go one to a process.
+    (``runs // workers``): batching saves per-operation overhead (``benchmarks/
+    train_throughput.py`` measures groups against one run), but a group runs on one core; on Ray
+    without ``--jobs`` (workers unknown) one.
     """
     seeds = len(params.runs.seeds)
-    if params.td3.precision == "bf16":
-        return 1
     if _on_cuda(params.td3.device):
         return seeds
     if workers is None:

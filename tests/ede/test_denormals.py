@@ -11,7 +11,7 @@ import torch
 from ede.config import EdeTD3Config, TD3Config
 from ede.nets import flush_denormals, flushes_denormals
 from ede.td3 import Agent
-from ede.training import RunSpec, _Run, train_run
+from ede.training import RunSpec, _Group, train_run
 
 SUBNORMAL = 1e-40  # below fp32's smallest normal number, 1.18e-38
 
@@ -67,8 +67,7 @@ def test_a_run_trains_with_flushing_and_leaves_it_off(tmp_path: Path) -> None:
 
 
 def subnormal_first_moments(agent: Agent) -> int:
-    moments = [state["exp_avg"] for optimizer in (agent.actor_optimizer, agent.critic_optimizer)
-               for state in optimizer.state.values()]
+    moments = [optimizer.exp_avg for optimizer in (agent.actor_optimizer, agent.critic_optimizer)]
     values = torch.cat([m.flatten() for m in moments]).abs()
     return int(((values > 0) & (values < torch.finfo(torch.float32).tiny)).sum())
 
@@ -80,11 +79,11 @@ def test_flushing_changes_no_weight_where_moments_sink_below_normal() -> None:
     spec = RunSpec("ede/Point-v0", "td3", 0, 1_500, config, EdeTD3Config())
     agents = []
     for flush in (False, True):
-        run = _Run(spec, None, torch.device("cpu"))
+        group = _Group([spec], None, torch.device("cpu"))
         with flush_denormals() if flush else nullcontext():
-            while run.step < spec.budget:
-                run.env_step()
-        agents.append(run.agent)
+            while group.advance():
+                pass
+        agents.append(group.agent)
     kept, flushed = agents
     assert subnormal_first_moments(kept) > 0
     assert (subnormal_first_moments(flushed) == 0) == cpu_can_flush()

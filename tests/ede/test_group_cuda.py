@@ -1,10 +1,10 @@
 """A group on CUDA: each member trains as it trains alone on CUDA, within a bound.
 
-Skipped without a CUDA device (CI has none). On CUDA the batched products of a group
-(``torch.baddbmm`` over the member axis) and a run's own ``nn.Linear`` products may take different
-kernels, so a member is not bitwise its run alone; the bound below is provisional — set from the
-size of fp32 rounding, never measured on a GPU — and this test is where a GPU run measures it
-(its failure message prints the divergence).
+Skipped without a CUDA device (CI has none). On the CPU a member's bits do not depend on how
+many members share its agent (``tests/ede/test_group.py``); on CUDA, cuBLAS chooses its batched
+kernels by the batch's size, so a member of four need not be bitwise the same run alone; the
+bound below is provisional — set from the size of fp32 rounding, never measured on a GPU — and
+this test is where a GPU run measures it (its failure message prints the divergence).
 """
 
 from __future__ import annotations

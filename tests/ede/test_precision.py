@@ -75,14 +75,14 @@ def test_the_process_wide_setting_comes_back_after_an_error() -> None:
 def trained_agent(precision: str, updates: int = 6) -> Agent:
     config = TD3Config(hidden=[64, 64], batch_size=32, precision=precision)
     device = torch.device("cpu")
-    agent = Agent(5, IdentityAdapter(-np.ones(2), np.ones(2), device), config, device, seed=0)
+    agent = Agent(5, IdentityAdapter(-np.ones(2), np.ones(2), device), config, device, seeds=[0])
     buffer = ReplayBuffer(256, 5, 2, 1, device)
     rng = np.random.default_rng(0)
     for t in range(200):
-        buffer.add(rng.normal(size=5), torch.as_tensor(rng.uniform(-1, 1, 2), dtype=torch.float32),
+        buffer.add(0, rng.normal(size=5), torch.as_tensor(rng.uniform(-1, 1, 2), dtype=torch.float32),
                    0, float(rng.normal()), rng.normal(size=5), False, t % 50 == 49)
     for _ in range(updates):
-        agent.update(buffer.sample(32, agent.generator))
+        agent.update(buffer)
     return agent
 
 

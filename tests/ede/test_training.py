@@ -7,33 +7,41 @@ import pytest
 import torch
 
 from ede.config import EdeTD3Config, TD3Config
-from ede.training import RunSpec, _Run
+from ede.training import RunSpec, _Group
+
+CPU = torch.device("cpu")
+
+
+def run_of(config: TD3Config, budget: int = 1_000):
+    """A run alone (a group of one) of ede/Point-v0's TD3, and its group."""
+    group = _Group([RunSpec("ede/Point-v0", "td3", 0, budget, config, EdeTD3Config())], None, CPU)
+    return group.runs[0], group
 
 
 def schedule(start_steps: int, steps: int, monkeypatch: pytest.MonkeyPatch) -> tuple[list, list]:
     """Which behaviour chose each step's code, and at which steps updates ran."""
     config = TD3Config(hidden=[16, 16], batch_size=8, start_steps=start_steps, update_schedule="step")
-    run = _Run(RunSpec("ede/Point-v0", "td3", 0, 1_000, config, EdeTD3Config()), None, torch.device("cpu"))
+    run, group = run_of(config)
     chosen_by, updated_at = [], []
-    act, random_code, update = run.agent.act, run.agent.random_code, run.agent.update
+    act, random_code, update = group.agent.act, group.agent.random_code, group.agent.update
 
-    def recording_act(obs, explore):
+    def recording_act(member, obs, explore):
         chosen_by.append("actor+noise" if explore else "actor")
-        return act(obs, explore)
+        return act(member, obs, explore)
 
-    def recording_random():
+    def recording_random(member):
         chosen_by.append("uniform")
-        return random_code()
+        return random_code(member)
 
-    def recording_update(batch):
+    def recording_update(buffer, due):
         updated_at.append(run.step)
-        return update(batch)
+        return update(buffer, due)
 
-    monkeypatch.setattr(run.agent, "act", recording_act)
-    monkeypatch.setattr(run.agent, "random_code", recording_random)
-    monkeypatch.setattr(run.agent, "update", recording_update)
+    monkeypatch.setattr(group.agent, "act", recording_act)
+    monkeypatch.setattr(group.agent, "random_code", recording_random)
+    monkeypatch.setattr(group.agent, "update", recording_update)
     for _ in range(steps):
-        run.env_step()
+        group.advance()
     return chosen_by, updated_at
 
 
@@ -55,12 +63,13 @@ def test_the_episode_schedule_updates_once_per_step_when_an_episode_ends(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     config = TD3Config(hidden=[16, 16], batch_size=8, start_steps=0, update_schedule="episode")
-    run = _Run(RunSpec("ede/Point-v0", "td3", 0, 1_000, config, EdeTD3Config()), None, torch.device("cpu"))
+    run, group = run_of(config)
     updated_at = []
-    update = run.agent.update
-    monkeypatch.setattr(run.agent, "update", lambda batch: (updated_at.append(run.step), update(batch)))
+    update = group.agent.update
+    monkeypatch.setattr(group.agent, "update",
+                        lambda buffer, due: (updated_at.append(run.step), update(buffer, due)))
     for _ in range(150):
-        run.env_step()
+        group.advance()
     assert run.episodes == 1 and updated_at == [100] * 100  # Point-v0's episodes are 100 steps
 
 
@@ -69,13 +78,13 @@ def test_diagnostics_are_the_means_of_the_updates_since_the_last_evaluation(
 ) -> None:
     config = TD3Config(hidden=[16, 16], batch_size=8, start_steps=0, eval_episodes=1,
                        update_schedule="step")
-    run = _Run(RunSpec("ede/Point-v0", "td3", 0, 1_000, config, EdeTD3Config()), None, torch.device("cpu"))
+    run, group = run_of(config)
     losses = []  # what each step added to the sums
 
     for _ in range(20):
-        before = run.agent.loss_sums.clone()
-        run.env_step()
-        losses.append((run.agent.loss_sums - before).tolist())
+        before = group.agent.loss_sums[:, 0].clone()
+        group.advance()
+        losses.append((group.agent.loss_sums[:, 0] - before).tolist())
     run.evaluate()
     (row,) = run.diagnostics
     steps = [l for l in losses if l[1]]  # the updates (from step 8 on)
@@ -84,7 +93,7 @@ def test_diagnostics_are_the_means_of_the_updates_since_the_last_evaluation(
     actor = [l[2] for l in steps if l[3]]
     assert len(actor) == 6 and row["mean_q"] == pytest.approx(-sum(actor) / 6)
     assert row["actor_loss"] == pytest.approx(-row["mean_q"])
-    assert run.agent.loss_sums.abs().sum() == 0  # taken: the next interval starts from zero
+    assert group.agent.loss_sums.abs().sum() == 0  # taken: the next interval starts from zero
 
 
 def test_building_an_agent_or_an_embedding_reseeds_nothing_outside(point_store) -> None:
@@ -97,10 +106,10 @@ def test_building_an_agent_or_an_embedding_reseeds_nothing_outside(point_store) 
     expected = torch.rand(3)
     torch.manual_seed(1234)
     adapter = IdentityAdapter(-torch.ones(2).numpy(), torch.ones(2).numpy(), torch.device("cpu"))
-    first = Agent(4, adapter, TD3Config(hidden=[8]), torch.device("cpu"), seed=0)
+    first = Agent(4, adapter, TD3Config(hidden=[8]), CPU, seeds=[0])
     train_encoder(Rollouts.open(point_store), EmbeddingConfig(hidden=[8], epochs=1))
     assert torch.equal(torch.rand(3), expected)  # the caller's stream went on untouched
-    second = Agent(4, adapter, TD3Config(hidden=[8]), torch.device("cpu"), seed=0)
+    second = Agent(4, adapter, TD3Config(hidden=[8]), CPU, seeds=[0])
     for a, b in zip(first.actor.parameters(), second.actor.parameters()):
         assert torch.equal(a, b)  # and the same seed still gives the same weights
 
@@ -118,18 +127,20 @@ def test_a_checkpoint_taken_inside_a_code_resumes_its_remaining_actions(point_st
     spec = RunSpec("ede/Point-v0", "ede-td3", 0, 1_000, TD3Config(hidden=[16, 16], batch_size=8),
                    EdeTD3Config(), "test")
 
-    def actions_after(run: _Run, steps: int) -> list[np.ndarray]:
+    def actions_after(group: _Group, steps: int) -> list[np.ndarray]:
         for _ in range(steps):
-            run.env_step()
-        return run.episode.actions[-steps:]
+            group.advance()
+        return group.runs[0].episode.actions[-steps:]
 
-    run = _Run(spec, embedding, torch.device("cpu"))
-    actions_after(run, 6)
+    group = _Group([spec], embedding, CPU)
+    run = group.runs[0]
+    actions_after(group, 6)
     assert run.executor.i == 2  # two actions of the second code are left
     run.save(tmp_path / "checkpoint")
-    resumed = _Run(spec, embedding, torch.device("cpu"))
+    again = _Group([spec], embedding, CPU)
+    resumed = again.runs[0]
     assert resumed.load(tmp_path / "checkpoint")
     assert resumed.executor.i == 2 and np.array_equal(resumed.executor.plan, run.executor.plan)
     assert torch.equal(resumed.executor.code, run.executor.code)
-    ahead, again = actions_after(run, 6), actions_after(resumed, 6)
+    ahead, again = actions_after(group, 6), actions_after(again, 6)
     assert all(np.array_equal(a, b) for a, b in zip(ahead, again))

@@ -124,6 +124,6 @@ def test_on_cpu_seeds_share_a_process_while_every_job_still_gets_one() -> None:
     assert default_group_size(params, runs=80, workers=None) == 1  # Ray, its size unknown
 
 
-def test_runs_that_cannot_update_together_go_one_to_a_process() -> None:
+def test_every_schedule_and_precision_groups_alike() -> None:  # one agent: a group is any run
     assert default_group_size(paper_params(update_schedule="episode"), 80, 2) == 8
-    assert default_group_size(paper_params(precision="bf16"), 80, 2) == 1
+    assert default_group_size(paper_params(precision="bf16"), 80, 2) == 8
