@@ -39,6 +39,11 @@ our 2.1 GHz Xeon (single runs at about 90-130 steps/s), most of it the groups of
 steps each) and compiling (about half a minute for each compiled row); ``--precisions all``
 about as long.
 
+An earlier commit is measured the same way by this script run in that commit's environment
+(``--compile none``; its ``ede`` is imported): e.g. ``git worktree add /tmp/before HEAD~1``,
+``make -C /tmp/before install``, then ``/tmp/before/.venv/bin/python
+benchmarks/train_throughput.py --compile none`` from this checkout.
+
 ``--precisions`` measures instead our TD3 and our EDE-TD3 (with an embedding of Reacher-v5's
 actions; its weights do not matter for speed) in each ``td3.precision`` given and each
 ``--compile`` mode, single runs against SB3's TD3, each row also as a ratio of EDE-TD3 to our TD3
@@ -151,7 +156,10 @@ def ours(steps: int, setting: Setting, algo: str, precision: str, compile: str,
     config = TD3Config(hidden=setting.hidden, batch_size=setting.batch_size, start_steps=START,
                        buffer_size=steps, eval_every=10**9, eval_episodes=1,
                        checkpoint_every=10**9, precision=precision, device=setting.device,
-                       compile=compile, update_schedule="step")  # as SB3: train_freq=1
+                       update_schedule="step",  # as SB3: train_freq=1
+                       # (no compile key when eager: the script then also runs on commits from
+                       # before td3.compile, to measure them the same way)
+                       **({} if compile == "none" else {"compile": compile}))
     embedding = _embedding(setting.device) if algo == "ede-td3" else None
     specs = [RunSpec(TASK, algo, seed, steps, config, EdeTD3Config()) for seed in range(members)]
     times: dict[int, float] = {}

@@ -5,8 +5,11 @@ two differ only through an :class:`ActionAdapter` — the identity for TD3, the 
 EDE-TD3 — which fixes what the actor outputs (a raw action, or a whitened code z of k actions),
 its bounds, and k.
 
-Shapes: B batch, K actions per code (1 for TD3), A action size, C code size (A for TD3, D for
-EDE-TD3), O observation size.
+Shapes: M members (the runs an agent trains at once; 1 for a run alone), B batch, K actions per
+code (1 for TD3), A action size, C code size (A for TD3, D for EDE-TD3), O observation size.
+Everything the update touches has the member axis first; each member computes what it computes
+alone, bit for bit on CPU (:class:`ede.nets.StackedMLP`, :class:`MemberAdam`), from its own
+random streams (:class:`Streams`).
 
 The critic is Q(s, c, i) with i the number of steps of code c already executed, fed as a one-hot
 of size K or as a scalar (absent when K = 1). Its target is Equation 1, batched over B and K::

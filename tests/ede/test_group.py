@@ -64,6 +64,20 @@ def test_a_group_resumes_exactly_even_when_its_members_stopped_at_different_step
         assert outputs(out) == outputs(group / f"seed{seed}"), seed
 
 
+def test_a_run_alone_resumes_in_a_group_and_a_member_resumes_alone(group: Path,
+                                                                   tmp_path: Path) -> None:
+    alone = tmp_path / "alone2"
+    train_run(spec(2), alone, device=CPU, keep_checkpoint=True)  # its checkpoint: step 400
+    outs = [tmp_path / "seed2", tmp_path / "seed3"]
+    shutil.copytree(alone / "checkpoint", outs[0] / "checkpoint")
+    metrics = train_group([spec(2), spec(3)], outs, device=CPU)  # seed 3 from its start
+    assert [m["resumed_from_step"] for m in metrics] == [400, None]
+    assert outputs(outs[0]) == outputs(alone) == outputs(group / "seed2")
+    shutil.copytree(group / "seed1" / "checkpoint", tmp_path / "seed1" / "checkpoint")
+    assert train_run(spec(1), tmp_path / "seed1", device=CPU)["resumed_from_step"] == 400
+    assert outputs(tmp_path / "seed1") == outputs(group / "seed1")
+
+
 def test_a_group_is_one_task_and_algorithm_differing_in_seeds_only(tmp_path: Path) -> None:
     other = CONFIG.model_copy(update={"lr": 3e-4})
     with pytest.raises(ValueError, match="differ in their seeds only"):
@@ -112,7 +126,7 @@ def test_adding_a_member_or_a_purpose_shifts_no_stream() -> None:
 
     alone, third = Streams(7, CPU), Agent(3, IdentityAdapter(-np.ones(2), np.ones(2), CPU),
                                           CONFIG, CPU, seeds=[5, 6, 7]).streams[2]
-    for purpose in PURPOSES:
+    for purpose in Streams.SAVED:  # (the weights' stream was spent on the initial weights)
         draws = [torch.rand(4, generator=getattr(s, purpose)) for s in (alone, third)]
         assert torch.equal(*draws), purpose
     firsts = {purpose: torch.rand(4, generator=getattr(Streams(7, CPU), purpose))

@@ -120,7 +120,7 @@ def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
 
 
 # Settings that change how fast or where a stage runs, never its result: DVC does not track them.
-UNTRACKED = {"td3.threads", "td3.device", "td3.checkpoint_every", "embedding.threads",
+UNTRACKED = {"td3.threads", "td3.device", "td3.compile", "td3.checkpoint_every", "embedding.threads",
              "embedding.device", "decoder.threads", "decoder.device"}
 
 
