@@ -83,7 +83,9 @@ from ede.training import RunSpec, train_group
 
 TASK = "Reacher-v5"
 PRECISIONS = list(get_args(Precision))
-COMPILE_MODES = list(get_args(TD3Config.model_fields["compile"].annotation))
+# td3.compile's modes; an earlier commit without it is eager ("none") only.
+COMPILE_MODES = (list(get_args(TD3Config.model_fields["compile"].annotation))
+                 if "compile" in TD3Config.model_fields else ["none"])
 START = 1_000  # uniform random start steps, no updates
 WARMUP = START + 300  # steps per run of each row's untimed warm-up run
 
