@@ -193,7 +193,6 @@ class CodeExecutor:
 # Random streams -------------------------------------------------------------------------------
 
 # Each purpose's key in a member's seed sequence: a new purpose takes a new key and shifts none.
-HALVES = True
 PURPOSES = {"weights": 0, "exploration": 1, "target_noise": 2, "replay": 3, "start_codes": 4}
 
 
@@ -235,7 +234,7 @@ class Actor(nn.Module):
 
     def forward(self, obs: torch.Tensor, layers: Layers | None = None) -> torch.Tensor:
         """``(M, B, O) -> (M, B, C)``, member m on its own batch."""
-        return self.centre + self.half_range * torch.tanh(self.net(obs, layers, halves=HALVES))
+        return self.centre + self.half_range * torch.tanh(self.net(obs, layers, halves=True))
 
     def one(self, member: int, obs: torch.Tensor) -> torch.Tensor:
         """Member ``member`` alone: ``(B, O) -> (B, C)``."""
@@ -301,7 +300,7 @@ class Critic(nn.Module):
               flat: torch.Tensor) -> torch.Tensor:
         """Q1 alone, ``(M, B)``, with the weights ``flat`` (every row of the critic)."""
         q1 = self.net.layers(flat[:self.members])
-        return self.net(self.inputs(obs, code, i), q1, halves=HALVES).squeeze(-1)
+        return self.net(self.inputs(obs, code, i), q1, halves=True).squeeze(-1)
 
     def state_of(self, member: int) -> dict[str, torch.Tensor]:
         """One member's twins as the single-run ``Critic`` named them (``q1.0.weight``, ...)."""

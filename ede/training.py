@@ -361,8 +361,8 @@ class _Group:
             self.agent.update(self.buffer, due > u)
 
     def advance(self) -> list[_Run]:
-        """One step of the runs furthest behind (all of them while they are in step, every one
-        while the group is in step) and their updates; returns the runs that stepped."""
+        """One step of the runs furthest behind (every run, while they are in step) and the
+        updates it makes due; returns the runs that stepped (none once every run is done)."""
         active = [run for run in self.runs if run.step < run.spec.budget]
         if not active:
             return []
