@@ -11,8 +11,8 @@ from typing import Any
 import torch
 from torch import nn
 
-__all__ = ["Layers", "StackedMLP", "flatten", "gradients", "initial_weights", "matmul_precision", "mlp", "pick_device",
-           "product_error"]
+__all__ = ["Layers", "StackedMLP", "flatten", "gradients", "initial_weights", "matmul_precision",
+           "mlp", "pick_device", "product_error"]
 
 
 def mlp(
@@ -43,8 +43,10 @@ def flatten(layers: Sequence[torch.Tensor], width: int) -> torch.Tensor:
     return torch.cat([*parts, parts[0].new_zeros(parts[0].shape[0], width - used)], dim=1)
 
 
-def gradients(loss: Callable[..., tuple[torch.Tensor, torch.Tensor]],
-              params: Sequence[torch.Tensor], *args: Any) -> tuple[list[torch.Tensor], torch.Tensor]:
+def gradients(
+    loss: Callable[..., tuple[torch.Tensor, torch.Tensor]], params: Sequence[torch.Tensor],
+    *args: Any,
+) -> tuple[list[torch.Tensor], torch.Tensor]:
     """The gradients of ``loss(params, *args)[0]`` with respect to ``params``, and its second
     output: torch's autograd in eager mode, ``torch.func.grad`` when compiled (Dynamo traces
     that, not ``torch.autograd.grad``); the same derivatives either way."""

@@ -370,7 +370,8 @@ class ReplayBuffer:
     def sampleable(self, member: int) -> int:
         return max(0, self.size(member) - (self.k - 1))
 
-    def indices(self, batch_size: int, generators: Sequence[torch.Generator | None]) -> torch.Tensor:
+    def indices(self, batch_size: int,
+                generators: Sequence[torch.Generator | None]) -> torch.Tensor:
         """``(M, B)`` rows to sample: member m's drawn from ``generators[m]``, uniform over its
         sampleable steps; a member given ``None`` draws nothing (it is not updated) and gets
         row 0."""

@@ -76,7 +76,8 @@ CHECKPOINT_VERSION = 4  # 2: diagnostics; 3: checksums, identity; 4: a member's 
 EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes are seeded apart from training ones
 EVAL_COLUMNS = ("step", "episode", "mean_return", "std_return", "wall_seconds")
 DIAGNOSTIC_COLUMNS = ("step", "updates", "critic_loss", "actor_loss", "mean_q")
-RESOURCES = {"threads", "device", "checkpoint_every", "compile"}  # td3 settings that leave results alone
+# td3 settings that leave results alone (compile: within rounding)
+RESOURCES = {"threads", "device", "checkpoint_every", "compile"}
 
 
 @dataclass(frozen=True)
