@@ -462,26 +462,36 @@ def k_step_targets(batch: ReplayBatch, gamma: float) -> TargetParts:
     return TargetParts(returns, discount, bootstrap_obs, cut_short, next_i)
 
 
+def _rows(tensors: list[torch.Tensor]) -> list[torch.Tensor]:
+    """Every row of every stacked tensor, as a tensor of its own."""
+    return [t[r] for t in tensors for r in range(t.shape[0])]
+
+
+def _step_rows(params: list[torch.Tensor], steps: torch.Tensor) -> list[torch.Tensor]:
+    """The step count of each row of :func:`_rows` ``(params)``: its member's."""
+    return [steps[r % steps.shape[0]] for t in params for r in range(t.shape[0])]
+
+
 def _adam_rows(params: list[torch.Tensor], grads: list[torch.Tensor],
                exp_avgs: list[torch.Tensor], exp_avg_sqs: list[torch.Tensor],
                steps: torch.Tensor, mask: torch.Tensor | None, lr: float, beta1: float,
-               beta2: float, eps: float) -> None:
+               beta2: float, eps: float,
+               rows: tuple[list[torch.Tensor], ...] | None = None) -> None:
     """torch's fused Adam kernel on each row of each stacked tensor in ``params`` as a tensor of
     its own, with the step count of the row's member (row r of a tensor belongs to member
-    r mod M); members where ``mask`` is false keep everything bit for bit."""
+    r mod M); members where ``mask`` is false keep everything bit for bit. ``rows``: the rows of
+    ``params``, ``exp_avgs`` and ``exp_avg_sqs`` and their step counts, if already listed."""
     members = steps.shape[0]
     if mask is not None:
         kept = [t.clone() for t in (*params, *exp_avgs, *exp_avg_sqs)]
         steps.add_(mask.to(steps.dtype))
     else:
         steps.add_(1)
-
-    def rows(tensors: list[torch.Tensor]) -> list[torch.Tensor]:
-        return [t[r] for t in tensors for r in range(t.shape[0])]
-
+    if rows is None:
+        rows = (_rows(params), _rows(exp_avgs), _rows(exp_avg_sqs), _step_rows(params, steps))
+    param_rows, avg_rows, sq_rows, step_rows = rows
     torch._fused_adam_(
-        rows(params), rows(grads), rows(exp_avgs), rows(exp_avg_sqs), [],
-        [steps[r % members] for t in params for r in range(t.shape[0])],
+        param_rows, _rows(grads), avg_rows, sq_rows, [], step_rows,
         lr=lr, beta1=beta1, beta2=beta2, weight_decay=0.0, eps=eps, amsgrad=False,
         maximize=False,
     )
@@ -526,10 +536,11 @@ class MemberAdam:
         self.exp_avg = torch.zeros_like(self.param, memory_format=torch.contiguous_format)
         self.exp_avg_sq = torch.zeros_like(self.exp_avg)
         self.steps = torch.zeros(members, device=self.param.device)  # per member
-        # Each layer's views of the weights and moments, listed once (they stay valid: every
-        # change is in place).
+        # Each layer's views of the weights and moments, and their rows with their step counts,
+        # listed once (they stay valid: every change is in place).
         self._views = [_tensors(net.layers(t)) for t in
                        (self.param.detach(), self.exp_avg, self.exp_avg_sq)]
+        self._rows = (*map(_rows, self._views), _step_rows(self._views[0], self.steps))
 
     def rows(self, per_member: torch.Tensor) -> torch.Tensor:
         """``(M,)`` -> ``(R·M, 1)``, each row its member's value."""
@@ -547,7 +558,8 @@ class MemberAdam:
         # The fused kernel reads a tensor's memory in order: a weight's gradient from a batched
         # product comes transposed in memory.
         grads = [g.contiguous() for g in grads]
-        _adam_rows(params, grads, exp_avgs, exp_avg_sqs, self.steps, mask, *hyper)
+        _adam_rows(params, grads, exp_avgs, exp_avg_sqs, self.steps, mask, *hyper,
+                   rows=self._rows)
 
     def state_of(self, member: int) -> dict[str, torch.Tensor]:
         rows = list(range(member, self.param.shape[0], self.members))
