@@ -126,6 +126,11 @@ class EmbeddingConfig(_Section):
         "authors' code does in effect (its delta-encoded first row is always zero), so P predicts "
         "the change from the code alone"
     )
+    change_whitening: Literal["final", "all"] = Field(
+        "final", description="moments that whiten P's target, the k-step change: its own "
+        "('final'), or those of the changes after 0..k steps pooled, as the authors' code ('all': "
+        "a smaller spread, so the target's variance exceeds 1; docs/fidelity.md, row 6a)"
+    )
     holdout: float = Field(0.1, gt=0, lt=1, description="fraction of episodes never trained on")
     seed: Seed = 0
     device: Device = "cpu"

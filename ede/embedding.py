@@ -189,7 +189,7 @@ def train_encoder(
     held_starts = strided(rollouts, rollouts.window_starts(k, held_eps), config.window_stride)
     if len(train_starts) == 0 or len(held_starts) == 0:
         raise ValueError(f"{rollouts.path}: episodes are too short for windows of k={k}")
-    whitening = rollouts.whitening(k, train_starts)
+    whitening = rollouts.whitening(k, train_starts, config.change_whitening)
     train = _windows(rollouts, train_starts, k, whitening, device, config.predictor_state)
     held = _windows(rollouts, held_starts, k, whitening, device, config.predictor_state)
 

@@ -7,7 +7,7 @@ writing HTML is the pipeline's business.
 from __future__ import annotations
 
 import csv
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -118,7 +118,7 @@ def curve_band(
     confidence: float,
     samples: int,
     rng: np.random.Generator,
-    bin_steps: int | None = None,
+    bin_steps: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Mean over seeds with a bootstrap band at every evaluated step, or every bin.
 
@@ -154,23 +154,27 @@ def learning_curve_figure(
     confidence: float,
     samples: int,
     rng: np.random.Generator,
-    bin_steps: int | None = None,
+    bin_steps: float | Mapping[str, float] | None = None,
 ) -> Figure:
     """One panel per task of a family: each algorithm's mean return with its bootstrap band.
 
-    With ``bin_steps`` the curves are binned as the paper's figures (:func:`curve_band`).
+    With ``bin_steps`` the curves are binned as the paper's figures (:func:`curve_band`); a
+    mapping gives each task its own width, named in its panel's title.
     """
     figure, axes = plt.subplots(1, len(tasks), figsize=(_panels_width(len(tasks)), 3.4),
                                 squeeze=False)
+    per_task = isinstance(bin_steps, Mapping)
     for ax, task in zip(axes[0], tasks):
+        width = bin_steps.get(task) if per_task else bin_steps
         for algo, (label, colour) in ALGO_STYLE.items():
             runs = curves.get((task, algo), [])
             if not runs:
                 continue
-            steps, mean, low, high, _ = curve_band(runs, confidence, samples, rng, bin_steps)
+            steps, mean, low, high, _ = curve_band(runs, confidence, samples, rng, width)
             ax.plot(steps, mean, color=colour, label=f"{label} ({len(runs)} seeds)")
             ax.fill_between(steps, low, high, color=colour, alpha=0.2, linewidth=0)
-        ax.set_title(task)
+        ax.set_title(f"{task}\nbins of {width:,.0f} steps" if per_task and width else task,
+                     fontsize=10 if per_task else None)
         ax.set_xlabel("environment steps")
         ax.grid(alpha=0.3)
         if ax.lines:
@@ -178,7 +182,8 @@ def learning_curve_figure(
         else:
             ax.text(0.5, 0.5, "no finished runs", ha="center", va="center", transform=ax.transAxes)
     axes[0][0].set_ylabel("evaluation return")
-    binned = f"evaluations averaged per {bin_steps:,} steps, " if bin_steps else ""
+    binned = ("evaluations averaged per bin, " if per_task else
+              f"evaluations averaged per {bin_steps:,} steps, " if bin_steps else "")
     figure.suptitle(f"{family} family\n{binned}mean over seeds, "
                     f"{100 * confidence:.0f}% bootstrap band", fontsize=10)
     figure.tight_layout()

@@ -444,12 +444,25 @@ class Rollouts:
         steps = starts[:, None] + np.arange(k)  # (B, K)
         return self.state[starts], self.action[steps], self.state[starts + k]
 
-    def whitening(self, k: int, starts: np.ndarray | None = None) -> tuple[Whitening, Whitening]:
-        """Whitening of the state and of its k-step change, over ``starts`` (default: all)."""
+    def whitening(
+        self, k: int, starts: np.ndarray | None = None, change: str = "final"
+    ) -> tuple[Whitening, Whitening]:
+        """Whitening of the state and of its k-step change, over ``starts`` (default: all).
+
+        ``change="final"`` takes the change's moments from the k-step changes themselves;
+        ``"all"`` from the changes after 0, 1, ..., k steps pooled, as the authors' code (its
+        ``GymData.make_stats`` over every row of a delta-encoded window), whose smaller spread
+        leaves the whitened k-step change with a variance above 1.
+        """
         if starts is None:
             starts = self.window_starts(k)
         state, _, later = self.windows(starts, k)
-        return Whitening.of(state), Whitening.of(later - state)
+        if change == "final":
+            return Whitening.of(state), Whitening.of(later - state)
+        if change == "all":
+            pooled = [self.state[starts + j] - state for j in range(k + 1)]
+            return Whitening.of(state), Whitening.of(np.concatenate(pooled))
+        raise ValueError(f"change whitening {change!r}: expected 'final' or 'all'")
 
     def iter_episodes(self) -> Iterator[slice]:
         """The row range of each episode, in order."""

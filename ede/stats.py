@@ -12,6 +12,9 @@ __all__ = [
     "area_under_curve",
     "bin_curve",
     "bootstrap_mean",
+    "divergence",
+    "Divergence",
+    "separation",
     "steps_to_threshold",
 ]
 
@@ -103,3 +106,48 @@ def align_curves(curves: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarra
     for row, (s, r) in enumerate(curves):
         table[row, np.searchsorted(steps, s)] = r
     return steps, table
+
+
+def separation(low_a: np.ndarray, high_a: np.ndarray, low_b: np.ndarray, high_b: np.ndarray) -> np.ndarray:
+    """Where two bands of intervals are disjoint: +1 where a's lies wholly above b's, -1 where
+    wholly below, 0 where they overlap (or either is missing, NaN)."""
+    low_a, high_a, low_b, high_b = (np.asarray(x, dtype=float) for x in (low_a, high_a, low_b, high_b))
+    return (low_a > high_b).astype(int) - (high_a < low_b).astype(int)
+
+
+@dataclass(frozen=True)
+class Divergence:
+    """Whether one run's binned curve fell and stayed below its earlier best.
+
+    ``first``, ``best`` and ``tail`` are binned returns: the first bin, the best bin before the
+    tail, and the mean of the tail (the last ``tail_fraction`` of the bins).
+    """
+
+    first: float
+    best: float
+    best_step: float
+    tail: float
+    diverged: bool
+
+
+def divergence(
+    steps: np.ndarray, returns: np.ndarray, width: float, tail_fraction: float = 0.25,
+    drop_fraction: float = 0.5,
+) -> Divergence:
+    """Did the run diverge: does every bin of its tail lie below its best earlier bin by more than
+    ``drop_fraction`` of what it had gained by then (best minus first bin)?
+
+    A run that never improved on its first bin cannot diverge by this measure; a run that dips
+    and recovers within the tail has not diverged.
+    """
+    edges, binned = bin_curve(steps, returns, width)
+    tail_bins = max(1, int(round(tail_fraction * len(binned))))
+    if len(binned) <= tail_bins:
+        raise ValueError(f"{len(binned)} bins of {width:g} steps: too few to have a tail of "
+                         f"{tail_fraction:g} and bins before it")
+    before, tail = binned[:-tail_bins], binned[-tail_bins:]
+    best_bin = int(np.argmax(before))
+    gained = before[best_bin] - binned[0]
+    fell = bool(gained > 0 and np.all(tail < before[best_bin] - drop_fraction * gained))
+    return Divergence(float(binned[0]), float(before[best_bin]), float(edges[best_bin]),
+                      float(tail.mean()), fell)

@@ -77,6 +77,8 @@ def test_where_and_how_fast_it_was_made_do_not_matter(saved: tuple[Path, Path]) 
          "made with embedding.hidden = [8], but params.yaml has embedding.hidden = [16, 16]"),
         ("predictor_state", False,
          "made with embedding.predictor_state = true, but params.yaml has embedding.predictor_state = false"),
+        ("change_whitening", "all",
+         "made with embedding.change_whitening = final, but params.yaml has embedding.change_whitening = all"),
     ],
 )
 def test_each_embedding_param_that_differs_is_one_line_naming_the_key(

@@ -162,6 +162,25 @@ def test_whitening_of_state_and_k_step_change(tmp_path: Path) -> None:
     np.testing.assert_allclose(whitened[:, 0].std(), 1)
 
 
+def test_change_whitening_pooled_over_every_step_as_the_authors_code(tmp_path: Path) -> None:
+    # Column 0 counts steps, so its changes after 0..3 steps are 0, 1, 2, 3 in every window.
+    # Column 1 is a random walk, whose change spreads more the more steps it spans.
+    data = ragged([30, 30])
+    data["state"][:, 1] = np.random.default_rng(0).normal(size=60).cumsum()
+    rollouts = Rollouts.open(store_of(tmp_path / "r.zarr", data))
+    final = rollouts.whitening(3)[1]
+    state_white, pooled = rollouts.whitening(3, change="all")
+    np.testing.assert_allclose(pooled.mean[0], 1.5)
+    np.testing.assert_allclose(pooled.std[0], np.std([0, 1, 2, 3]))
+    np.testing.assert_allclose(state_white.mean, rollouts.whitening(3)[0].mean)  # state: unchanged
+    starts = rollouts.window_starts(3)
+    change = rollouts.state[starts + 3] - rollouts.state[starts]
+    assert pooled.std[1] < final.std[1]
+    assert pooled.apply(change)[:, 1].std() > 1.2  # the target's variance exceeds 1
+    with pytest.raises(ValueError, match="'final' or 'all'"):
+        rollouts.whitening(3, change="mixed")
+
+
 def test_same_seed_same_store_byte_for_byte_other_seed_differs(tmp_path: Path) -> None:
     def files(path: Path) -> dict[str, bytes]:
         return {str(f.relative_to(path)): f.read_bytes() for f in sorted(path.rglob("*")) if f.is_file()}

@@ -7,7 +7,15 @@ import math
 import numpy as np
 import pytest
 
-from ede.stats import align_curves, area_under_curve, bin_curve, bootstrap_mean, steps_to_threshold
+from ede.stats import (
+    align_curves,
+    area_under_curve,
+    bin_curve,
+    bootstrap_mean,
+    divergence,
+    separation,
+    steps_to_threshold,
+)
 
 
 def test_area_under_curve_is_the_trapezoidal_mean_return() -> None:
@@ -98,3 +106,37 @@ def test_binned_band_is_the_mean_over_seeds_of_each_seeds_bin_means() -> None:
     assert low[1] == 4.0 and high[1] == 9.0  # two seeds: the band spans their bin means
     raw = curve_band(curves, 0.95, 200, rng)
     assert raw[0].tolist() == steps.tolist()
+
+
+def test_separation_marks_disjoint_intervals_by_which_side_is_above() -> None:
+    low_a, high_a = np.array([0.0, 2.0, 0.0, 0.0, np.nan]), np.array([1.0, 3.0, 1.0, 2.0, 1.0])
+    low_b, high_b = np.array([1.5, 0.0, -2.0, 1.0, 0.0]), np.array([2.0, 1.9, -0.5, 3.0, 1.0])
+    np.testing.assert_array_equal(separation(low_a, high_a, low_b, high_b), [-1, 1, 1, 0, 0])
+
+
+STEPS = np.arange(0, 100_001, 1_000.0)
+
+
+def test_a_run_that_falls_and_stays_below_its_best_diverges() -> None:
+    rises_then_falls = np.where(STEPS <= 50_000, -100 + STEPS / 1_000, -50 - (STEPS - 50_000) / 500)
+    verdict = divergence(STEPS, rises_then_falls, 10_000)
+    assert verdict.diverged
+    assert verdict.best_step == 50_000 and verdict.first < verdict.best
+    assert verdict.tail < verdict.best - 0.5 * (verdict.best - verdict.first)
+
+
+def test_learning_plateaus_dips_that_recover_and_flat_runs_do_not_diverge() -> None:
+    rising = -100 + STEPS / 1_000
+    plateau = np.minimum(rising, -60)
+    dip = plateau.copy()
+    dip[(STEPS > 80_000) & (STEPS < 90_000)] = -100  # a dip inside the tail, then back
+    flat = np.full_like(STEPS, -100.0)
+    for curve in (rising, plateau, dip, flat):
+        assert not divergence(STEPS, curve, 10_000).diverged
+    # A fall by less than half of what was gained is not a divergence either.
+    assert not divergence(STEPS, np.where(STEPS <= 50_000, rising, -50 - 0.4 * 50), 10_000).diverged
+
+
+def test_a_curve_too_short_for_a_tail_is_refused() -> None:
+    with pytest.raises(ValueError, match="too few"):
+        divergence(STEPS[:3], STEPS[:3], 10_000)

@@ -1,0 +1,157 @@
+"""The measured results of docs/results.md, redrawn from the per-run files committed beside it.
+
+    python benchmarks/results.py [--runs docs/results/runs] [--figures docs/results] [--bins 20]
+
+``--runs`` holds one folder per finished run, ``<task>/<algorithm>/seed<N>/`` with its
+``eval.csv``, ``run.json`` and ``metrics.json`` (as ``ede-pipeline train`` writes them), and per
+task a ``source.json`` naming the commit and command that made its runs. For each family of the
+committed ``params.yaml`` with runs, this draws its figure (``<figures>/<family>.png``: each task's
+mean return over seeds with its bootstrap band, evaluations averaged in ``--bins`` bins of a
+run's budget, as the report draws them) and prints, per task, in Markdown:
+
+- the budget a run, as a fraction of the paper's (``runs.budgets``), the seeds, the commit;
+- final return and area under the curve per algorithm, with bootstrap intervals over seeds;
+- the bins where the two algorithms' intervals are disjoint, and which lies above;
+- per seed, whether it diverged (:func:`ede.stats.divergence`: its last quarter of bins all below
+  its best earlier bin by more than half of what it had gained by then).
+
+The confidence, the bootstrap's resamples and its seed are the report's (``report`` in
+``params.yaml``), so the numbers are the same on every machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ede.config import load_params
+from ede.report import ALGO_STYLE, Curve, curve_band, learning_curve_figure, read_curve, summarise_task
+from ede.stats import divergence, separation
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def task_folder(task: str) -> str:
+    """``ede/ReacherTurn-v0`` is kept in ``ReacherTurn-v0``."""
+    return task.split("/")[-1]
+
+
+def read_task(folder: Path, task: str) -> tuple[dict[str, list[Curve]], int]:
+    """Each algorithm's finished curves of one task, and the budget its runs share."""
+    curves: dict[str, list[Curve]] = {}
+    budgets = set()
+    for algo in ALGO_STYLE:
+        for run in sorted((folder / algo).glob("seed*"), key=lambda p: int(p.name[4:])):
+            made = json.loads((run / "run.json").read_text())
+            if made["task"] != task or made["algo"] != algo:
+                raise SystemExit(f"{run}: run.json says {made['task']} {made['algo']}, "
+                                 f"not {task} {algo}")
+            curve = read_curve(run, made["seed"])
+            if curve is not None:
+                curves.setdefault(algo, []).append(curve)
+                budgets.add(made["budget"])
+    if len(budgets) > 1:
+        raise SystemExit(f"{folder}: runs of different budgets {sorted(budgets)}; keep one per task")
+    return curves, budgets.pop() if budgets else 0
+
+
+def seed_list(curves: list[Curve]) -> str:
+    seeds = [c.seed for c in curves]
+    if seeds == list(range(seeds[0], seeds[-1] + 1)) and len(seeds) > 2:
+        return f"{seeds[0]}–{seeds[-1]}"
+    return ", ".join(map(str, seeds))
+
+
+def spans(steps: np.ndarray, width: float) -> str:
+    """Bin ends as ranges of consecutive bins: ``12.5K–50K, 100K``."""
+    def short(step: float) -> str:
+        return f"{step / 1000:g}K"
+
+    groups: list[list[float]] = []
+    for step in steps:
+        if groups and step - groups[-1][-1] <= width:
+            groups[-1].append(step)
+        else:
+            groups.append([step])
+    return ", ".join(short(g[0]) if len(g) == 1 else f"{short(g[0])}–{short(g[-1])}" for g in groups)
+
+
+def task_section(task: str, family: str, source: str, curves: dict[str, list[Curve]], budget: int,
+                 paper_budget: int, made: dict, bins: int, params, rng: np.random.Generator) -> str:
+    report = params.report
+    width = budget / bins
+    role = "the family's source task" if task == source else "transferred"
+    lines = [
+        f"### {task}",
+        "",
+        f"{family} family, embedding learned on {source} ({role}). {budget:,} steps a run, "
+        f"{budget / paper_budget:.1%} of the paper's {paper_budget:,}; commit {made['commit'][:7]}; "
+        f"curves binned per {width:,.0f} steps.",
+        "",
+        "| algorithm | seeds | final return | area under the curve |",
+        "|---|---|---|---|",
+    ]
+    bands = {}
+    for algo, runs in curves.items():
+        row = summarise_task(task, algo, runs, [], None, report.confidence,
+                             report.bootstrap_samples, rng)
+        lines.append(f"| {ALGO_STYLE[algo][0]} | {seed_list(runs)} | {row.final} | {row.auc} |")
+        bands[algo] = curve_band(runs, report.confidence, report.bootstrap_samples, rng, width)
+    lines.append("")
+    if len(bands) == 2:
+        (steps, _, low_a, high_a, _), (_, _, low_b, high_b, _) = bands["ede-td3"], bands["td3"]
+        sign = separation(low_a, high_a, low_b, high_b)
+        above, below = spans(steps[sign > 0], width), spans(steps[sign < 0], width)
+        confidence = f"{report.confidence:.0%}"
+        lines.append(f"Bins (right ends) where the {confidence} intervals are disjoint: EDE-TD3 above "
+                     f"TD3 at {above or 'none'}; below at {below or 'none'}.")
+        lines.append("")
+    lines += ["| algorithm | seed | first bin | best bin before the last quarter | last quarter "
+              "| diverged |", "|---|---|---|---|---|---|"]
+    for algo, runs in curves.items():
+        for curve in runs:
+            d = divergence(curve.steps, curve.returns, width)
+            lines.append(f"| {ALGO_STYLE[algo][0]} | {curve.seed} | {d.first:.1f} | {d.best:.1f} at "
+                         f"{d.best_step / 1000:g}K | {d.tail:.1f} | {'**yes**' if d.diverged else 'no'} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=Path, default=REPO / "docs/results/runs")
+    parser.add_argument("--figures", type=Path, default=REPO / "docs/results")
+    parser.add_argument("--bins", type=int, default=20, help="bins per run's budget")
+    parser.add_argument("--params", type=Path, default=REPO / "params.yaml")
+    args = parser.parse_args()
+    params = load_params(args.params)
+    rng = np.random.default_rng(params.report.seed)
+    families: dict[str, list[str]] = {}
+    for task, family in params.runs.tasks.items():
+        families.setdefault(family, []).append(task)
+    for family, tasks in families.items():
+        found = {}
+        for task in tasks:
+            folder = args.runs / task_folder(task)
+            curves, budget = read_task(folder, task) if folder.is_dir() else ({}, 0)
+            if curves:
+                found[task] = (curves, budget, json.loads((folder / "source.json").read_text()))
+        if not found:
+            continue
+        source = params.families[family].source
+        for task, (curves, budget, made) in found.items():
+            print(task_section(task, family, source, curves, budget, params.runs.budgets[task],
+                               made, args.bins, params, rng))
+        figure = learning_curve_figure(
+            family, list(found), {(t, a): c for t, (cs, _, _) in found.items() for a, c in cs.items()},
+            params.report.confidence, params.report.bootstrap_samples, rng,
+            {t: budget / args.bins for t, (_, budget, _) in found.items()})
+        args.figures.mkdir(parents=True, exist_ok=True)
+        figure.savefig(args.figures / f"{family}.png", dpi=120)
+        print(f"Figure: {args.figures / f'{family}.png'}\n")
+
+
+if __name__ == "__main__":
+    main()
