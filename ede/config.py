@@ -82,7 +82,8 @@ HiddenSizes = Annotated[
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # Infinities and NaN are not numbers a parameter can mean (and not valid JSON in run.json).
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class FamilyConfig(_Section):
@@ -432,13 +433,37 @@ class ParamsError(ValueError):
         super().__init__("\n".join(f"{path}: {problem}" for problem in problems))
 
 
-def load_params(path: str | Path) -> Params:
-    """Read and validate a params file.
+class _DuplicateKey(yaml.MarkedYAMLError):
+    """A mapping that gives one key twice."""
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping (PyYAML keeps the last,
+    silently; DVC refuses such a file)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        first: dict[Any, yaml.Mark] = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=True)
+            try:
+                mark = first.setdefault(key, key_node.start_mark)
+            except TypeError:  # an unhashable key: the base class says so
+                break
+            if mark is not key_node.start_mark:
+                raise _DuplicateKey(problem=f"key {key!r} given twice, on lines {mark.line + 1} and "
+                                    f"{key_node.start_mark.line + 1}; give it once",
+                                    problem_mark=key_node.start_mark)
+        return super().construct_mapping(node, deep=deep)
+
+
+def read_yaml(path: Path) -> Any:
+    """A YAML file's content, each key of a mapping given once.
 
     Raises:
-        ParamsError: naming each bad key, its value and what is expected.
+        ParamsError: one line saying where the file cannot be read, and why.
     """
-    path = Path(path)
     try:
         text = path.read_text()
     except FileNotFoundError:
@@ -446,9 +471,21 @@ def load_params(path: str | Path) -> Params:
     except (OSError, UnicodeDecodeError) as error:
         raise ParamsError(path, [f"not readable YAML ({_first_line(error)})"]) from None
     try:
-        raw = yaml.safe_load(text)
+        return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a safe loader)
+    except _DuplicateKey as error:
+        raise ParamsError(path, [f"line {error.problem_mark.line + 1}: {error.problem}"]) from None
     except yaml.YAMLError as error:
         raise ParamsError(path, [_describe_yaml_error(error, text)]) from None
+
+
+def load_params(path: str | Path) -> Params:
+    """Read and validate a params file.
+
+    Raises:
+        ParamsError: naming each bad key, its value and what is expected.
+    """
+    path = Path(path)
+    raw = read_yaml(path)
     if not isinstance(raw, dict):
         raise ParamsError(path, [f"expected a mapping of sections, found {type(raw).__name__}"])
     try:

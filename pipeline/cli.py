@@ -12,10 +12,9 @@ from pathlib import Path
 from typing import Any
 
 import click
-import yaml
 from pydantic import ValidationError
 
-from ede.config import Params
+from ede.config import Params, ParamsError, read_yaml
 from ede_pipeline import (
     collect,
     experiments,
@@ -57,7 +56,12 @@ def set_params(params: Params, overrides: Path, name: str | None) -> None:
     second, so that running a file again makes a new experiment: DVC refuses a name it has, unless
     ``--force``, which also reruns every stage instead of taking unchanged ones from its run cache.
     """
-    changes = yaml.safe_load(overrides.read_text()) or {}
+    try:
+        changes = read_yaml(overrides) or {}
+    except ParamsError as error:
+        raise BadInput(str(error)) from None
+    if not isinstance(changes, dict):
+        raise BadInput(f"{overrides}: expected a mapping of params sections")
     merged = params.model_dump(mode="json")
     for section, values in changes.items():
         if not isinstance(values, dict) or section not in merged:

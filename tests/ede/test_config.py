@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from ede.config import Params, ParamsError, load_params
+from ede.config import Params, ParamsError, load_params, read_yaml
 from ede_pipeline.checkout import REPO
 
 
@@ -124,6 +124,15 @@ def test_defaults_in_the_model_match_the_committed_file() -> None:
         (lambda p: p["runs"].update(algos=["td3", "td3"]),
          "runs.algos: ['td3', 'td3'] repeats an algorithm"),
         (lambda p: p["runs"].update(tasks={}), "runs.tasks: got {}; Dictionary should have at least 1"),
+        # Numbers that are not finite mean nothing a parameter can (and are not valid JSON).
+        (lambda p: p["td3"].update(noise_clip=float("inf")),
+         "td3.noise_clip: got inf; expected a finite number"),
+        (lambda p: p["td3"].update(lr=float("nan")), "td3.lr: got nan; expected a finite number"),
+        (lambda p: p["embedding"].update(beta=float("inf")), "embedding.beta: got inf"),
+        (lambda p: p["decoder"].update(lam=float("nan")), "decoder.lam: got nan"),
+        (lambda p: p["ede_td3"].update(bound_scale=float("inf")), "ede_td3.bound_scale: got inf"),
+        (lambda p: p["report"]["thresholds"].update({"ede/Pusher-v0": float("-inf")}),
+         "report.thresholds.ede/Pusher-v0: got -inf; expected a finite number"),
     ],
 )
 def test_a_bad_file_names_the_key_and_value(write_params, edit, key: str) -> None:
@@ -174,6 +183,33 @@ def test_unparseable_files_are_one_clear_problem(tmp_path: Path, text: str, expe
         load_params(path)
     assert caught.value.problems == [expected]
     assert str(caught.value) == f"{path}: {expected}"
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("td3:\n  lr: 0.001\n  batch_size: 100\n  lr: 5.0\n",
+         "line 4: key 'lr' given twice, on lines 2 and 4; give it once"),
+        ("td3:\n  lr: 0.001\nembedding:\n  k: 4\ntd3:\n  lr: 5.0\n",
+         "line 5: key 'td3' given twice, on lines 1 and 5; give it once"),
+        ("runs:\n  budgets:\n    ede/Pusher-v0: 10\n    ede/Pusher-v0: 20\n",
+         "line 4: key 'ede/Pusher-v0' given twice, on lines 3 and 4; give it once"),
+        ("families: {a: {source: X}, a: {source: Y}}\n",
+         "line 1: key 'a' given twice, on lines 1 and 1; give it once"),
+    ],
+)
+def test_a_key_given_twice_is_refused_with_both_lines(tmp_path: Path, text: str, expected: str) -> None:
+    path = tmp_path / "params.yaml"
+    path.write_text(text)
+    with pytest.raises(ParamsError) as caught:
+        load_params(path)
+    assert caught.value.problems == [expected]
+
+
+def test_the_same_key_in_different_mappings_and_merge_keys_are_fine(tmp_path: Path) -> None:
+    path = tmp_path / "x.yaml"
+    path.write_text("base: &b {lr: 1, k: 2}\na: {lr: 3}\nb:\n  <<: *b\n  lr: 4\n")
+    assert read_yaml(path) == {"base": {"lr": 1, "k": 2}, "a": {"lr": 3}, "b": {"lr": 4, "k": 2}}
 
 
 def test_a_missing_file_is_named(tmp_path: Path) -> None:

@@ -6,6 +6,7 @@ import re
 from datetime import datetime
 from pathlib import Path
 
+import pytest
 from click.testing import CliRunner
 
 import ede_envs
@@ -79,6 +80,23 @@ def test_set_params_refuses_overrides_that_make_bad_params(tmp_path) -> None:
     result = CliRunner().invoke(main, ["set-params", str(overrides), "--params",
                                        str(REPO / "params.yaml")])
     assert result.exit_code == 2 and "td3.batch_size" in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("text", "line"),
+    [
+        ("td3:\n  lr: 0.001\n  lr: 5.0\n", "line 3: key 'lr' given twice, on lines 2 and 3"),
+        ("td3:\n  noise_clip: .inf\n", "td3.noise_clip"),
+        ("- td3\n", "expected a mapping of params sections"),
+    ],
+)
+def test_set_params_refuses_an_override_file_that_means_two_things(tmp_path, text, line) -> None:
+    overrides = tmp_path / "quick.yaml"
+    overrides.write_text(text)
+    result = CliRunner().invoke(main, ["set-params", str(overrides), "--params",
+                                       str(REPO / "params.yaml")])
+    assert result.exit_code == 2 and line in result.stderr and result.stdout == ""
+    assert len(result.stderr.strip().splitlines()) == 1
 
 
 def test_the_quick_configuration_is_valid_and_each_run_of_it_a_new_experiment() -> None:
