@@ -322,4 +322,4 @@ def params_mismatches(
 
 def _show(value: Any) -> str:
     """A param's value as params.yaml would spell it: null, true, [400, 400], 0.0001, marginal."""
-    return value if isinstance(value, str) else json.dumps(value)
+    return value if isinstance(value, str) else json.dumps(value, allow_nan=False)

@@ -452,8 +452,10 @@ class _UniqueKeyLoader(yaml.SafeLoader):
             except TypeError:  # an unhashable key: the base class says so
                 break
             if mark is not key_node.start_mark:
-                raise _DuplicateKey(problem=f"key {key!r} given twice, on lines {mark.line + 1} and "
-                                    f"{key_node.start_mark.line + 1}; give it once",
+                again = key_node.start_mark.line
+                where = (f"on line {again + 1}" if again == mark.line
+                         else f"on lines {mark.line + 1} and {again + 1}")
+                raise _DuplicateKey(problem=f"key {key!r} given twice, {where}; give it once",
                                     problem_mark=key_node.start_mark)
         return super().construct_mapping(node, deep=deep)
 

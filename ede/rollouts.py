@@ -292,7 +292,7 @@ def fingerprint(arrays: dict[str, np.ndarray], attrs: dict[str, Any]) -> str:
         digest.update(f"{key}:{array.dtype.str}:{array.shape};".encode())
         digest.update(array.tobytes())
     content = {key: value for key, value in attrs.items() if key not in UNFINGERPRINTED_ATTRS}
-    digest.update(b"attrs:" + json.dumps(content, sort_keys=True).encode())
+    digest.update(b"attrs:" + json.dumps(content, sort_keys=True, allow_nan=False).encode())
     return digest.hexdigest()
 
 

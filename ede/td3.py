@@ -771,6 +771,15 @@ class Agent:
             "mean_q": -actor / actor_steps if actor_steps else nan,
         }
 
+    def non_finite(self) -> dict[int, str]:
+        """The members whose losses since their last :meth:`take_diagnostics` are not finite
+        (one host synchronisation), each with the quantity: the critic's loss, or the actor's
+        (minus its Q value)."""
+        finite = torch.isfinite(self.loss_sums[[0, 2]]).tolist()  # (2, M)
+        names = ("the critic's loss", "the actor's loss (its Q value)")
+        return {m: names[0] if not finite[0][m] else names[1]
+                for m in range(self.members) if not (finite[0][m] and finite[1][m])}
+
     # State, one member at a time ---------------------------------------------------------------
 
     def state_dict(self, member: int) -> dict[str, torch.Tensor]:

@@ -58,14 +58,20 @@ from ede.td3 import (
     ReplayBuffer,
 )
 
-__all__ = ["CheckpointError", "CheckpointWriteError", "RunSpec", "evaluate", "train_group",
-           "train_run"]
+__all__ = ["CheckpointError", "CheckpointWriteError", "Diverged", "RunSpec", "evaluate",
+           "train_group", "train_run"]
 
 CHECKSUMS = "checksums.json"
 
 
 class CheckpointError(Exception):
     """A checkpoint that cannot be used: unreadable, damaged, or another run's."""
+
+
+class Diverged(Exception):
+    """Runs whose numbers stopped being finite: one line each (task, algorithm, seed, step, the
+    quantity). Each stopped there, its last checkpoint kept and no ``metrics.json`` written;
+    the group's other runs finished."""
 
 
 class CheckpointWriteError(Exception):
@@ -106,7 +112,7 @@ class RunSpec:
         }
 
     def fingerprint(self) -> str:
-        return hashlib.sha256(json.dumps(self.identity(), sort_keys=True).encode()).hexdigest()
+        return hashlib.sha256(json.dumps(self.identity(), sort_keys=True, allow_nan=False).encode()).hexdigest()
 
 
 def evaluate(
@@ -187,6 +193,7 @@ class _Run:
         self.history: list[dict[str, float]] = []
         self.diagnostics: list[dict[str, float]] = []  # training's means between evaluations
         self.wall = 0.0  # seconds spent, over every session of this run
+        self.failed: str | None = None  # why it stopped, once it diverged
         self.obs, self.episode = _reset(self.env, spec.seed)
 
     # The loop ------------------------------------------------------------------------------
@@ -200,7 +207,16 @@ class _Run:
         agent = self.group.agent
         if self.step < self.spec.td3.start_steps:
             return agent.random_code(self.index)
-        return agent.act(self.index, obs, explore=True)
+        code = agent.act(self.index, obs, explore=True)
+        if not bool(torch.isfinite(code).all()):
+            raise self.diverged(self.step + 1, "the actor's " + (
+                "action" if self.spec.algo == "td3" else "code"))
+        return code
+
+    def diverged(self, step: int, quantity: str) -> Diverged:
+        spec = self.spec
+        return Diverged(f"{spec.task} {spec.algo} seed {spec.seed}: diverged at step {step}: "
+                        f"{quantity} is not finite")
 
     def env_step(self) -> int:
         """One environment step (Section 3: learn from every step).
@@ -212,6 +228,10 @@ class _Run:
         """
         config, buffer = self.spec.td3, self.group.buffer
         step = self.executor.step(self.obs, self._behaviour)
+        if not np.isfinite(step.reward):
+            raise self.diverged(self.step + 1, "the environment's reward")
+        if not np.isfinite(step.next_obs).all():
+            raise self.diverged(self.step + 1, "the environment's observation")
         buffer.add(self.index, self.obs, step.code, step.i, step.reward, step.next_obs,
                    step.terminated, step.truncated)
         self.episode.actions.append(step.action)
@@ -232,6 +252,8 @@ class _Run:
     def evaluate(self) -> dict[str, float]:
         returns = evaluate(self.eval_env, self.act, self.group.adapter,
                            self.spec.td3.eval_episodes, EVAL_SEED_OFFSET * (self.spec.seed + 1))
+        if not np.isfinite(returns).all():
+            raise self.diverged(self.step, "the evaluation's return")
         row = {"step": self.step, "episode": self.episodes, "mean_return": float(returns.mean()),
                "std_return": float(returns.std()), "wall_seconds": round(self.wall, 3)}
         self.history.append(row)
@@ -273,9 +295,9 @@ class _Run:
         def write(tmp: Path) -> None:
             save_file({k: v.detach().cpu().clone() for k, v in tensors.items()},
                       tmp / "state.safetensors")
-            (tmp / "state.json").write_text(json.dumps(state))
+            (tmp / "state.json").write_text(json.dumps(state, allow_nan=False))
             sums = {name: sha256(tmp / name) for name in ("state.safetensors", "state.json")}
-            (tmp / CHECKSUMS).write_text(json.dumps(sums))
+            (tmp / CHECKSUMS).write_text(json.dumps(sums, allow_nan=False))
 
         write_atomically(path, write)
 
@@ -364,16 +386,23 @@ class _Group:
     def advance(self) -> list[_Run]:
         """One step of the runs furthest behind (every run, while they are in step) and the
         updates it makes due; returns the runs that stepped (none once every run is done)."""
-        active = [run for run in self.runs if run.step < run.spec.budget]
+        active = [run for run in self.runs if run.step < run.spec.budget and run.failed is None]
         if not active:
             return []
         behind = min(run.step for run in active)
         stepping = [run for run in active if run.step == behind]
         due = np.zeros(len(self.runs), dtype=np.int64)
         for run in stepping:
-            due[run.index] = run.env_step()
+            try:
+                due[run.index] = run.env_step()
+            except Diverged as error:
+                run.failed = str(error)
         self.update(due)
-        return stepping
+        for member, quantity in self.agent.non_finite().items():
+            run = self.runs[member]
+            if run.failed is None:  # a member that stopped earlier keeps its first reason
+                run.failed = str(run.diverged(run.step, quantity))
+        return [run for run in stepping if run.failed is None]
 
 
 def _first_line(error: BaseException) -> str:
@@ -476,8 +505,15 @@ def train_group(
         progress(sum(run.step for run in group.runs))
     while stepped := group.advance():
         for run in stepped:
-            sessions[run.index].after_step(progress)
-    return [session.finish(keep_checkpoint) for session in sessions]
+            try:
+                sessions[run.index].after_step(progress)
+            except Diverged as error:
+                run.failed = str(error)
+    results = [s.finish(keep_checkpoint) for s in sessions if s.run.failed is None]
+    failed = [s.stopped() for s in sessions if s.run.failed is not None]
+    if failed:
+        raise Diverged("\n".join(failed))
+    return results
 
 
 @dataclass
@@ -536,6 +572,15 @@ class _Session:
             except OSError as error:
                 raise CheckpointWriteError(f"{checkpoint}: not written ({error.strerror or error}); "
                                            "the previous checkpoint is kept") from None
+
+    def stopped(self) -> str:
+        """A diverged run's line, with where it would resume: its last checkpoint."""
+        checkpoint = self.out / "checkpoint"
+        try:
+            last = f"its last checkpoint, {checkpoint}, is at step {_verified_state(checkpoint)['step']}"
+        except (CheckpointError, KeyError):
+            last = "it has no checkpoint"
+        return f"{self.run.failed}; stopped there, no metrics.json written; {last}"
 
     def finish(self, keep_checkpoint: bool) -> dict[str, Any]:
         """The run's final outputs; ``metrics.json`` last."""

@@ -16,14 +16,19 @@ from ede.locks import OutputBusy, exclusive
 DEFAULT_PARAMS = Path("params.yaml")
 
 
-class BadInput(click.ClickException):
-    """Input the user must fix: printed as ``Error: <message>``, exit code 2, no traceback."""
-
-    exit_code = 2
+class Failed(click.ClickException):
+    """Work that failed (a run that diverged): ``Error: <line>`` per line, exit code 1, no
+    traceback."""
 
     def show(self, file: Any = None) -> None:
         for line in self.format_message().splitlines():
             click.echo(f"Error: {line}", err=True)
+
+
+class BadInput(Failed):
+    """Input the user must fix: printed as ``Error: <message>``, exit code 2, no traceback."""
+
+    exit_code = 2
 
 
 def params_option(command: Callable[..., Any]) -> Callable[..., Any]:

@@ -35,7 +35,7 @@ def task_code(params: Params, family: str, out: Path | None) -> None:
         for task, record in records.items():
             path = folder / f"{task}.json"
             path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_text(json.dumps(record, indent=2) + "\n")
+            path.write_text(json.dumps(record, indent=2, allow_nan=False) + "\n")
 
     write_atomically(out, write)
     click.echo(f"{family}: {len(records)} task records in {out}")

@@ -12,9 +12,9 @@ import torch
 from ede.artifacts import ArtifactError, load_action_embedding, params_mismatches
 from ede.config import ALGOS, Params
 from ede.nets import pick_device
-from ede.training import CheckpointError, CheckpointWriteError, RunSpec, train_group
+from ede.training import CheckpointError, CheckpointWriteError, Diverged, RunSpec, train_group
 from ede_pipeline import layout
-from ede_pipeline.common import BadInput, holding, params_option
+from ede_pipeline.common import BadInput, Failed, holding, params_option
 from ede_pipeline.progress import progress
 
 
@@ -94,6 +94,8 @@ def train(
         raise BadInput(f"{error} (--bad-checkpoint refuse)") from None
     except CheckpointWriteError as error:
         raise click.ClickException(str(error)) from None
+    except Diverged as error:
+        raise Failed(str(error)) from None
     for run_dir, metrics in zip(outs, results):
         click.echo(f"{run_dir}: final return {metrics['final_return']:.2f}, best "
                    f"{metrics['best_return']:.2f}, {metrics['steps_per_second'] or 0:.0f} steps/s")

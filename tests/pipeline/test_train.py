@@ -227,3 +227,22 @@ def test_several_seeds_train_in_one_process_each_as_it_trains_alone(in_workdir: 
     assert [line.rsplit(",", 1)[0] for line in (in_workdir / "group/seed1/eval.csv").read_text().splitlines()] \
         == [line.rsplit(",", 1)[0] for line in (in_workdir / "alone1/eval.csv").read_text().splitlines()]
     assert (in_workdir / "group/seed0/metrics.json").is_file()
+
+
+@pytest.mark.parametrize("algo", ["td3", "ede-td3"])
+def test_a_run_that_diverges_fails_in_one_line_without_metrics(in_workdir: Path, algo: str) -> None:
+    import yaml
+
+    params = yaml.safe_load((in_workdir / "params.yaml").read_text())
+    params["td3"]["lr"] = 1.0e30
+    (in_workdir / "params-lr.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    out = in_workdir / f"diverging-{algo}"
+    result = run("train", "--task", "ede/Point-v0", "--algo", algo, "--seed", "0", "--out", str(out),
+                 "--params", "params-lr.yaml")
+    assert result.exit_code == 1 and result.exception is not None  # click's exit, no traceback
+    lines = [line for line in result.stderr.splitlines() if line.startswith("Error: ")]
+    assert len(lines) == 1, result.stderr  # beside the progress line
+    assert lines[0].startswith(f"Error: ede/Point-v0 {algo} seed 0: diverged at step 50")  # 500-599
+    assert lines[0].endswith(f"its last checkpoint, {out / 'checkpoint'}, is at step 400")
+    assert "Traceback" not in result.output
+    assert not (out / "metrics.json").exists()
