@@ -35,7 +35,7 @@ import numpy as np
 import yaml
 
 from ede.config import load_params
-from ede.report import curve_band, read_curve, summarise_task
+from ede.report import RunRejected, curve_band, read_run, summarise_task
 from ede_pipeline import layout
 
 REPO = Path(__file__).resolve().parents[1]
@@ -119,7 +119,16 @@ def summarise(workdir: Path, task: str, algos: list[str], seeds: list[int],
     print(f"\n== {workdir.name}")
     bands = {}
     for algo in algos:
-        curves = [c for s in seeds if (c := read_curve(run_dir(workdir, task, algo, s), s))]
+        curves = []
+        for seed in seeds:
+            try:
+                record = read_run(run_dir(workdir, task, algo, seed),
+                                  {"task": task, "algo": algo, "seed": seed})
+            except RunRejected as error:
+                print(f"left out: {error}")
+                continue
+            if record is not None:
+                curves.append(record.curve)
         if not curves:
             continue
         rows = [summarise_task(task, algo, curves, [], t, 0.95, 2_000, rng)

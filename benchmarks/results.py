@@ -28,7 +28,15 @@ from pathlib import Path
 import numpy as np
 
 from ede.config import load_params
-from ede.report import ALGO_STYLE, Curve, curve_band, learning_curve_figure, read_curve, summarise_task
+from ede.report import (
+    ALGO_STYLE,
+    Curve,
+    RunRejected,
+    curve_band,
+    learning_curve_figure,
+    read_run,
+    summarise_task,
+)
 from ede.stats import divergence, separation
 
 REPO = Path(__file__).resolve().parents[1]
@@ -45,14 +53,13 @@ def read_task(folder: Path, task: str) -> tuple[dict[str, list[Curve]], int]:
     budgets = set()
     for algo in ALGO_STYLE:
         for run in sorted((folder / algo).glob("seed*"), key=lambda p: int(p.name[4:])):
-            made = json.loads((run / "run.json").read_text())
-            if made["task"] != task or made["algo"] != algo:
-                raise SystemExit(f"{run}: run.json says {made['task']} {made['algo']}, "
-                                 f"not {task} {algo}")
-            curve = read_curve(run, made["seed"])
-            if curve is not None:
-                curves.setdefault(algo, []).append(curve)
-                budgets.add(made["budget"])
+            try:
+                record = read_run(run, {"task": task, "algo": algo, "seed": int(run.name[4:])})
+            except RunRejected as error:
+                raise SystemExit(str(error)) from None
+            if record is not None:
+                curves.setdefault(algo, []).append(record.curve)
+                budgets.add(int(record.curve.steps[-1]))  # checked: the run's budget
     if len(budgets) > 1:
         raise SystemExit(f"{folder}: runs of different budgets {sorted(budgets)}; keep one per task")
     return curves, budgets.pop() if budgets else 0

@@ -7,9 +7,11 @@ writing HTML is the pipeline's business.
 from __future__ import annotations
 
 import csv
+import json
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -41,8 +43,9 @@ __all__ = [
     "effect_space",
     "exploration",
     "learning_curve_figure",
-    "read_curve",
-    "read_diagnostics",
+    "Run",
+    "RunRejected",
+    "read_run",
     "summarise_task",
 ]
 
@@ -58,18 +61,111 @@ class Curve:
     returns: np.ndarray
 
 
-def read_curve(run_dir: Path, seed: int) -> Curve | None:
-    """The curve of a finished run, or None if it is missing.
+class RunRejected(ValueError):
+    """A finished run's folder that must not be averaged: one line saying which file and why."""
+
+
+@dataclass(frozen=True)
+class Run:
+    """A finished run as the report averages it: its curve and its training diagnostics."""
+
+    curve: Curve
+    diagnostics: dict[str, np.ndarray] | None  # None: the run has no diagnostics.csv
+    software: dict[str, Any] | None  # the versions that made it, from run.json
+
+
+def read_run(run_dir: Path, expected: dict[str, Any]) -> Run | None:
+    """A finished run, checked against ``expected``; None when it is not finished.
 
     A run is finished when its ``metrics.json`` exists: ``train`` writes it (atomically) last.
+    ``expected`` holds what the run must be, any of :meth:`ede.training.RunSpec.identity`'s keys
+    (task, algo, seed, budget, params, embedding): each must equal its value in ``run.json``.
+    ``eval.csv`` must hold its columns, finite numbers, and steps that start at 0, rise, and end
+    at the run's budget; ``diagnostics.csv``, where there is one, its columns and numbers.
+
+    Raises:
+        RunRejected: the first problem found, naming the file.
     """
-    if not (run_dir / "metrics.json").is_file() or not (run_dir / "eval.csv").is_file():
+    if not (run_dir / "metrics.json").is_file():
         return None
-    with open(run_dir / "eval.csv") as handle:
-        rows = list(csv.DictReader(handle))
-    steps = np.array([float(row["step"]) for row in rows])
-    returns = np.array([float(row["mean_return"]) for row in rows])
-    return Curve(seed, steps, returns)
+    made = _run_json(run_dir / "run.json")
+    for key, value in expected.items():
+        if made.get(key) != value:
+            raise RunRejected(f"{run_dir / 'run.json'}: {_identity_difference(key, made.get(key), value)}")
+    table = _numbers(run_dir / "eval.csv", ("step", "mean_return"), finite=True)
+    steps, returns = table["step"], table["mean_return"]
+    where = run_dir / "eval.csv"
+    if steps[0] != 0 or np.any(np.diff(steps) <= 0):
+        raise RunRejected(f"{where}: steps must start at 0 and rise; found {_short(steps)}")
+    budget = made.get("budget")
+    if steps[-1] != budget:
+        raise RunRejected(f"{where}: the last evaluation is at step {steps[-1]:g}, not at the "
+                          f"run's budget {budget}")
+    diagnostics = None
+    if (run_dir / "diagnostics.csv").is_file():
+        diagnostics = _numbers(run_dir / "diagnostics.csv", ("step", "updates", "critic_loss"),
+                               finite=False, allow_empty=True)
+    return Run(Curve(int(made["seed"]), steps, returns), diagnostics, made.get("software"))
+
+
+def _run_json(path: Path) -> dict[str, Any]:
+    try:
+        made = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise RunRejected(f"{path}: missing; a finished run records what made it there") from None
+    except (OSError, UnicodeDecodeError, ValueError) as error:
+        raise RunRejected(f"{path}: not readable JSON ({str(error).splitlines()[0]})") from None
+    if not isinstance(made, dict):
+        raise RunRejected(f"{path}: expected a JSON object, found {type(made).__name__}")
+    return made
+
+
+def _identity_difference(key: str, found: Any, expected: Any) -> str:
+    """``made with td3.lr = 0.01, but the params say 0.001``: the first nested key that differs."""
+    if key == "embedding":
+        return "made with another embedding than the family's (its decoder's checksum differs)"
+    if key == "params" and isinstance(found, dict) and isinstance(expected, dict):
+        for section in sorted(set(found) | set(expected)):
+            ours, theirs = found.get(section) or {}, expected.get(section) or {}
+            for name in sorted(set(ours) | set(theirs)) if isinstance(ours, dict) else []:
+                if ours.get(name) != theirs.get(name):
+                    return (f"made with {section}.{name} = {json.dumps(ours.get(name))}, but the "
+                            f"params say {json.dumps(theirs.get(name))}")
+    return f"{key} is {json.dumps(found)}, expected {json.dumps(expected)}"
+
+
+def _short(values: np.ndarray) -> str:
+    shown = ", ".join(f"{v:g}" for v in values[:6])
+    return f"[{shown}{', ...' if len(values) > 6 else ''}]"
+
+
+def _numbers(path: Path, columns: tuple[str, ...], finite: bool,
+             allow_empty: bool = False) -> dict[str, np.ndarray]:
+    """A CSV of numbers as columns: ``columns`` must be there, every cell a number (finite ones
+    when ``finite``), at least one row unless ``allow_empty``."""
+    try:
+        with open(path, newline="") as handle:
+            reader = csv.DictReader(handle)
+            header, rows = reader.fieldnames or [], list(reader)
+    except FileNotFoundError:
+        raise RunRejected(f"{path}: missing") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as error:
+        raise RunRejected(f"{path}: not readable CSV ({str(error).splitlines()[0]})") from None
+    absent = [c for c in columns if c not in header]
+    if absent:
+        raise RunRejected(f"{path}: no column {', '.join(absent)}; found {', '.join(header) or 'none'}")
+    if not rows and not allow_empty:
+        raise RunRejected(f"{path}: no rows")
+    table = {name: np.zeros(len(rows)) for name in header}
+    for line, row in enumerate(rows, start=2):
+        for name in header:
+            try:
+                table[name][line - 2] = value = float(row[name])
+            except (TypeError, ValueError):
+                raise RunRejected(f"{path}: line {line}, {name}: {row[name]!r} is not a number") from None
+            if finite and not np.isfinite(value):
+                raise RunRejected(f"{path}: line {line}, {name}: {row[name]}, not a finite number")
+    return table
 
 
 @dataclass
@@ -188,18 +284,6 @@ def learning_curve_figure(
                     f"{100 * confidence:.0f}% bootstrap band", fontsize=10)
     figure.tight_layout()
     return figure
-
-
-def read_diagnostics(run_dir: Path) -> dict[str, np.ndarray] | None:
-    """A run's ``diagnostics.csv`` as columns, or None if it has none."""
-    path = run_dir / "diagnostics.csv"
-    if not path.is_file():
-        return None
-    with open(path) as handle:
-        rows = list(csv.DictReader(handle))
-    if not rows:
-        return None
-    return {name: np.array([float(row[name]) for row in rows]) for name in rows[0]}
 
 
 def diagnostics_figure(

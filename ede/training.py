@@ -112,7 +112,8 @@ class RunSpec:
         }
 
     def fingerprint(self) -> str:
-        return hashlib.sha256(json.dumps(self.identity(), sort_keys=True, allow_nan=False).encode()).hexdigest()
+        text = json.dumps(self.identity(), sort_keys=True, allow_nan=False)
+        return hashlib.sha256(text.encode()).hexdigest()
 
 
 def evaluate(

@@ -35,10 +35,12 @@ from ede.report import (
     effect_space,
     exploration,
     learning_curve_figure,
-    read_curve,
-    read_diagnostics,
+    RunRejected,
+    read_run,
     summarise_task,
 )
+from ede.stats import divergence
+from ede.training import RunSpec
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, holding, params_option
 
@@ -112,6 +114,7 @@ class Inputs:
     embeddings: dict[str, Path]  # per family, the folder of its encoder and decoder
     loaded: dict[str, ActionEmbedding]
     rollouts: dict[str, dict[str, Any]]  # per family, the store's attributes
+    embedding_ids: dict[str, str]  # per family, its decoder's checksum, which EDE-TD3 runs record
 
 
 def _by_family(
@@ -169,6 +172,7 @@ def read_inputs(
     stores = _by_family("--rollouts", rollouts, params,
                         lambda family: layout.rollouts(family, families), list(folders))
     loaded: dict[str, ActionEmbedding] = {}
+    embedding_ids: dict[str, str] = {}
     trained_on: dict[str, str] = {}  # per family, the rollouts' fingerprint its embedding learned from
     for family, folder in folders.items():
         given = f"--embedding {family}={folder}"
@@ -184,6 +188,7 @@ def read_inputs(
         if meta.family != family:
             raise BadInput(f"{given}: the embedding of family {meta.family}, not {family}")
         trained_on[family] = meta.data_fingerprint
+        embedding_ids[family] = meta.weights_sha256
     for key, family in figures.items():
         if family is not None and family not in folders:
             raise BadInput(f"report.{key}: {family}, but no --embedding {family}=DIR is given; "
@@ -199,7 +204,7 @@ def read_inputs(
             raise BadInput(f"{given}: rollouts {attrs['fingerprint'][:12]}, but the {family} "
                            f"embedding was trained on {trained_on[family][:12]}")
         attributes[family] = attrs
-    return Inputs(runs, folders, loaded, attributes)
+    return Inputs(runs, folders, loaded, attributes, embedding_ids)
 
 
 def build(
@@ -217,6 +222,8 @@ def build(
     metrics: dict[str, Any] = {}
     curve_files: dict[str, str] = {}
     missing_runs: list[str] = []
+    excluded: list[str] = []  # one line per finished run that cannot be averaged, and why
+    software: list[dict[str, Any] | None] = []  # of each run averaged
 
     page.add("<h2>Learning curves</h2>")
     for family, tasks in params.runs.by_family().items():
@@ -228,15 +235,21 @@ def build(
                 found, missing = [], []
                 for seed in params.runs.seeds:
                     run = layout.run(task, algo, seed, inputs.runs)
-                    curve = read_curve(run, seed)
-                    if curve is None:
-                        missing.append(seed)
-                        missing_runs.append(str(run))
+                    try:
+                        record = read_run(run, _expected(params, inputs, task, algo, seed))
+                    except RunRejected as error:
+                        record = None
+                        excluded.append(str(error))
                     else:
-                        found.append(curve)
-                        trained = read_diagnostics(run)
-                        if trained is not None:
-                            diagnostics.setdefault((task, algo), []).append(trained)
+                        if record is None:
+                            missing_runs.append(str(run))
+                    if record is None:
+                        missing.append(seed)
+                        continue
+                    found.append(record.curve)
+                    software.append(record.software)
+                    if record.diagnostics is not None:
+                        diagnostics.setdefault((task, algo), []).append(record.diagnostics)
                 curves[(task, algo)] = found
                 row = summarise_task(task, algo, found, missing, config.thresholds.get(task),
                                      config.confidence, config.bootstrap_samples, rng)
@@ -260,6 +273,7 @@ def build(
             threshold = config.thresholds.get(task)
             note = f" (threshold {threshold:g})" if threshold is not None else ""
             page.add(f"<h4>{task}{note}</h4>" + _table(rows[task]))
+            page.add(_fell_back(task, curves, params))
 
     page.add("<h2>The EDE space against the effect space (Figure 6)</h2>")
     family = config.effect_space_family
@@ -289,17 +303,53 @@ def build(
                  f"every {embedding.k} steps, cover <b>{100 * explored.ede_coverage:.1f}%</b>.</p>")
         page.figure("exploration", explored.figure, "exploration with raw and EDE actions")
 
-    page.add("<h2>Missing runs</h2>")
+    page.add("<h2>Missing and excluded runs</h2>")
     if missing_runs:
         page.add(f'<p class="missing">{len(missing_runs)} of {params.runs.count} runs have no '
                  "results:</p><ul>" + "".join(f"<li><code>{html.escape(r)}</code></li>"
                                               for r in missing_runs) + "</ul>")
-    else:
+    if excluded:
+        page.add(f'<p class="missing">{len(excluded)} finished runs are left out of the figures '
+                 "and tables:</p><ul>" + "".join(f"<li>{html.escape(r)}</li>" for r in excluded)
+                 + "</ul>")
+    if not missing_runs and not excluded:
         page.add("<p>None: every run the params name is here.</p>")
     metrics["missing_runs"] = len(missing_runs)
+    metrics["excluded_runs"] = len(excluded)
 
-    page.add("<h2>Provenance</h2>" + _provenance(params, params_text, inputs))
-    return page, metrics, curve_files
+    page.add("<h2>Provenance</h2>" + _provenance(params, params_text, inputs, software))
+    return page, metrics, curve_files, excluded
+
+
+def _expected(params: Params, inputs: Inputs, task: str, algo: str, seed: int) -> dict[str, Any]:
+    """What a run's ``run.json`` must say: the run the params name, with the family's embedding
+    where the report was given it."""
+    embedding = inputs.embedding_ids.get(params.runs.tasks[task]) if algo == "ede-td3" else ""
+    expected = RunSpec(task, algo, seed, params.runs.budgets[task], params.td3, params.ede_td3,
+                       embedding or "").identity()
+    if embedding is None:
+        del expected["embedding"]  # not given to the report: nothing to check it against
+    return expected
+
+
+def _fell_back(task: str, curves: dict[tuple[str, str], list[Curve]], params: Params) -> str:
+    """The seeds whose returns fell and stayed below their best (:func:`ede.stats.divergence`,
+    on the figure's bins, or 20 of the budget's): flagged, not hidden."""
+    width = params.report.bin_steps or params.runs.budgets[task] / 20
+    flagged = []
+    for algo in params.runs.algos:
+        for curve in curves.get((task, algo), []):
+            try:
+                verdict = divergence(curve.steps, curve.returns, width)
+            except ValueError:  # too few bins to tell
+                continue
+            if verdict.diverged:
+                flagged.append(f"{ALGO_STYLE[algo][0]} seed {curve.seed} (best {verdict.best:.4g} "
+                               f"at step {verdict.best_step:,.0f}, last quarter {verdict.tail:.4g})")
+    if not flagged:
+        return ""
+    return ('<p class="missing">Fell and stayed below their best (diverged, in the paper\'s '
+            f"sense): {html.escape('; '.join(flagged))}.</p>")
 
 
 def _curve_csv(task: str, algos: list[str], curves: dict, config: Any, rng: np.random.Generator) -> str:
@@ -322,8 +372,10 @@ def _row(what: str, sha256: str, software: dict[str, str] | None) -> str:
             f"<td>{html.escape(describe_software(software))}</td></tr>")
 
 
-def _provenance(params: Params, params_text: str, inputs: Inputs) -> str:
-    """The SHA-256 of every input beside the versions of the software that made it."""
+def _provenance(params: Params, params_text: str, inputs: Inputs,
+                runs_software: list[dict[str, Any] | None]) -> str:
+    """The SHA-256 of every input beside the versions of the software that made it, and the
+    software of the runs averaged."""
     rows = [_row("params.yaml; this report", hashlib.sha256(params_text.encode()).hexdigest(),
                  software_versions())]
     for family in params.families:
@@ -336,13 +388,9 @@ def _provenance(params: Params, params_text: str, inputs: Inputs) -> str:
                 rows.append(_row(f"{family} {name} weights", data["weights_sha256"],
                                  data.get("software")))
     runs: dict[str, int] = {}  # the runs' software, described, and how many runs each
-    for task in params.runs.all_tasks:
-        for algo in params.runs.algos:
-            for seed in params.runs.seeds:
-                run_file = layout.run(task, algo, seed, inputs.runs) / "run.json"
-                if run_file.is_file():
-                    software = describe_software(json.loads(run_file.read_text()).get("software"))
-                    runs[software] = runs.get(software, 0) + 1
+    for made_by in runs_software:
+        described = describe_software(made_by)
+        runs[described] = runs.get(described, 0) + 1
     rows += [f"<tr><td>{count} training run{'s' * (count > 1)}</td><td></td>"
              f"<td>{html.escape(software)}</td></tr>" for software, count in runs.items()]
     params_html = html.escape(json.dumps(params.model_dump(mode="json"), indent=1))
@@ -388,7 +436,9 @@ def report(
 def _report(params: Params, inputs: Inputs, out: Path, metrics: Path, curves: Path) -> None:
     params_path = Path(click.get_current_context().params.get("params_path") or "params.yaml")
     params_text = params_path.read_text() if params_path.is_file() else ""
-    page, summary, curve_files = build(params, params_text, inputs)
+    page, summary, curve_files, excluded = build(params, params_text, inputs)
+    for line in excluded:
+        click.echo(f"left out: {line}", err=True)
 
     def write_page(tmp: Path) -> None:
         (tmp / "index.html").write_text(page.html("EDE report"))
@@ -402,4 +452,5 @@ def _report(params: Params, inputs: Inputs, out: Path, metrics: Path, curves: Pa
     write_atomically(curves, write_curves)
     write_json(metrics, summary)
     write_atomically(out, write_page)
-    click.echo(f"{out / 'index.html'}: {summary['missing_runs']} of {params.runs.count} runs missing")
+    click.echo(f"{out / 'index.html'}: {summary['missing_runs']} of {params.runs.count} runs "
+               f"missing, {summary['excluded_runs']} left out")

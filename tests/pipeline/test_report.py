@@ -15,29 +15,36 @@ import torch
 from click.testing import CliRunner, Result
 
 from ede.artifacts import save_decoder, save_encoder
-from ede.config import DecoderConfig, EmbeddingConfig
+from ede.config import DecoderConfig, EmbeddingConfig, load_params
 from ede.embedding import train_decoder, train_encoder
 from ede.provenance import describe_software, software_versions
 from ede.rollouts import Rollouts, collect, write_store
+from ede.training import RunSpec
 from ede_pipeline import layout
 from ede_pipeline.cli import main
 
 TASKS = {"ede/ReacherVertical-v0": "reacher", "ede/Pusher-v0": "sevendof"}
 
 
-def fake_run(root: Path, task: str, algo: str, seed: int, returns: list[float]) -> None:
-    """A finished run as ``train`` leaves it: eval.csv and metrics.json."""
+def fake_run(root: Path, task: str, algo: str, seed: int, returns: list[float],
+             every: int = 1000) -> Path:
+    """A finished run as ``train`` leaves it, of the params in ``root``: eval.csv (an evaluation
+    every ``every`` steps), run.json and metrics.json."""
     out = root / "data/runs" / task / algo / f"seed{seed}"
     out.mkdir(parents=True)
     lines = ["step,episode,mean_return,std_return,wall_seconds"]
-    lines += [f"{1000 * i},{10 * i},{r},1.0,{i}" for i, r in enumerate(returns)]
+    lines += [f"{every * i},{10 * i},{r},1.0,{i}" for i, r in enumerate(returns)]
     (out / "eval.csv").write_text("\n".join(lines) + "\n")
     (out / "metrics.json").write_text(json.dumps({"final_return": returns[-1]}))
-    (out / "run.json").write_text(json.dumps({"software": {**software_versions(), "torch": "9.9"}}))
+    params = load_params(root / "params.yaml")
+    spec = RunSpec(task, algo, seed, params.runs.budgets[task], params.td3, params.ede_td3)
+    software = {**software_versions(), "torch": "9.9"}
+    (out / "run.json").write_text(json.dumps({**spec.identity(), "software": software}))
     if task.startswith("ede/"):  # training diagnostics, as train writes them
         lines = ["step,updates,critic_loss,actor_loss,mean_q"]
         lines += [f"{1000 * i},1000,{1.0 / i},{-r},{r}" for i, r in enumerate(returns[1:], start=1)]
         (out / "diagnostics.csv").write_text("\n".join(lines) + "\n")
+    return out
 
 
 def embedding(root: Path, family: str, env_id: str) -> None:
@@ -85,42 +92,46 @@ def report(root: Path, *args: str) -> tuple[Result, str]:
     return result, (root / "data/report/index.html").read_text()
 
 
-def test_every_section_with_runs_missing_and_of_unequal_length(project: Path, embeddings: Path) -> None:
+def test_every_section_with_runs_missing_and_one_cut_short(project: Path, embeddings: Path) -> None:
     shutil.copytree(embeddings / "data", project / "data")
     fake_run(project, "ede/ReacherVertical-v0", "td3", 0, [-20, -12, -8])
-    fake_run(project, "ede/ReacherVertical-v0", "td3", 1, [-21, -10])  # stopped early
+    fake_run(project, "ede/ReacherVertical-v0", "td3", 1, [-21, -10])  # ends before its budget
     fake_run(project, "ede/ReacherVertical-v0", "ede-td3", 0, [-20, -6, -4])
     fake_run(project, "ede/ReacherVertical-v0", "ede-td3", 1, [-19, -5, -3])
     fake_run(project, "ede/ReacherVertical-v0", "ede-td3", 2, [-18, -7, -2])
     _, page = report(project)
     for section in ("Learning curves", "reacher family", "sevendof family", "Figure 6", "R² =",
-                    "Figure 7", "of the arena", "Missing runs", "Provenance", "threshold -5"):
+                    "Figure 7", "of the arena", "Missing and excluded runs", "Provenance",
+                    "threshold -5"):
         assert section in page, section
     for image in ("curves-reacher", "curves-sevendof", "diagnostics-reacher", "effect-space",
                   "exploration"):
         assert f'id="{image}"' in page and (project / f"data/report/{image}.png").is_file()
     assert 'id="diagnostics-sevendof"' not in page  # no run of that family has diagnostics
     assert page.count("data:image/png;base64,") == 5  # self-contained
-    # 12 runs expected (2 tasks x 2 algos x 3 seeds); 5 exist.
+    # 12 runs expected (2 tasks x 2 algos x 3 seeds); 5 exist, one of them cut short.
     assert "7 of 12 runs have no results" in page
+    assert ("1 finished runs are left out of the figures and tables:</p><ul><li>data/runs/ede/"
+            "ReacherVertical-v0/td3/seed1/eval.csv: the last evaluation is at step 1000, not at "
+            "the run&#x27;s budget 2000</li>") in page
     # provenance: each input's SHA-256 beside the versions that made it
     here = describe_software(software_versions())
     meta = json.loads((project / "data/families/point/embedding/encoder/meta.json").read_text())
     assert f"<td>point encoder weights</td><td><code>{meta['weights_sha256']}</code></td><td>{here}</td>" in page
     assert f"<td>point rollouts</td><td><code>{meta['data_fingerprint']}</code></td><td>{here}</td>" in page
     assert "reacher encoder weights" not in page  # every family in data/families: none there
-    assert "<td>5 training runs</td><td></td><td>" + here.replace(
+    assert "<td>4 training runs</td><td></td><td>" + here.replace(
         software_versions()["torch"], "9.9") in page
     assert "data/runs/ede/Pusher-v0/td3/seed0" in page and "data/runs/ede/ReacherVertical-v0/td3/seed2" in page
     metrics = json.loads((project / "data/report-metrics.json").read_text())
-    assert metrics["missing_runs"] == 7
-    assert metrics["ede/ReacherVertical-v0"]["td3"] == {"final_return": -9.0, "auc": pytest.approx(
-        np.mean([(-20 + -12) / 2 * 0.5 + (-12 + -8) / 2 * 0.5, (-21 + -10) / 2])), "seeds": 2}
+    assert metrics["missing_runs"] == 7 and metrics["excluded_runs"] == 1
+    assert metrics["ede/ReacherVertical-v0"]["td3"] == {"final_return": -8.0, "auc": pytest.approx(
+        (-20 + -12) / 2 * 0.5 + (-12 + -8) / 2 * 0.5), "seeds": 1}
     assert metrics["ede/ReacherVertical-v0"]["ede-td3"]["final_return"] == -3.0
     assert metrics["ede/Pusher-v0"]["td3"]["seeds"] == 0
     curve = (project / "data/report-curves/ede_ReacherVertical-v0.csv").read_text().splitlines()
-    assert curve[0] == "step,td3,ede-td3" and curve[1] == "0,-20.5,-19"
-    assert curve[3] == "2000,-8,-3"  # the short run no longer counts at step 2000
+    assert curve[0] == "step,td3,ede-td3" and curve[1] == "0,-20,-19"
+    assert curve[3] == "2000,-8,-3"
 
 
 def test_one_seed_and_no_pictures_where_the_params_name_no_family(project: Path, write_params) -> None:
@@ -130,7 +141,7 @@ def test_one_seed_and_no_pictures_where_the_params_name_no_family(project: Path,
         params["report"].update(effect_space_family=None, exploration_family=None)
 
     write_params(no_pictures)
-    fake_run(project, "ede/Pusher-v0", "ede-td3", 0, [-50, -40])
+    fake_run(project, "ede/Pusher-v0", "ede-td3", 0, [-50, -40], every=2000)
     _, page = report(project)  # no embedding needed, none read
     assert "Not drawn: <code>report.effect_space_family</code> is null" in page
     assert "Not drawn: <code>report.exploration_family</code> is null" in page
@@ -195,7 +206,7 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(
     project: Path, embeddings: Path, args: list[str], message: str
 ) -> None:
     shutil.copytree(embeddings / "data", project / "data")
-    fake_run(project, "ede/Pusher-v0", "td3", 0, [-50, -40])
+    fake_run(project, "ede/Pusher-v0", "td3", 0, [-50, -40], every=2000)
     bad(CliRunner().invoke(main, ["report", *args]), message)
     assert sorted(p.name for p in (project / "data").iterdir()) == ["families", "runs"]
 
@@ -227,3 +238,96 @@ def test_the_page_opens_in_headless_chromium_with_its_figures(project: Path, emb
     dom = subprocess.run(["chromium", *flags, "--dump-dom", page.as_uri()], capture_output=True,
                          text=True, timeout=120, env={**os.environ, "HOME": str(project)})
     assert dom.returncode == 0 and dom.stdout.count("<img") == 5  # curves x2, diagnostics, Figures 6 and 7
+
+
+def _edit_json(path: Path, change) -> None:
+    data = json.loads(path.read_text())
+    change(data)
+    path.write_text(json.dumps(data))
+
+
+def _rewrite(path: Path, old: str, new: str) -> None:
+    path.write_text(path.read_text().replace(old, new, 1))
+
+
+DAMAGE = {
+    # what was done to td3 seed 1: (how, the reason named)
+    "an EDE-TD3 run in a TD3 slot": (
+        lambda run: _edit_json(run / "run.json", lambda d: d.update(algo="ede-td3")),
+        'run.json: algo is "ede-td3", expected "td3"'),
+    "another budget's run": (
+        lambda run: _edit_json(run / "run.json", lambda d: d.update(budget=6000)),
+        "run.json: budget is 6000, expected 2000"),
+    "another seed's run": (
+        lambda run: _edit_json(run / "run.json", lambda d: d.update(seed=0)),
+        "run.json: seed is 0, expected 1"),
+    "other params": (
+        lambda run: _edit_json(run / "run.json", lambda d: d["params"]["td3"].update(lr=0.01)),
+        "run.json: made with td3.lr = 0.01, but the params say 0.001"),
+    "a garbled run.json": (lambda run: (run / "run.json").write_text('{"task": '),
+                           "run.json: not readable JSON"),
+    "no run.json": (lambda run: (run / "run.json").unlink(), "run.json: missing"),
+    "an empty eval.csv": (lambda run: (run / "eval.csv").write_text(""),
+                          "eval.csv: no column step, mean_return; found none"),
+    "a header alone": (lambda run: (run / "eval.csv").write_text(
+        "step,episode,mean_return,std_return,wall_seconds\n"), "eval.csv: no rows"),
+    "a NaN return": (lambda run: _rewrite(run / "eval.csv", ",-12,", ",nan,"),
+                     "eval.csv: line 3, mean_return: nan, not a finite number"),
+    "text for a number": (lambda run: _rewrite(run / "eval.csv", ",-12,", ",abc,"),
+                          "eval.csv: line 3, mean_return: 'abc' is not a number"),
+    "a missing column": (lambda run: (run / "eval.csv").write_text("step,return\n0,-1\n2000,-2\n"),
+                         "eval.csv: no column mean_return; found step, return"),
+    "steps past the budget": (lambda run: _rewrite(run / "eval.csv", "\n2000,", "\n3000,"),
+                              "eval.csv: the last evaluation is at step 3000, not at the run's "
+                              "budget 2000"),
+    "steps out of order": (lambda run: _rewrite(run / "eval.csv", "\n1000,", "\n2500,"),
+                           "eval.csv: steps must start at 0 and rise; found [0, 2500, 2000]"),
+    "damaged diagnostics": (lambda run: _rewrite(run / "diagnostics.csv", "1000,1000,", "1000,x,"),
+                            "diagnostics.csv: line 2, updates: 'x' is not a number"),
+}
+
+
+@pytest.mark.parametrize("case", DAMAGE)
+def test_a_run_that_is_not_what_the_params_name_is_left_out_by_name(project: Path, case: str) -> None:
+    two_seeds_no_pictures(project, budget=2000)
+    fake_run(project, "ede/ReacherVertical-v0", "td3", 0, [-20, -12, -8])
+    damaged = fake_run(project, "ede/ReacherVertical-v0", "td3", 1, [-21, -12, -9])
+    damage, reason = DAMAGE[case]
+    damage(damaged)
+    result, page = report(project)
+    left_out = [line for line in result.stderr.splitlines() if line.startswith("left out: ")]
+    assert len(left_out) == 1 and left_out[0].startswith(f"left out: {damaged.relative_to(project)}/")
+    assert reason in left_out[0], left_out[0]
+    assert "Traceback" not in result.output
+    assert "1 finished runs are left out of the figures and tables" in page
+    metrics = json.loads((project / "data/report-metrics.json").read_text())
+    assert metrics["excluded_runs"] == 1 and metrics["missing_runs"] == 6
+    assert metrics["ede/ReacherVertical-v0"]["td3"]["seeds"] == 1  # seed 0's alone
+    assert metrics["ede/ReacherVertical-v0"]["td3"]["final_return"] == -8.0
+
+
+def two_seeds_no_pictures(root: Path, budget: int) -> None:
+    """Params of seeds 0 and 1, ``budget`` steps on ReacherVertical, and no Figures 6 and 7."""
+    import yaml
+
+    from ede_pipeline.checkout import REPO
+
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params["runs"].update(tasks=TASKS, seeds=[0, 1], budgets={"ede/ReacherVertical-v0": budget,
+                                                              "ede/Pusher-v0": 2000})
+    params["report"].update(effect_space_family=None, exploration_family=None)
+    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+
+
+def test_a_seed_that_falls_and_stays_below_its_best_is_flagged(project: Path) -> None:
+    two_seeds_no_pictures(project, budget=20_000)
+    rises = list(np.linspace(-30, -10, 21))
+    falls = list(np.linspace(-30, -10, 11)) + list(np.linspace(-14, -40, 10))
+    fake_run(project, "ede/ReacherVertical-v0", "td3", 0, falls)
+    fake_run(project, "ede/ReacherVertical-v0", "td3", 1, rises)
+    fake_run(project, "ede/ReacherVertical-v0", "ede-td3", 0, rises)
+    _, page = report(project)
+    # Binned per 2,500 steps: the best bin (7.5K, 10K] averages -14, -12, -10.
+    assert "Fell and stayed below their best (diverged, in the paper's sense): TD3 seed 0 " \
+           "(best -12 at step 10,000, last quarter -33.5)." in page
+    assert page.count("Fell and stayed below their best") == 1  # the others rise
