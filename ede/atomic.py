@@ -6,6 +6,7 @@ import hashlib
 import json
 import os
 import shutil
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -81,3 +82,36 @@ def write_text(path: str | Path, text: str) -> None:
 def write_json(path: str | Path, data: Any) -> None:
     """Write JSON atomically."""
     write_text(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
+
+
+def unwritable(path: str | Path, directory: bool) -> str | None:
+    """Why ``path`` cannot be written as a stage writes it, or None where it can.
+
+    ``path`` is a directory (``directory``) or a file, written through a temporary beside it,
+    with a lock file beside it too: nothing may be in its way (a file where a directory goes, a
+    directory where a file goes, a file among its parents), and the nearest existing parent must
+    take a new file with data (a read-only or full location cannot). Creates nothing it leaves.
+    """
+    path = Path(path)
+    if directory and path.exists() and not path.is_dir():
+        return f"{path}: a file is in the way; expected a directory there, or nothing"
+    if not directory and path.is_dir():
+        return f"{path}: a directory is in the way; expected a file there, or nothing"
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        return f"{path}: cannot be created: {parent} is a file, not a directory"
+    try:
+        fd, probe = tempfile.mkstemp(dir=parent, prefix=".ede-probe-")
+    except OSError as error:
+        return f"{path}: cannot be written: {parent} does not take new files ({error.strerror})"
+    try:
+        os.write(fd, bytes(4096))
+        os.fsync(fd)
+    except OSError as error:
+        return f"{path}: cannot be written: {parent} does not take data ({error.strerror})"
+    finally:
+        os.close(fd)
+        os.unlink(probe)
+    return None

@@ -24,7 +24,7 @@ from ede_pipeline.progress import progress
 @family_option
 @click.option(
     "--out",
-    type=click.Path(file_okay=False, path_type=Path),
+    type=click.Path(path_type=Path),
     help="Store to write  [default: data/families/<family>/rollouts.zarr]",
 )
 @click.option("--workers", type=click.IntRange(min=1), help="Processes  [default: one per core]")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import os
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
@@ -10,8 +11,10 @@ from typing import Any
 
 import click
 
+from ede.atomic import unwritable
 from ede.config import Params, ParamsError, load_params
 from ede.locks import OutputBusy, exclusive
+from ede_pipeline.progress import PROGRESS_ENV
 
 DEFAULT_PARAMS = Path("params.yaml")
 
@@ -69,11 +72,31 @@ def check_family(params: Params, family: str) -> None:
         )
 
 
+def check_outputs(output: Path, files: tuple[Path | None, ...] = (),
+                  dirs: tuple[Path | None, ...] = ()) -> None:
+    """Before any work: every place a stage will write can be written
+    (:func:`ede.atomic.unwritable`) — ``output`` (a directory) with its lock and temporaries, the
+    other outputs ``files`` and ``dirs``, and the progress file ``EDE_PROGRESS`` names.
+
+    Raises:
+        BadInput: one line naming the place and what is in the way.
+    """
+    progress_file = os.environ.get(PROGRESS_ENV)
+    places = [(output, True), *((d, True) for d in dirs if d), *((f, False) for f in files if f)]
+    for place, directory in places:
+        if problem := unwritable(place, directory):
+            raise BadInput(problem)
+    if progress_file and (problem := unwritable(Path(progress_file), directory=False)):
+        raise BadInput(f"{PROGRESS_ENV}={problem}")
+
+
 @contextmanager
-def holding(output: Path) -> Iterator[None]:
-    """The stage's exclusive lock on its output (:func:`ede.locks.exclusive`) for the block; a
-    second process on the same output is refused as bad input (one line with the holder's PID,
-    exit 2) before it writes anything."""
+def holding(output: Path, files: tuple[Path | None, ...] = (),
+            dirs: tuple[Path | None, ...] = ()) -> Iterator[None]:
+    """The stage's exclusive lock on its output (:func:`ede.locks.exclusive`) for the block,
+    after :func:`check_outputs`. A place that cannot be written, and a second process on the
+    same output, are refused as bad input: one line, exit 2, nothing written."""
+    check_outputs(output, files, dirs)
     lock = ExitStack()
     try:
         lock.enter_context(exclusive(output))

@@ -413,12 +413,12 @@ def _provenance(params: Params, params_text: str, inputs: Inputs,
 @click.option("--rollouts", metavar="FAMILY=STORE", multiple=True,
               help="A family's rollouts store, once per family, instead of those in --families  "
               "[default: <families>/<family>/rollouts.zarr for each family of the embeddings]")
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=layout.REPORT,
+@click.option("--out", type=click.Path(path_type=Path), default=layout.REPORT,
               show_default=True, help="Report directory: index.html and its PNG figures.")
-@click.option("--metrics", type=click.Path(dir_okay=False, path_type=Path),
+@click.option("--metrics", type=click.Path(path_type=Path),
               default=layout.REPORT_METRICS, show_default=True,
               help="Summary metrics (DVC metrics): mean final return and AUC per task and algorithm.")
-@click.option("--curves", type=click.Path(file_okay=False, path_type=Path),
+@click.option("--curves", type=click.Path(path_type=Path),
               default=layout.REPORT_CURVES, show_default=True,
               help="Mean learning curve per task, one CSV each (DVC plots).")
 @params_option
@@ -428,7 +428,7 @@ def report(
 ) -> None:
     """Stage 5: learning curves, tables, the EDE pictures and provenance in one HTML page."""
     torch.set_num_threads(params.embedding.threads)  # it only encodes and decodes small batches
-    with holding(out):
+    with holding(out, files=(metrics,), dirs=(curves,)):
         _report(params, read_inputs(params, runs, embeddings, rollouts, families), out, metrics,
                 curves)
 

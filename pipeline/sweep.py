@@ -48,6 +48,7 @@ from typing import TYPE_CHECKING, Any
 import click
 from tqdm import tqdm
 
+from ede.atomic import unwritable
 from ede.config import Params
 from ede_pipeline.common import DEFAULT_PARAMS, BadInput, read_params
 from ede_pipeline.progress import PROGRESS_ENV, read_progress
@@ -491,7 +492,7 @@ def _tail(text: str) -> str:
               help="Runs of one task and algorithm trained by one process (`train --seeds`)  "
                    "[default: on CUDA (td3.device cuda, or auto with a GPU) every seed; on CPU as "
                    "many as leave every job a process]")
-@click.option("--logs", type=click.Path(file_okay=False, path_type=Path), default=LOGS,
+@click.option("--logs", type=click.Path(path_type=Path), default=LOGS,
               show_default=True, help="Where each run's output goes, one file per stage.")
 @click.pass_context
 def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, executor: str,
@@ -511,6 +512,8 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
     if executor == "local" and address:
         raise BadInput("--address is for --executor ray")
     params = read_params(DEFAULT_PARAMS)  # bad params end here, before anything runs
+    if problem := unwritable(logs, directory=True):
+        raise BadInput(f"--logs {problem}")
 
     with Repo(".") as repo:
         stages = collect_stages(repo, targets)

@@ -14,7 +14,7 @@ from ede.config import ALGOS, Params
 from ede.nets import pick_device
 from ede.training import CheckpointError, CheckpointWriteError, Diverged, RunSpec, train_group
 from ede_pipeline import layout
-from ede_pipeline.common import BadInput, Failed, holding, params_option
+from ede_pipeline.common import BadInput, Failed, check_outputs, holding, params_option
 from ede_pipeline.progress import progress
 
 
@@ -83,6 +83,8 @@ def train(
              for seed in seed_list]
     notice = functools.partial(click.echo, err=True)
     label = f"{algo} {task} seed{'s' if len(seed_list) > 1 else ''} {seeds}"
+    for run_dir in outs:  # every run's, before the first lock is taken
+        check_outputs(run_dir)
     try:
         with ExitStack() as locks:
             for run_dir in outs:
