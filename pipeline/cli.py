@@ -25,13 +25,14 @@ from ede_pipeline import (
     task_inputs,
     train,
 )
-from ede_pipeline.common import BadInput, params_option
+from ede_pipeline.common import BadInput, check_mujoco_gl, params_option
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="ede")
 def main() -> None:
     """The EDE pipeline: collect → pretrain → train → report (see README.md)."""
+    check_mujoco_gl()
 
 
 @main.command()

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import functools
 import os
+import subprocess
+import sys
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
@@ -104,3 +106,37 @@ def holding(output: Path, files: tuple[Path | None, ...] = (),
         raise BadInput(str(error)) from None
     with lock:
         yield
+
+
+# The values of MUJOCO_GL that MuJoCo accepts on Linux, and "disable", which needs no OpenGL.
+MUJOCO_GL_VALUES = ("egl", "osmesa", "glfw", "glx", "disable")
+
+
+def check_mujoco_gl() -> None:
+    """An ``MUJOCO_GL`` that MuJoCo cannot start with (a value it does not know, or a backend
+    whose libraries this machine lacks) is one line naming the values this machine supports.
+
+    MuJoCo reads the variable when it is first imported and fails there, in every stage; no
+    stage renders, so leaving it unset (or ``disable``) always works.
+
+    Raises:
+        BadInput: naming the variable, its value, why, and the working values.
+    """
+    value = os.environ.get("MUJOCO_GL")
+    if value is None:
+        return
+    try:
+        import mujoco  # noqa: F401 — it reads MUJOCO_GL on import
+    except Exception as error:  # noqa: BLE001 — RuntimeError, or a backend's missing library
+        reason = (str(error).strip().splitlines() or [type(error).__name__])[-1]
+        works = [v for v in MUJOCO_GL_VALUES if _mujoco_starts_with(v)]
+        raise BadInput(f"MUJOCO_GL={value}: MuJoCo cannot start with it ({reason}); this machine "
+                       f"supports {', '.join(works) or 'none of ' + ', '.join(MUJOCO_GL_VALUES)}, "
+                       "or leave it unset: no stage renders") from None
+
+
+def _mujoco_starts_with(value: str) -> bool:
+    environ = {**os.environ, "MUJOCO_GL": value}
+    probe = subprocess.run([sys.executable, "-c", "import mujoco"], env=environ,
+                           capture_output=True, timeout=60)
+    return probe.returncode == 0

@@ -34,6 +34,7 @@ from __future__ import annotations
 import os
 import shlex
 import shutil
+import socket
 import subprocess
 import sys
 import threading
@@ -199,6 +200,36 @@ class LocalExecutor:
             self.pool.shutdown(wait=True, cancel_futures=True)
 
 
+RAY_CONNECT_TIMEOUT = 10.0  # seconds the sweep waits for a Ray address to answer
+
+
+def check_ray_address(address: str | None, timeout: float = RAY_CONNECT_TIMEOUT) -> None:
+    """A Ray address the sweep cannot reach is refused at once, before anything runs: Ray itself
+    would retry for minutes, printing warnings. ``auto`` (and no address) are Ray's to resolve.
+
+    Raises:
+        BadInput: one line naming the address and why, within ``timeout`` seconds.
+    """
+    if address is None or address in ("auto", "local"):
+        return
+    host, colon, port = address.removeprefix("ray://").rpartition(":")
+    if not colon or not host or not port.isdigit():
+        raise BadInput(f"--address {address!r}: expected HOST:PORT, ray://HOST:PORT or auto, as "
+                       "`ray start --head` prints it")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+    except TimeoutError:
+        why = f"no answer within {timeout:g} s"
+    except socket.gaierror as error:
+        why = f"unknown host: {error.strerror}"
+    except OSError as error:
+        why = error.strerror or type(error).__name__
+    else:
+        return
+    raise BadInput(f"--address {address}: no Ray cluster can be reached there ({why}); start one "
+                   "with `ray start --head`, or give the address it prints")
+
+
 class RayExecutor:
     """One Ray task per job, ``num_cpus`` each; at most ``jobs`` in flight if given."""
 
@@ -209,8 +240,12 @@ class RayExecutor:
             raise BadInput("--executor ray needs Ray: pip install -e '.[ray]'") from None
         self.ray = ray
         if not ray.is_initialized():
-            ray.init(address=address, include_dashboard=False, log_to_driver=False,
-                     configure_logging=False)
+            try:
+                ray.init(address=address, include_dashboard=False, log_to_driver=False,
+                         configure_logging=False)
+            except ConnectionError as error:  # e.g. auto, and no cluster on this machine
+                first = (str(error).strip().splitlines() or [type(error).__name__])[0]
+                raise BadInput(f"--address {address}: {first}") from None
         # No automatic retry: a lost run is reported, and the next sweep resumes it.
         self.task = ray.remote(run_job).options(num_cpus=num_cpus, max_retries=0)
         self.jobs = jobs
@@ -485,7 +520,8 @@ def _tail(text: str) -> str:
 @click.option("--executor", type=click.Choice(["local", "ray"]), default="local", show_default=True,
               help="Child processes on this machine, or Ray tasks on a cluster.")
 @click.option("--address", help="Ray: the cluster to join (`ray start --head` prints it; "
-              "default: $RAY_ADDRESS, else a new local Ray instance).")
+              "default: $RAY_ADDRESS, else a new local Ray instance). One that does not answer "
+              "within 10 s is refused before anything runs.")
 @click.option("--cpus-per-run", type=click.FloatRange(min=0, min_open=True), default=1.0,
               show_default=True, help="Ray: the num_cpus of each run's task.")
 @click.option("--group-size", type=click.IntRange(min=1),
@@ -504,13 +540,20 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
     Their upstream stages are brought up to date first with `dvc repro`. Exits 1 if any run failed;
     what succeeded is recorded all the same, and running the sweep again runs only the rest.
     """
-    from dvc.exceptions import DvcException
+    from dvc.exceptions import DvcException, NotDvcRepoError
     from dvc.repo import Repo
 
     if not Path("dvc.yaml").is_file():
         raise BadInput(f"run from the repository root (no dvc.yaml in {Path.cwd()})")
     if executor == "local" and address:
         raise BadInput("--address is for --executor ray")
+    if executor == "ray":
+        check_ray_address(address or os.environ.get("RAY_ADDRESS"))
+    try:
+        Repo(".").close()
+    except NotDvcRepoError:
+        raise BadInput(f"{Path.cwd()}: dvc.yaml but no DVC repository; run `dvc init` (in a git "
+                       "repository) first") from None
     params = read_params(DEFAULT_PARAMS)  # bad params end here, before anything runs
     if problem := unwritable(logs, directory=True):
         raise BadInput(f"--logs {problem}")

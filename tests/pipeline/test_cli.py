@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import re
+import subprocess
+import sys
 from datetime import datetime
 from pathlib import Path
 
@@ -111,3 +114,24 @@ def test_an_experiments_default_name_is_the_files_and_the_time() -> None:
     when = datetime(2025, 1, 30, 14, 12, 5)
     assert experiment_name(Path("params-quick.yaml"), when) == "quick-20250130-141205"
     assert experiment_name(Path("conf/ablation.yaml"), when) == "ablation-20250130-141205"
+
+
+def pipeline(*args: str, **env: str) -> subprocess.CompletedProcess:
+    """``python -m ede_pipeline`` in a fresh process: MuJoCo reads MUJOCO_GL when first imported."""
+    return subprocess.run([sys.executable, "-m", "ede_pipeline", *args], capture_output=True,
+                          text=True, env={**os.environ, **env}, cwd=REPO, timeout=600)
+
+
+def test_an_invalid_mujoco_gl_is_one_line_naming_what_works_here() -> None:
+    result = pipeline("validate", MUJOCO_GL="foo")
+    assert result.returncode == 2 and result.stdout == ""
+    assert result.stderr.startswith("Error: MUJOCO_GL=foo: MuJoCo cannot start with it (invalid "
+                                    "value for environment variable MUJOCO_GL: foo); this machine "
+                                    "supports "), result.stderr
+    assert result.stderr.endswith(", disable, or leave it unset: no stage renders\n")
+    assert len(result.stderr.splitlines()) == 1
+
+
+def test_no_stage_needs_rendering() -> None:
+    result = pipeline("validate", MUJOCO_GL="disable")
+    assert result.returncode == 0 and result.stdout.startswith("ok: "), result.stderr
