@@ -31,6 +31,7 @@ runs each stage as a batch job instead (``scripts/batch-job.sh``: pull, run, pus
 
 from __future__ import annotations
 
+import math
 import os
 import shlex
 import shutil
@@ -198,6 +199,13 @@ class LocalExecutor:
                 yield from (future.result() for future in done)
         finally:
             self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _finite(param: click.Parameter, value: float) -> float:
+    """Refuse ``inf`` and ``nan``, which click's ranges let through."""
+    if not math.isfinite(value):
+        raise click.BadParameter(f"{value} is not a finite number", param=param)
+    return value
 
 
 RAY_CONNECT_TIMEOUT = 10.0  # seconds the sweep waits for a Ray address to answer
@@ -523,6 +531,7 @@ def _tail(text: str) -> str:
               "default: $RAY_ADDRESS, else a new local Ray instance). One that does not answer "
               "within 10 s is refused before anything runs.")
 @click.option("--cpus-per-run", type=click.FloatRange(min=0, min_open=True), default=1.0,
+              callback=lambda ctx, param, value: _finite(param, value),
               show_default=True, help="Ray: the num_cpus of each run's task.")
 @click.option("--group-size", type=click.IntRange(min=1),
               help="Runs of one task and algorithm trained by one process (`train --seeds`)  "

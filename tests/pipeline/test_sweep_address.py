@@ -78,3 +78,9 @@ def test_addresses_that_are_not_addresses(address: str, problem: str) -> None:
 def test_auto_and_no_address_are_rays_to_resolve() -> None:
     check_ray_address(None)
     check_ray_address("auto")
+
+
+@pytest.mark.parametrize("cpus", ["inf", "nan", "0"])
+def test_a_run_needs_a_finite_positive_share_of_cpus(project: Path, cpus: str) -> None:
+    result = CliRunner().invoke(main, ["sweep", "--executor", "ray", "--cpus-per-run", cpus])
+    assert result.exit_code == 2 and "Invalid value for '--cpus-per-run'" in result.stderr
