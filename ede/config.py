@@ -358,6 +358,23 @@ class Params(_Section):
             shared = set(self.families[a].tasks) & set(self.families[b].tasks)
             if shared:
                 problems.append(f"families: {', '.join(sorted(shared))} in both {a} and {b}")
+        problems += self._action_space_problems()
+        return problems
+
+    def _action_space_problems(self) -> list[str]:
+        """A family shares one embedding, so its tasks must share one action space."""
+        from ede.tasks import action_box, unusable
+
+        problems = []
+        for name, family in self.families.items():
+            if any(unusable(task) for task in family.tasks):
+                continue  # each such task is refused by name already
+            source = action_box(family.source)
+            for target in family.targets:
+                if action_box(target) != source:
+                    problems.append(f"families.{name}.targets: {target}'s actions are not "
+                                    f"{family.source}'s (a family shares one action space, "
+                                    "and so one embedding)")
         return problems
 
     def _scale_problems(self) -> list[str]:

@@ -4,14 +4,16 @@ use one at all."""
 from __future__ import annotations
 
 import functools
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import gymnasium
 import numpy as np
 
 import ede_envs
 
-__all__ = ["TaskInfo", "describe_tasks", "make", "unusable"]
+__all__ = ["TaskInfo", "action_box", "describe_tasks", "make", "unusable"]
 
 
 @dataclass(frozen=True)
@@ -65,27 +67,38 @@ def _describe(space: gymnasium.Space) -> str:
     return text if len(text) <= 40 else type(space).__name__
 
 
-def describe_tasks() -> list[TaskInfo]:
-    """Every task of every shipped family, built once to read its spaces."""
+def describe_tasks(families: Mapping[str, Any]) -> list[TaskInfo]:
+    """Every task this package registers and every task of ``families`` (the params'
+    ``FamilyConfig`` by name), each built once to read its spaces; a task in no family has
+    family and role "-"."""
+    roles = {task: (name, "source" if task == family.source else "target")
+             for name, family in families.items() for task in family.tasks}
     infos = []
-    for family in ede_envs.FAMILIES.values():
-        for task_id in family.tasks:
-            env = make(task_id)
-            try:
-                space = env.action_space
-                assert isinstance(space, gymnasium.spaces.Box)
-                low, high = np.unique(space.low), np.unique(space.high)
-                bounds = f"[{low[0]:g},{high[0]:g}]" if low.size == high.size == 1 else "mixed"
-                infos.append(
-                    TaskInfo(
-                        id=task_id,
-                        family=family.name,
-                        role="source" if task_id == family.source else "target",
-                        observation_shape=env.observation_space.shape or (),
-                        action_space=f"Box{bounds}^{space.shape[0]}",
-                        max_episode_steps=env.spec.max_episode_steps if env.spec else 0,
-                    )
-                )
-            finally:
-                env.close()
+    for task_id in dict.fromkeys([*ede_envs.TASKS, *roles]):
+        family, role = roles.get(task_id, ("-", "-"))
+        env = make(task_id)
+        try:
+            space = env.action_space
+            assert isinstance(space, gymnasium.spaces.Box)
+            low, high = np.unique(space.low), np.unique(space.high)
+            bounds = f"[{low[0]:g},{high[0]:g}]" if low.size == high.size == 1 else "mixed"
+            infos.append(TaskInfo(
+                id=task_id, family=family, role=role,
+                observation_shape=env.observation_space.shape or (),
+                action_space=f"Box{bounds}^{space.shape[0]}",
+                max_episode_steps=env.spec.max_episode_steps if env.spec else 0,
+            ))
+        finally:
+            env.close()
     return infos
+
+
+@functools.lru_cache(maxsize=None)
+def action_box(task_id: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The bounds (low, high) of a usable task's action Box, for comparing tasks."""
+    env = make(task_id)
+    try:
+        space = env.action_space
+        return tuple(np.asarray(space.low, float).tolist()), tuple(np.asarray(space.high, float).tolist())
+    finally:
+        env.close()

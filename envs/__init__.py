@@ -1,4 +1,5 @@
-"""The EDE task families as gymnasium environments, registered under the ``ede/`` namespace.
+"""The EDE tasks as gymnasium environments, registered under the ``ede/`` namespace. Which tasks
+form a family (share a robot, and so an embedding) is the experiment's business: ``params.yaml``.
 
 Installing the distribution registers the tasks in every interpreter as soon as gymnasium is
 imported, with no import of ours (see :mod:`ede_envs._autoregister`), so
@@ -12,7 +13,7 @@ from dataclasses import dataclass
 
 from ede_envs import _autoregister
 
-__all__ = ["FAMILIES", "TASKS", "Family", "Task", "family_of", "register_envs"]
+__all__ = ["TASKS", "Task", "register_envs"]
 
 
 @dataclass(frozen=True)
@@ -22,19 +23,6 @@ class Task:
     id: str
     entry_point: str
     max_episode_steps: int
-
-
-@dataclass(frozen=True)
-class Family:
-    """Tasks that share one robot and so one action space: the embedding is learned on ``source``."""
-
-    name: str
-    source: str
-    targets: tuple[str, ...]
-
-    @property
-    def tasks(self) -> tuple[str, ...]:
-        return (self.source, *self.targets)
 
 
 TASKS: dict[str, Task] = {
@@ -49,29 +37,6 @@ TASKS: dict[str, Task] = {
         Task("ede/PointMass-v0", "ede_envs.point_mass:PointMassEnv", 100),
     )
 }
-
-FAMILIES: dict[str, Family] = {
-    family.name: family
-    for family in (
-        Family("reacher", "ede/ReacherVertical-v0", ("ede/ReacherTurn-v0", "ede/ReacherPush-v0")),
-        Family("sevendof", "ede/Pusher-v0", ("ede/Striker-v0",)),
-        Family("point", "ede/Point-v0", ()),
-        Family("pointmass", "ede/PointMass-v0", ()),
-    )
-}
-
-
-def family_of(task_id: str) -> Family:
-    """The family a task belongs to.
-
-    Raises:
-        KeyError: if no family holds ``task_id``.
-    """
-    for family in FAMILIES.values():
-        if task_id in family.tasks:
-            return family
-    raise KeyError(f"{task_id!r} is in no family; known tasks: {', '.join(TASKS)}")
-
 
 def register_envs() -> None:
     """Register every ``ede/`` task with gymnasium; calling it again is harmless."""

@@ -95,14 +95,16 @@ def _hydra(value: Any) -> str:
 
 
 @main.command()
-def envs() -> None:
-    """List every task this package provides: family, spaces and episode length."""
+@params_option
+def envs(params: Params) -> None:
+    """List every task this package provides and every task of the params' families: its
+    family (from the params), spaces and episode length."""
     from ede.tasks import describe_tasks
 
     rows = [("task", "family", "role", "observation", "action", "steps")]
     rows += [
         (t.id, t.family, t.role, str(t.observation_shape), t.action_space, str(t.max_episode_steps))
-        for t in describe_tasks()
+        for t in describe_tasks(params.families)
     ]
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     for row in rows:

@@ -124,6 +124,8 @@ def test_defaults_in_the_model_match_the_committed_file() -> None:
         (lambda p: p["runs"].update(algos=["td3", "td3"]),
          "runs.algos: ['td3', 'td3'] repeats an algorithm"),
         (lambda p: p["runs"].update(tasks={}), "runs.tasks: got {}; Dictionary should have at least 1"),
+        (lambda p: p["families"]["sevendof"].update(targets=["ede/Striker-v0", "ede/ReacherTurn-v0"]),
+         "families.sevendof.targets: ede/ReacherTurn-v0's actions are not ede/Pusher-v0's"),
         # Numbers that are not finite mean nothing a parameter can (and are not valid JSON).
         (lambda p: p["td3"].update(noise_clip=float("inf")),
          "td3.noise_clip: got inf; expected a finite number"),
