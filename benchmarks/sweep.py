@@ -3,7 +3,7 @@
     python benchmarks/sweep.py [--steps 3000] [--jobs 2]
 
 Two scratch copies of this repo (its files in a fresh git repository under a temporary folder,
-made by ``ede_pipeline.checkout.scratch_copy`` as the tests make theirs) with small params: one
+made by ``tests.support.scratch_copy`` as the tests make theirs) with small params: one
 reacher task, TD3 and EDE-TD3, two seeds — four runs of ``--steps`` environment steps each. The
 embedding (collect, pretrain) is made once, untimed, and copied to both. Then, timed: ``dvc
 repro train`` in one copy (one run at a time) and ``ede-pipeline sweep train --jobs
@@ -25,7 +25,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ede_pipeline.checkout import BIN, run, scratch_copy
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout: its tests' support
+from tests.support import BIN, run, scratch_copy  # noqa: E402
 
 TASK = "ede/ReacherVertical-v0"
 

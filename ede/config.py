@@ -423,13 +423,6 @@ class Params(_Section):
                                 "its initial and final evaluations")
         return problems
 
-    def family_of(self, task: str) -> str:
-        """The name of the family that holds ``task``."""
-        for name, family in self.families.items():
-            if task in family.tasks:
-                return name
-        raise KeyError(task)
-
 
 @functools.cache
 def _registered_task_ids() -> frozenset[str]:

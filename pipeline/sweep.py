@@ -52,6 +52,7 @@ from tqdm import tqdm
 
 from ede.atomic import unwritable
 from ede.config import Params
+from ede_pipeline import layout
 from ede_pipeline.common import DEFAULT_PARAMS, BadInput, read_params
 from ede_pipeline.progress import PROGRESS_ENV, read_progress
 
@@ -65,6 +66,34 @@ TAIL = 20  # lines of a failed run's log shown in the report
 
 
 @dataclass(frozen=True)
+class RunId:
+    """Which run a train stage is: what determines its command and its output folder."""
+
+    task: str
+    algo: str
+    seed: int
+
+
+def train_runs(params: Params) -> dict[str, RunId]:
+    """Every run of ``dvc.yaml``'s train matrix, by the name DVC gives its stage
+    (``train@<task>-<algo>-<seed>``): a stage's run known from the params, not from its command."""
+    return {f"train@{task}-{algo}-{seed}": RunId(task, algo, seed)
+            for task in params.runs.tasks for algo in params.runs.algos for seed in params.runs.seeds}
+
+
+def train_command(task: str, algo: str, seeds: list[int]) -> list[str]:
+    """The ``ede-pipeline train`` command of runs of one task and algorithm, their paths from
+    :mod:`ede_pipeline.layout` (``dvc.yaml``'s train command for one seed;
+    ``tests/pipeline/test_layout.py`` holds the two together)."""
+    inputs = layout.task_inputs(task)
+    out = layout.run(task, algo, seeds[0]) if len(seeds) == 1 else \
+        layout.run(task, algo, 0).with_name("seed{seed}")
+    return ["ede-pipeline", "train", "--task", task, "--algo", algo,
+            "--seed", ",".join(map(str, seeds)), "--out", str(out),
+            "--encoder", str(inputs / layout.ENCODER), "--decoder", str(inputs / layout.DECODER)]
+
+
+@dataclass(frozen=True)
 class Job:
     """One stage's command, ready for any executor: plain data that pickles."""
 
@@ -74,76 +103,41 @@ class Job:
     env: dict[str, str]  # set on top of the executing process's environment
     log: str  # where the commands' output goes
     members: tuple[str, ...] = ()  # a group's stages (one process trains them all); () for one
+    runs: tuple[RunId, ...] = ()  # the train runs it makes (several for a group); () for others
 
 
 def group_jobs(jobs: list[Job], size: int) -> list[Job]:
     """Jobs of train runs that differ only in their seed, as jobs of up to ``size`` runs each:
-    one ``ede-pipeline train --seeds a,b,… --out …/seed{seed}`` per group (README, "Stage 4").
-
-    A job that is not a one-line ``train`` command with ``--seed`` and an ``--out`` ending in
-    ``seed<N>`` stays alone.
-    """
+    one ``ede-pipeline train --seed a,b,… --out …/seed{seed}`` per group
+    (docs/performance.md). A job is grouped by its run's identity
+    (``Job.runs``); jobs of other stages stay alone. A group runs its command as DVC runs the
+    members' (through the same shell, with the same environment)."""
     if size <= 1:
         return jobs
-    groups: dict[tuple[str, ...], list[tuple[int, Job]]] = {}
+    groups: dict[tuple[str, str], list[Job]] = {}
     alone: list[Job] = []
     for job in jobs:
-        key = _group_key(job)
-        if key is None:
-            alone.append(job)
+        if len(job.runs) == 1 and len(job.argvs) == 1:
+            groups.setdefault((job.runs[0].task, job.runs[0].algo), []).append(job)
         else:
-            groups.setdefault(key[0], []).append((key[1], job))
+            alone.append(job)
     grouped: list[Job] = []
-    for pattern, members in groups.items():
-        members.sort()
+    for (task, algo), members in groups.items():
+        members.sort(key=lambda job: job.runs[0].seed)
         for start in range(0, len(members), size):
             chunk = members[start:start + size]
             if len(chunk) == 1:
-                grouped.append(chunk[0][1])
+                grouped.append(chunk[0])
                 continue
-            seeds = ",".join(str(seed) for seed, _ in chunk)
-            argv = [part.replace("{seeds}", seeds) for part in pattern]
-            first = chunk[0][1]
-            stages = tuple(job.stage for _, job in chunk)
+            first = chunk[0]
+            command = train_command(task, algo, [job.runs[0].seed for job in chunk])
+            shell = first.argvs[0][:-1]  # DVC's ``sh -c``: the command is its last word
+            argv = [*shell, shlex.join(command)] if shell else command
+            stages = tuple(job.stage for job in chunk)
             log = str(Path(first.log).with_name(f"{Path(first.log).stem}+{len(chunk) - 1}.log"))
-            grouped.append(Job(" + ".join(stages), [argv], first.cwd, first.env, log, stages))
+            grouped.append(Job(" + ".join(stages), [argv], first.cwd, first.env, log, stages,
+                               tuple(job.runs[0] for job in chunk)))
     return alone + grouped
-
-
-def _train_words(job: Job) -> list[str] | None:
-    """The words of a one-line ``train`` command; DVC runs a command through a shell
-    (``sh -c CMD``), so those are CMD's words. None for any other job."""
-    if len(job.argvs) != 1:
-        return None
-    argv = job.argvs[0]
-    words = shlex.split(argv[-1]) if _through_shell(argv) else list(argv)
-    return words if "train" in words else None
-
-
-def _through_shell(argv: list[str]) -> bool:
-    return len(argv) >= 2 and argv[-2] == "-c"
-
-
-def _group_key(job: Job) -> tuple[tuple[str, ...], int] | None:
-    """(the argv with its seed and run folder made patterns, the seed), for a train job;
-    the pattern is made in the command's words (:func:`_train_words`)."""
-    words = _train_words(job)
-    if words is None:
-        return None
-    try:
-        at, out_at = words.index("--seed"), words.index("--out")
-        seed = int(words[at + 1])
-    except (ValueError, IndexError):
-        return None
-    out = words[out_at + 1]
-    if not out.endswith(f"seed{seed}"):
-        return None
-    words[at], words[at + 1] = "--seeds", "{seeds}"
-    words[out_at + 1] = out.removesuffix(str(seed)) + "{seed}"
-    argv = job.argvs[0]
-    if _through_shell(argv):
-        return (*argv[:-1], shlex.join(words)), seed
-    return tuple(words), seed
 
 
 @dataclass(frozen=True)
@@ -378,12 +372,8 @@ def progress_file(job: Job) -> Path:
 
 
 def job_steps(job: Job, budgets: dict[str, int]) -> int:
-    """The environment steps a train job runs: its task's budget times its seeds (0: unknown)."""
-    words = _train_words(job)
-    if words is None or "--task" not in words:
-        return 0
-    task = words[words.index("--task") + 1] if words.index("--task") + 1 < len(words) else ""
-    return budgets.get(task, 0) * max(len(job.members), 1)
+    """The environment steps a train job runs: its runs' budgets (0: not a train job)."""
+    return sum(budgets.get(run.task, 0) for run in job.runs)
 
 
 class Tally:
@@ -564,6 +554,7 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
         raise BadInput(f"{Path.cwd()}: dvc.yaml but no DVC repository; run `dvc init` (in a git "
                        "repository) first") from None
     params = read_params(DEFAULT_PARAMS)  # bad params end here, before anything runs
+    runs = train_runs(params)
     if problem := unwritable(logs, directory=True):
         raise BadInput(f"--logs {problem}")
 
@@ -594,8 +585,9 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
                                       f"not started: {type(error).__name__}: {error}"))
                 continue
             log = (Path(repo.root_dir) / logs / f"{_safe(stage.addressing)}.log").resolve()
+            run = runs.get(stage.addressing)
             pending.append(Job(stage.addressing, stage_argvs(stage), repo.root_dir,
-                               stage_env(stage), str(log)))
+                               stage_env(stage), str(log), runs=(run,) if run else ()))
         workers = jobs or (os.cpu_count() if executor == "local" else None)
         pending = group_jobs(pending, group_size or default_group_size(params, len(pending), workers))
         logs_of = {job.stage: Path(job.log) for job in pending}

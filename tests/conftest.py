@@ -2,7 +2,7 @@
 
 Tests take what they share from fixtures here and in each package's ``conftest.py``, never from
 another test module; the checkout's root (``REPO``) and scratch copies of it come from
-``ede_pipeline.checkout``, which the benchmarks use too.
+``tests.support``, which the benchmarks use too.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 import yaml
 
-from ede_pipeline.checkout import REPO
+from tests.support import REPO
 
 # Render headless (Mesa's EGL needs no GPU or display); `MUJOCO_GL=osmesa pytest` overrides.
 os.environ.setdefault("MUJOCO_GL", "egl")

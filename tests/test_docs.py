@@ -11,7 +11,7 @@ from pathlib import Path
 import click
 import pytest
 
-from ede_pipeline.checkout import REPO
+from tests.support import REPO
 from ede_pipeline.cli import main
 
 PAGES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]

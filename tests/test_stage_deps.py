@@ -16,7 +16,7 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from ede_pipeline.checkout import REPO
+from tests.support import REPO
 from ede_pipeline.closure import closure, imports_of, package_dirs
 
 DIRS = package_dirs()

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from ede.config import Params, ParamsError, load_params, read_yaml
-from ede_pipeline.checkout import REPO
+from tests.support import REPO
 
 
 def test_committed_params_hold_the_papers_configuration() -> None:
@@ -32,7 +32,7 @@ def test_committed_params_hold_the_papers_configuration() -> None:
         0.2, 0.5, 2, 0.1
     )
     assert params.families["sevendof"].source == "ede/Pusher-v0"
-    assert params.family_of("ede/Striker-v0") == "sevendof"
+    assert params.runs.tasks["ede/Striker-v0"] == "sevendof"
 
 
 def test_committed_params_spell_out_every_default() -> None:

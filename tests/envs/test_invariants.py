@@ -15,7 +15,7 @@ from gymnasium.utils.env_checker import check_env
 import ede_envs
 from ede.config import FamilyConfig, load_params
 from ede.tasks import make
-from ede_pipeline.checkout import REPO
+from tests.support import REPO
 
 FAMILIES = load_params(REPO / "params.yaml").families
 ALL_TASKS = [task for family in FAMILIES.values() for task in family.tasks]

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from ede_pipeline.checkout import REPO
+from tests.support import REPO
 
 TASK = "ede/Point-v0"
 BUDGET = 1_200

@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 import yaml
 
-from ede_pipeline.checkout import BIN, dvc, scratch_copy, tool_env
+from tests.support import BIN, dvc, scratch_copy, tool_env
 
 pytestmark = pytest.mark.slow
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from ede_pipeline.checkout import scratch_copy
+from tests.support import scratch_copy
 
 
 @pytest.fixture

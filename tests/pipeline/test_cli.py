@@ -13,7 +13,7 @@ import pytest
 from click.testing import CliRunner
 
 import ede_envs
-from ede_pipeline.checkout import REPO
+from tests.support import REPO
 from ede_pipeline.cli import experiment_name, main
 
 

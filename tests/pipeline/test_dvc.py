@@ -12,7 +12,7 @@ import yaml
 from click.testing import CliRunner
 
 from ede.rollouts import Rollouts
-from ede_pipeline.checkout import REPO, dvc
+from tests.support import REPO, dvc
 from ede_pipeline.cli import main
 
 

@@ -9,7 +9,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from ede_pipeline.checkout import tool_env
+from tests.support import tool_env
 from ede_pipeline.cli import main
 from ede_pipeline.experiments import WIDTH, experiment_blocks
 

@@ -7,7 +7,8 @@ import shlex
 import yaml
 
 from ede_pipeline import layout
-from ede_pipeline.checkout import REPO
+from tests.support import REPO
+from ede_pipeline.sweep import train_command
 
 
 def options(command: str, **values: str) -> dict[str, str]:
@@ -38,6 +39,11 @@ def test_every_stage_command_uses_the_layouts_paths() -> None:
     assert inputs["--out"] == str(layout.task_inputs(task))
     assert (inputs["--embedding"], inputs["--code"]) == (str(layout.embedding(family)), str(layout.code(family)))
     train = options(stages["train"]["cmd"], **{"item.task": task, "item.algo": algo, "item.seed": seed})
+    # The sweep's command for a group of seeds is built from the layout: for one seed it is the stage's.
+    filled = stages["train"]["cmd"]
+    for name, value in {"item.task": task, "item.algo": algo, "item.seed": seed}.items():
+        filled = filled.replace("${" + name + "}", value)
+    assert shlex.split(filled) == train_command(task, algo, [int(seed)])
     assert train["--out"] == str(layout.run(task, algo, int(seed)))
     folder = layout.task_inputs(task)
     assert (train["--encoder"], train["--decoder"]) == (str(folder / layout.ENCODER), str(folder / layout.DECODER))

@@ -13,7 +13,7 @@ import yaml
 from click.testing import CliRunner
 
 from ede.atomic import unwritable
-from ede_pipeline.checkout import REPO
+from tests.support import REPO
 from ede_pipeline.cli import main
 
 # /sys takes no new file, even from root (sysfs): a read-only location on every Linux machine.

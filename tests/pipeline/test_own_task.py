@@ -15,7 +15,7 @@ import yaml
 
 from ede.rollouts import Rollouts
 from ede_pipeline import layout
-from ede_pipeline.checkout import REPO, dvc, scratch_copy
+from tests.support import REPO, dvc, scratch_copy
 
 pytestmark = pytest.mark.slow
 

@@ -19,7 +19,7 @@ import dvc_s3  # noqa: F401  (the remote type the test configures)
 import moto.server as moto_server
 import pytest
 
-from ede_pipeline.checkout import REPO, dvc, run
+from tests.support import REPO, dvc, run
 
 BUCKET = "ede-store"
 STAGE = "collect@point"

@@ -310,7 +310,7 @@ def two_seeds_no_pictures(root: Path, budget: int) -> None:
     """Params of seeds 0 and 1, ``budget`` steps on ReacherVertical, and no Figures 6 and 7."""
     import yaml
 
-    from ede_pipeline.checkout import REPO
+    from tests.support import REPO
 
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     params["runs"].update(tasks=TASKS, seeds=[0, 1], budgets={"ede/ReacherVertical-v0": budget,

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ede_pipeline.checkout import REPO
+from tests.support import REPO
 
 SCRIPT = REPO / "benchmarks" / "results.py"
 TASK = "ede/ReacherTurn-v0"

@@ -22,9 +22,10 @@ from typing import Any
 import pytest
 import yaml
 
+from ede.config import load_params
 from ede.locks import exclusive
-from ede_pipeline.checkout import BIN, dvc, run, scratch_copy
-from ede_pipeline.sweep import Job, group_jobs
+from tests.support import BIN, dvc, run, scratch_copy
+from ede_pipeline.sweep import Job, RunId, group_jobs, train_command, train_runs
 
 pytestmark = pytest.mark.slow
 
@@ -130,21 +131,31 @@ def test_sweep_in_groups_of_seeds_records_what_dvc_repro_records(
 
 def test_jobs_of_one_task_and_algorithm_are_grouped_by_seed() -> None:
     def job(algo: str, seed: int) -> Job:  # as DVC runs a stage's command: through a shell
-        command = (f"ede-pipeline train --task {TASK} --algo {algo} --seed {seed} "
-                   f"--out data/runs/{TASK}/{algo}/seed{seed}")
-        return Job(f"train@{algo}-{seed}", [["/bin/sh", "-c", command]], "/repo", {},
-                   f"/logs/{algo}-{seed}.log")
+        words = train_command(TASK, algo, [seed])
+        return Job(f"train@{TASK}-{algo}-{seed}", [["/bin/sh", "-c", shlex.join(words)]], "/repo",
+                   {"A": "1"}, f"/logs/{algo}-{seed}.log", runs=(RunId(TASK, algo, seed),))
 
     other = Job("report", [["ede-pipeline", "report"]], "/repo", {}, "/logs/report.log")
     jobs = [job("td3", 0), job("ede-td3", 1), job("td3", 2), job("td3", 1), other]
     grouped = group_jobs(jobs, 2)
     assert [j.stage for j in grouped] == [
-        "report", "train@td3-0 + train@td3-1", "train@td3-2", "train@ede-td3-1"]
-    words = shlex.split(grouped[1].argvs[0][2])
-    assert words[words.index("--seeds") + 1] == "0,1"
+        "report", f"train@{TASK}-td3-0 + train@{TASK}-td3-1", f"train@{TASK}-td3-2",
+        f"train@{TASK}-ede-td3-1"]
+    shell, flag, command = grouped[1].argvs[0]
+    assert (shell, flag, grouped[1].env) == ("/bin/sh", "-c", {"A": "1"})
+    words = shlex.split(command)
+    assert words[words.index("--seed") + 1] == "0,1"
     assert words[words.index("--out") + 1] == f"data/runs/{TASK}/td3/seed{{seed}}"
-    assert grouped[1].members == ("train@td3-0", "train@td3-1")
+    assert grouped[1].members == (f"train@{TASK}-td3-0", f"train@{TASK}-td3-1")
+    assert grouped[1].runs == (RunId(TASK, "td3", 0), RunId(TASK, "td3", 1))
     assert group_jobs(jobs, 1) == jobs
+
+
+def test_a_stages_run_is_known_from_the_params_as_dvc_names_it(write_params) -> None:
+    params = load_params(write_params())
+    runs = train_runs(params)
+    assert len(runs) == params.runs.count
+    assert runs["train@ede/ReacherTurn-v0-ede-td3-3"] == RunId("ede/ReacherTurn-v0", "ede-td3", 3)
 
 
 def break_one_run(copy: Path) -> contextlib.AbstractContextManager[None]:

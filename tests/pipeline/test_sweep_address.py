@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from ede_pipeline.checkout import REPO
+from tests.support import REPO
 from ede_pipeline.cli import main
 from ede_pipeline.common import BadInput
 from ede_pipeline.sweep import RAY_CONNECT_TIMEOUT, check_ray_address

@@ -26,7 +26,7 @@ import pytest
 import yaml
 from click.testing import CliRunner, Result
 
-from ede_pipeline.checkout import REPO, dvc
+from tests.support import REPO, dvc
 from ede_pipeline.cli import main
 
 # Everything of DVC's that pipeline/sweep.py imports or calls ("module:attribute"), with the

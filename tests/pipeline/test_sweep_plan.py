@@ -4,6 +4,7 @@ line — runs, steps from the runs' progress files, rate and ETA."""
 from __future__ import annotations
 
 import os
+import shlex
 import subprocess
 import sys
 import time
@@ -18,19 +19,20 @@ from ede_pipeline.sweep import (
     Job,
     Tally,
     default_group_size,
+    RunId,
     group_jobs,
     job_steps,
     progress_file,
+    train_command,
 )
 
 TASK = "ede/ReacherVertical-v0"
 
 
 def job(tmp_path: Path, algo: str, seed: int, task: str = TASK) -> Job:
-    command = (f"ede-pipeline train --task {task} --algo {algo} --seed {seed} "
-               f"--out data/runs/{task}/{algo}/seed{seed}")
-    return Job(f"train@{algo}-{seed}", [["/bin/sh", "-c", command]], str(tmp_path), {},
-               str(tmp_path / f"{algo}-{seed}.log"))
+    command = shlex.join(train_command(task, algo, [seed]))
+    return Job(f"train@{task}-{algo}-{seed}", [["/bin/sh", "-c", command]], str(tmp_path), {},
+               str(tmp_path / f"{algo}-{seed}.log"), runs=(RunId(task, algo, seed),))
 
 
 def test_a_job_runs_its_tasks_budget_once_per_seed(tmp_path: Path) -> None:

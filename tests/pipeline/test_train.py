@@ -43,7 +43,7 @@ def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A working directory with tiny params and the point family's embedding."""
     import yaml
 
-    from ede_pipeline.checkout import REPO
+    from tests.support import REPO
 
     path = tmp_path_factory.mktemp("train")
     params = yaml.safe_load((REPO / "params.yaml").read_text())

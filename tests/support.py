@@ -1,14 +1,11 @@
 """This checkout, and scratch copies of it to run ``dvc`` in without touching the real one.
 
-The end-to-end tests (``tests/pipeline/conftest.py``) and the benchmarks (``benchmarks/sweep.py``)
-both need a repository in which DVC runs the pipeline with params of their own. This module makes
-one: the checkout's files, committed or not yet added (never what git ignores: no ``data/``, no
-``.venv``), in a fresh git repository. It lives in the installed package, not in ``tests/`` or
-``benchmarks/``, because it is the one place both can import from: a benchmark is a script that must
-not depend on the test suite, and neither folder is on the other's import path. No stage imports it.
+The end-to-end tests and ``benchmarks/sweep.py`` need a repository in which DVC runs the pipeline
+with params of their own: the checkout's files, committed or not yet added (never what git
+ignores: no ``data/``, no ``.venv``), in a fresh git repository. Test support, so it lives here;
+the sweep benchmark imports it from here too (it runs from the checkout), rather than keep a copy.
 
-``REPO`` is the checkout that ``make install`` installed the package from (editable), where the
-tests and the benchmarks run; in a non-editable install (the image) it names nothing useful.
+``REPO`` is this checkout, where the tests and the benchmarks run.
 """
 
 from __future__ import annotations
