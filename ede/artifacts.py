@@ -96,6 +96,8 @@ class DecoderMeta(_Meta):
     action_space: ActionSpaceMeta
     hidden: list[int]
     bound: float = Field(gt=0, description="largest whitened |z| seen: the EDE actor's bound")
+    output_range: Literal["bounds", "unit"] = Field(
+        "bounds", description="the decoder's squashing (DecoderConfig.output_range)")
     code_whitening: WhiteningMeta
     params: dict[str, Any]
     software: dict[str, str] = Field(description="the versions that made it (ede.provenance)")
@@ -230,6 +232,7 @@ def save_decoder(
         "action_space": encoder_meta.action_space,
         "hidden": hidden,
         "bound": bound,
+        "output_range": decoder.output_range,
         "code_whitening": encoder_meta.code_whitening,
         "params": params,
         "data_fingerprint": encoder_meta.data_fingerprint,
@@ -252,7 +255,7 @@ def load_action_embedding(
     if meta.encoder_sha256 != encoder_meta.weights_sha256:
         raise ArtifactError(f"{decoder_path}: was trained against another encoder than {encoder_path}")
     low, high = np.asarray(meta.action_space.low), np.asarray(meta.action_space.high)
-    decoder = ActionDecoder(meta.dim, meta.k, low, high, meta.hidden)
+    decoder = ActionDecoder(meta.dim, meta.k, low, high, meta.hidden, meta.output_range)
     _fill(decoder_path, "decoder", decoder, tensors)
     embedding = ActionEmbedding(encoded.encoder, decoder, meta.code_whitening.whitening(), meta.bound)
     return meta, embedding.to(device)

@@ -150,6 +150,11 @@ class DecoderConfig(_Section):
         description="where training z are drawn: N(0, I) as the paper writes, or E's whitened "
         "marginal on the rollouts as the authors' code does",
     )
+    output_range: Literal["bounds", "unit"] = Field(
+        "bounds", description="how D's tanh becomes actions: mapped onto the action box "
+        "('bounds'), or kept in [-1, 1] and clipped to the box as the authors' code ('unit': "
+        "within ±1 on the 7-DoF family's ±2 box; docs/fidelity.md, row 11a)"
+    )
     hidden: HiddenSizes = Field(default_factory=lambda: [400, 400])
     lr: float = Field(1e-4, gt=0)
     batch_size: PositiveInt = 128

@@ -74,19 +74,28 @@ class Predictor(nn.Module):
 
 
 class ActionDecoder(nn.Module):
-    """D: a whitened code to k actions, squashed into the action bounds."""
+    """D: a whitened code to k actions, squashed into the action bounds.
+
+    ``output_range="bounds"`` maps the tanh onto ``[low, high]``; ``"unit"`` keeps it in
+    [-1, 1] and clips it to the box, as the authors' code (docs/fidelity.md, row 11a).
+    """
 
     def __init__(
-        self, dim: int, k: int, low: np.ndarray, high: np.ndarray, hidden: list[int]
+        self, dim: int, k: int, low: np.ndarray, high: np.ndarray, hidden: list[int],
+        output_range: str = "bounds",
     ) -> None:
         super().__init__()
-        self.k, self.action_size = k, len(low)
+        if output_range not in ("bounds", "unit"):
+            raise ValueError(f"output_range {output_range!r}: expected 'bounds' or 'unit'")
+        self.k, self.action_size, self.output_range = k, len(low), output_range
         self.net = mlp(dim, hidden, k * len(low), nn.SELU)
         self.register_buffer("centre", torch.as_tensor((high + low) / 2, dtype=torch.float32))
         self.register_buffer("half_range", torch.as_tensor((high - low) / 2, dtype=torch.float32))
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         unit = torch.tanh(self.net(z)).unflatten(-1, (self.k, self.action_size))  # (B, K, A)
+        if self.output_range == "unit":
+            return torch.clamp(unit, self.centre - self.half_range, self.centre + self.half_range)
         return self.centre + self.half_range * unit
 
 
@@ -339,7 +348,8 @@ def train_decoder(
         p.requires_grad_(False)
     embedding_whitening = encoded.code_whitening
     with initial_weights(config.seed):
-        decoder = ActionDecoder(encoder.dim, k, low, high, config.hidden).to(device)
+        decoder = ActionDecoder(encoder.dim, k, low, high, config.hidden,
+                                config.output_range).to(device)
     code_mean = torch.as_tensor(embedding_whitening.mean, dtype=torch.float32, device=device)
     code_std = torch.as_tensor(embedding_whitening.std, dtype=torch.float32, device=device)
 

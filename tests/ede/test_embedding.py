@@ -200,3 +200,30 @@ def test_without_the_state_the_predictor_learns_nothing_from_it(point: Rollouts)
 
 def linear_layers(module: torch.nn.Module) -> list[torch.nn.Linear]:
     return [m for m in module.modules() if isinstance(m, torch.nn.Linear)]
+
+
+def test_a_unit_range_decoder_acts_within_one_on_a_wider_box_as_the_authors_code(
+    point: Rollouts, trained: EncoderResult, tmp_path: Path
+) -> None:
+    """The authors' decoder ends in a tanh it never rescales (docs/fidelity.md, row 11a): on a
+    ±2 box its actions stay within ±1; ours spans the box. Saved and loaded, the choice stays."""
+    low, high = 2 * LOW, 2 * HIGH
+    config = DecoderConfig(epochs=1, **SMALL)
+    z = torch.linspace(-3, 3, 64)[:, None].expand(64, 2)
+    for output_range, widest in (("bounds", 2.0), ("unit", 1.0)):
+        result = train_decoder(point, trained, config.model_copy(update={"output_range": output_range}),
+                               4, low, high)
+        actions = result.decoder(z)
+        assert actions.abs().max() <= widest
+        encoder_dir, decoder_dir = tmp_path / output_range / "encoder", tmp_path / output_range / "decoder"
+        save_encoder(encoder_dir, trained, family="point", env_id="ede/Point-v0", low=low, high=high,
+                     params={}, data_fingerprint=point.attrs["fingerprint"])
+        save_decoder(decoder_dir, result.decoder, result.bound, encoder_path=encoder_dir, params={})
+        meta, embedding = load_action_embedding(encoder_dir, decoder_dir)
+        assert meta.output_range == output_range
+        torch.testing.assert_close(embedding.decoder(z), actions, rtol=0, atol=0)
+    # The same network: the unit range is the tanh itself, clipped; the bounds twice it.
+    net_out = torch.tanh(result.decoder.net(z)).unflatten(-1, (4, 2))
+    torch.testing.assert_close(result.decoder(z), net_out, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="'bounds' or 'unit'"):
+        type(result.decoder)(2, 4, low, high, [8], output_range="half")
