@@ -548,15 +548,15 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
         raise BadInput("--address is for --executor ray")
     if executor == "ray":
         check_ray_address(address or os.environ.get("RAY_ADDRESS"))
+    params = read_params(DEFAULT_PARAMS)  # bad params end here, before anything runs
+    runs = train_runs(params)
+    if problem := unwritable(logs, directory=True):
+        raise BadInput(f"--logs {problem}")
     try:
         Repo(".").close()
     except NotDvcRepoError:
         raise BadInput(f"{Path.cwd()}: dvc.yaml but no DVC repository; run `dvc init` (in a git "
                        "repository) first") from None
-    params = read_params(DEFAULT_PARAMS)  # bad params end here, before anything runs
-    runs = train_runs(params)
-    if problem := unwritable(logs, directory=True):
-        raise BadInput(f"--logs {problem}")
 
     with Repo(".") as repo:
         stages = collect_stages(repo, targets)

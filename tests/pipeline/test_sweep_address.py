@@ -84,3 +84,10 @@ def test_auto_and_no_address_are_rays_to_resolve() -> None:
 def test_a_run_needs_a_finite_positive_share_of_cpus(project: Path, cpus: str) -> None:
     result = CliRunner().invoke(main, ["sweep", "--executor", "ray", "--cpus-per-run", cpus])
     assert result.exit_code == 2 and "Invalid value for '--cpus-per-run'" in result.stderr
+
+
+def test_dvc_yaml_without_a_dvc_repository_is_one_line(project: Path) -> None:
+    result = CliRunner().invoke(main, ["sweep"])
+    assert result.exit_code == 2
+    assert result.stderr == (f"Error: {project}: dvc.yaml but no DVC repository; run `dvc init` "
+                             "(in a git repository) first\n")

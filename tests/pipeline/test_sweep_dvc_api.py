@@ -54,6 +54,7 @@ INTERNALS: dict[str, list[str] | None] = {
     "dvc.env:DVC_STAGE": None,
     "dvc.lock:LockError": None,
     "dvc.exceptions:DvcException": None,
+    "dvc.exceptions:NotDvcRepoError": None,
 }
 
 
