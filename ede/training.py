@@ -399,7 +399,8 @@ class _Group:
             except Diverged as error:
                 run.failed = str(error)
         self.update(due)
-        for member, quantity in self.agent.non_finite().items():
+        losses = self.agent.non_finite() if due.any() else {}  # they change only in updates
+        for member, quantity in losses.items():
             run = self.runs[member]
             if run.failed is None:  # a member that stopped earlier keeps its first reason
                 run.failed = str(run.diverged(run.step, quantity))
