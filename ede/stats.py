@@ -151,3 +151,46 @@ def divergence(
     fell = bool(gained > 0 and np.all(tail < before[best_bin] - drop_fraction * gained))
     return Divergence(float(binned[0]), float(before[best_bin]), float(edges[best_bin]),
                       float(tail.mean()), fell)
+
+
+# Across tasks: rliable's aggregates (Agarwal et al., 2021) --------------------------------------
+
+
+def normalised(scores: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """Scores (runs, tasks) mapped per task so that ``low`` is 0 and ``high`` is 1."""
+    span = np.where(high > low, high - low, 1.0)
+    return (np.asarray(scores, dtype=float) - low) / span
+
+
+def across_tasks(
+    ours: np.ndarray, theirs: np.ndarray, confidence: float, samples: int, seed: int
+) -> dict[str, Interval]:
+    """rliable's aggregates of two methods' scores, each (runs, tasks) with runs stratified by
+    task: the probability that a run of ``ours`` beats one of ``theirs`` on a task, averaged over
+    tasks, and each method's interquartile mean, all with stratified bootstrap intervals.
+
+    Returns:
+        ``probability_of_improvement``, ``iqm_ours``, ``iqm_theirs``.
+    """
+    from rliable import library as rly
+    from rliable import metrics
+
+    ours, theirs = np.asarray(ours, dtype=float), np.asarray(theirs, dtype=float)
+    if ours.shape != theirs.shape or ours.ndim != 2 or min(ours.shape) == 0:
+        raise ValueError(f"scores of shapes {ours.shape} and {theirs.shape}: expected the same "
+                         "(runs, tasks), at least one of each")
+    kwargs = {"reps": samples, "confidence_interval_size": confidence}
+    runs = ours.shape[0]
+    point, band = rly.get_interval_estimates(
+        {"pair": (ours, theirs)}, metrics.probability_of_improvement,
+        random_state=np.random.RandomState(seed), **kwargs)
+    low, high = np.ravel(band["pair"])
+    found = {"probability_of_improvement": Interval(float(point["pair"]), float(low), float(high),
+                                                    runs)}
+    point, band = rly.get_interval_estimates(
+        {"ours": ours, "theirs": theirs}, lambda s: np.array([metrics.aggregate_iqm(s)]),
+        random_state=np.random.RandomState(seed), **kwargs)
+    for name in ("ours", "theirs"):
+        found[f"iqm_{name}"] = Interval(float(point[name][0]), float(band[name][0, 0]),
+                                        float(band[name][1, 0]), runs)
+    return found

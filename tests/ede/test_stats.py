@@ -11,8 +11,10 @@ from ede.stats import (
     align_curves,
     area_under_curve,
     bin_curve,
+    across_tasks,
     bootstrap_mean,
     divergence,
+    normalised,
     separation,
     steps_to_threshold,
 )
@@ -140,3 +142,34 @@ def test_learning_plateaus_dips_that_recover_and_flat_runs_do_not_diverge() -> N
 def test_a_curve_too_short_for_a_tail_is_refused() -> None:
     with pytest.raises(ValueError, match="too few"):
         divergence(STEPS[:3], STEPS[:3], 10_000)
+
+
+def test_one_method_better_on_every_run_has_probability_one_of_improvement() -> None:
+    rng = np.random.default_rng(0)
+    theirs = rng.normal(size=(5, 3))
+    found = across_tasks(theirs + 10, theirs, 0.95, 500, seed=0)
+    p = found["probability_of_improvement"]
+    assert (p.mean, p.low, p.high) == (1.0, 1.0, 1.0)
+    assert found["iqm_ours"].low > found["iqm_theirs"].high
+
+
+def test_identical_methods_have_probability_one_half_with_an_interval_around_it() -> None:
+    scores = np.random.default_rng(1).normal(size=(8, 4))
+    found = across_tasks(scores, scores.copy(), 0.95, 1000, seed=0)
+    p = found["probability_of_improvement"]
+    assert p.mean == 0.5 and p.low < 0.5 < p.high
+    assert found["iqm_ours"].mean == found["iqm_theirs"].mean  # resampled apart: intervals differ
+
+
+def test_across_tasks_is_determined_by_its_seed_and_refuses_mismatched_tables() -> None:
+    rng = np.random.default_rng(2)
+    ours, theirs = rng.normal(size=(4, 2)), rng.normal(size=(4, 2))
+    assert across_tasks(ours, theirs, 0.95, 300, 7) == across_tasks(ours, theirs, 0.95, 300, 7)
+    with pytest.raises(ValueError, match="expected the same"):
+        across_tasks(ours, theirs[:3], 0.95, 300, 7)
+
+
+def test_normalised_scores_run_from_low_to_high_per_task() -> None:
+    scores = np.array([[-10.0, 5.0], [0.0, 15.0]])
+    np.testing.assert_allclose(normalised(scores, np.array([-10.0, 5.0]), np.array([0.0, 15.0])),
+                               [[0.0, 0.0], [1.0, 1.0]])
