@@ -181,15 +181,22 @@ def across_tasks(
                          "(runs, tasks), at least one of each")
     kwargs = {"reps": samples, "confidence_interval_size": confidence}
     runs = ours.shape[0]
-    point, band = rly.get_interval_estimates(
-        {"pair": (ours, theirs)}, metrics.probability_of_improvement,
-        random_state=np.random.RandomState(seed), **kwargs)
-    low, high = np.ravel(band["pair"])
-    found = {"probability_of_improvement": Interval(float(point["pair"]), float(low), float(high),
-                                                    runs)}
-    point, band = rly.get_interval_estimates(
-        {"ours": ours, "theirs": theirs}, lambda s: np.array([metrics.aggregate_iqm(s)]),
-        random_state=np.random.RandomState(seed), **kwargs)
+    # rliable's StratifiedBootstrap draws its runs from NumPy's global generator whatever
+    # random_state says: seeded here, and put back as it was.
+    saved = np.random.get_state()
+    try:
+        np.random.seed(seed)
+        point, band = rly.get_interval_estimates(
+            {"pair": (ours, theirs)}, metrics.probability_of_improvement,
+            random_state=np.random.RandomState(seed), **kwargs)
+        low, high = np.ravel(band["pair"])
+        found = {"probability_of_improvement": Interval(float(point["pair"]), float(low),
+                                                        float(high), runs)}
+        point, band = rly.get_interval_estimates(
+            {"ours": ours, "theirs": theirs}, lambda s: np.array([metrics.aggregate_iqm(s)]),
+            random_state=np.random.RandomState(seed), **kwargs)
+    finally:
+        np.random.set_state(saved)
     for name in ("ours", "theirs"):
         found[f"iqm_{name}"] = Interval(float(point[name][0]), float(band[name][0, 0]),
                                         float(band[name][1, 0]), runs)

@@ -164,7 +164,10 @@ def test_identical_methods_have_probability_one_half_with_an_interval_around_it(
 def test_across_tasks_is_determined_by_its_seed_and_refuses_mismatched_tables() -> None:
     rng = np.random.default_rng(2)
     ours, theirs = rng.normal(size=(4, 2)), rng.normal(size=(4, 2))
+    np.random.seed(3)
+    before = np.random.get_state()[1].copy()
     assert across_tasks(ours, theirs, 0.95, 300, 7) == across_tasks(ours, theirs, 0.95, 300, 7)
+    np.testing.assert_array_equal(np.random.get_state()[1], before)  # the global generator kept
     with pytest.raises(ValueError, match="expected the same"):
         across_tasks(ours, theirs[:3], 0.95, 300, 7)
 
