@@ -25,10 +25,12 @@ from matplotlib.figure import Figure  # noqa: E402
 from ede.embedding import ActionEmbedding  # noqa: E402
 from ede.stats import (  # noqa: E402
     Interval,
+    across_tasks,
     align_curves,
     area_under_curve,
     bin_curve,
     bootstrap_mean,
+    normalised,
     steps_to_threshold,
 )
 from ede.tasks import make  # noqa: E402
@@ -36,13 +38,16 @@ from ede.td3 import CodeExecutor, EmbeddingAdapter, IdentityAdapter  # noqa: E40
 
 __all__ = [
     "ALGO_STYLE",
+    "AcrossTasks",
     "Curve",
+    "across_tasks_section",
     "TaskRow",
     "curve_band",
     "diagnostics_figure",
     "effect_space",
     "exploration",
     "learning_curve_figure",
+    "random_policy_return",
     "Run",
     "RunRejected",
     "read_run",
@@ -438,3 +443,88 @@ def exploration(
         ax.set_yticks([])
     figure.tight_layout()
     return Exploration(raw, ede, raw_cov, ede_cov, figure)
+
+
+def random_policy_return(task: str, episodes: int, seed: int) -> float:
+    """The mean return of uniform random actions on ``task`` over ``episodes`` episodes, episode e
+    from ``reset(seed=seed + e)``: the low end of a task's normalised scores."""
+    env = make(task)
+    rng = np.random.default_rng(seed)
+    total = 0.0
+    try:
+        for e in range(episodes):
+            env.reset(seed=seed + e)
+            done = False
+            while not done:
+                action = rng.uniform(env.action_space.low, env.action_space.high)
+                _, reward, terminated, truncated, _ = env.step(action.astype(env.action_space.dtype))
+                total += float(reward)
+                done = terminated or truncated
+    finally:
+        env.close()
+    return total / episodes
+
+
+@dataclass
+class AcrossTasks:
+    """rliable's aggregates of EDE-TD3 against TD3 over every task with runs of both."""
+
+    tasks: list[str]
+    runs: int  # per task and algorithm: the seeds all of them share
+    aggregates: dict[str, dict[str, Interval]]  # per score ("final_return", "auc"): across_tasks'
+    figure: Figure
+
+
+def across_tasks_section(curves: dict[tuple[str, str], list[Curve]], lows: dict[str, float],
+                         confidence: float, samples: int, seed: int) -> AcrossTasks | None:
+    """Probability of improvement and IQM over final returns and areas under the curve, scores
+    normalised per task between ``lows[task]`` (a random policy's return) and the best evaluation
+    any run reached there; and the performance profile of the normalised final returns. None
+    where no task has runs of both algorithms."""
+    from rliable import library as rly
+
+    tasks = [t for t in lows if curves.get((t, "td3")) and curves.get((t, "ede-td3"))]
+    shared = {t: sorted({c.seed for c in curves[(t, "td3")]} & {c.seed for c in curves[(t, "ede-td3")]})
+              for t in tasks}
+    tasks = [t for t in tasks if shared[t]]
+    if not tasks:
+        return None
+    runs = min(len(shared[t]) for t in tasks)
+    highs = np.array([max(float(c.returns.max()) for a in ALGO_STYLE for c in curves[(t, a)])
+                      for t in tasks])
+    low = np.array([lows[t] for t in tasks])
+
+    def table(algo: str, score: Callable[[Curve], float]) -> np.ndarray:  # (runs, tasks)
+        by_seed = [{c.seed: c for c in curves[(t, algo)]} for t in tasks]
+        return np.array([[score(by_seed[j][shared[t][i]]) for j, t in enumerate(tasks)]
+                         for i in range(runs)])
+
+    scores = {"final_return": lambda c: float(c.returns[-1]),
+              "auc": lambda c: area_under_curve(c.steps, c.returns)}
+    aggregates = {}
+    normalised_final = {}
+    for name, score in scores.items():
+        ede, td3 = (normalised(table(a, score), low, highs) for a in ("ede-td3", "td3"))
+        aggregates[name] = across_tasks(ede, td3, confidence, samples, seed)
+        if name == "final_return":
+            normalised_final = {"td3": td3, "ede-td3": ede}
+    thresholds = np.linspace(0.0, 1.0, 41)
+    saved = np.random.get_state()  # rliable's bootstrap draws from NumPy's global generator
+    try:
+        np.random.seed(seed)
+        profiles, bands = rly.create_performance_profile(normalised_final, thresholds,
+                                                         reps=samples)
+    finally:
+        np.random.set_state(saved)
+    figure, ax = plt.subplots(figsize=(5.0, 3.4))
+    for algo, (label, colour) in ALGO_STYLE.items():
+        ax.plot(thresholds, profiles[algo], color=colour, label=label)
+        ax.fill_between(thresholds, bands[algo][0], bands[algo][1], color=colour, alpha=0.2,
+                        linewidth=0)
+    ax.set_xlabel("normalised final return τ")
+    ax.set_ylabel("fraction of runs with score > τ")
+    ax.set_title(f"performance profile: {len(tasks)} tasks, {runs} runs each", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    figure.tight_layout()
+    return AcrossTasks(tasks, runs, aggregates, figure)

@@ -36,6 +36,8 @@ from ede.report import (
     exploration,
     learning_curve_figure,
     RunRejected,
+    across_tasks_section,
+    random_policy_return,
     read_run,
     summarise_task,
 )
@@ -224,6 +226,7 @@ def build(
     missing_runs: list[str] = []
     excluded: list[str] = []  # one line per finished run that cannot be averaged, and why
     software: list[dict[str, Any] | None] = []  # of each run averaged
+    all_curves: dict[tuple[str, str], list[Curve]] = {}  # every task's, for the aggregates
 
     page.add("<h2>Learning curves</h2>")
     for family, tasks in params.runs.by_family().items():
@@ -251,6 +254,7 @@ def build(
                     if record.diagnostics is not None:
                         diagnostics.setdefault((task, algo), []).append(record.diagnostics)
                 curves[(task, algo)] = found
+                all_curves[(task, algo)] = found
                 row = summarise_task(task, algo, found, missing, config.thresholds.get(task),
                                      config.confidence, config.bootstrap_samples, rng)
                 rows.setdefault(task, []).append(row)
@@ -274,6 +278,8 @@ def build(
             note = f" (threshold {threshold:g})" if threshold is not None else ""
             page.add(f"<h4>{task}{note}</h4>" + _table(rows[task]))
             page.add(_fell_back(task, curves, params))
+
+    _across_tasks(page, metrics, all_curves, params)
 
     page.add("<h2>The EDE space against the effect space (Figure 6)</h2>")
     family = config.effect_space_family
@@ -330,6 +336,49 @@ def _expected(params: Params, inputs: Inputs, task: str, algo: str, seed: int) -
     if embedding is None:
         del expected["embedding"]  # not given to the report: nothing to check it against
     return expected
+
+
+RANDOM_EPISODES = 10  # episodes of uniform random actions behind a task's normalised 0
+
+
+def _across_tasks(page: Page, metrics: dict[str, Any], curves: dict[tuple[str, str], list[Curve]],
+                  params: Params) -> None:
+    """The claim across tasks, as rliable states it: probability of improvement and IQM of
+    normalised scores with stratified bootstrap intervals, and a performance profile."""
+    config = params.report
+    page.add("<h2>Across tasks</h2>")
+    lows = {task: random_policy_return(task, RANDOM_EPISODES, config.seed)
+            for task in params.runs.all_tasks
+            if curves.get((task, "td3")) and curves.get((task, "ede-td3"))}
+    found = across_tasks_section(curves, lows, config.confidence, config.bootstrap_samples,
+                                 config.seed)
+    if found is None:
+        page.add("<p>No task has finished runs of both algorithms yet.</p>")
+        return
+    rows = []
+    summary: dict[str, Any] = {"tasks": found.tasks, "runs_per_task": found.runs}
+    for score, label in (("final_return", "final return"), ("auc", "area under the curve")):
+        a = found.aggregates[score]
+        rows.append(f"<tr><td>{label}</td><td>{_interval(a['probability_of_improvement'])}</td>"
+                    f"<td>{_interval(a['iqm_ours'])}</td><td>{_interval(a['iqm_theirs'])}</td></tr>")
+        summary[score] = {
+            "probability_of_improvement": _as_json(a["probability_of_improvement"]),
+            "iqm": {"ede-td3": _as_json(a["iqm_ours"]), "td3": _as_json(a["iqm_theirs"])},
+        }
+    metrics["across_tasks"] = summary
+    page.add(f"<p>{len(found.tasks)} tasks ({', '.join(found.tasks)}), {found.runs} runs of each "
+             "algorithm per task (the seeds all of them share). Computed with rliable "
+             "(Agarwal et al., 2021): stratified bootstrap intervals "
+             f"({100 * config.confidence:.0f}%, {config.bootstrap_samples} resamples). Scores are "
+             f"normalised per task: 0 is uniform random actions' mean return ({RANDOM_EPISODES} "
+             "episodes), 1 the best evaluation any run reached there.</p>"
+             "<table><tr><th>score</th><th>P(EDE-TD3 &gt; TD3)</th><th>IQM, EDE-TD3</th>"
+             "<th>IQM, TD3</th></tr>" + "".join(rows) + "</table>")
+    page.figure("performance-profile", found.figure, "performance profile across tasks")
+
+
+def _as_json(interval: Any) -> dict[str, float]:
+    return {"value": interval.mean, "low": interval.low, "high": interval.high}
 
 
 def _fell_back(task: str, curves: dict[tuple[str, str], list[Curve]], params: Params) -> str:

@@ -105,10 +105,10 @@ def test_every_section_with_runs_missing_and_one_cut_short(project: Path, embedd
                     "threshold -5"):
         assert section in page, section
     for image in ("curves-reacher", "curves-sevendof", "diagnostics-reacher", "effect-space",
-                  "exploration"):
+                  "exploration", "performance-profile"):
         assert f'id="{image}"' in page and (project / f"data/report/{image}.png").is_file()
     assert 'id="diagnostics-sevendof"' not in page  # no run of that family has diagnostics
-    assert page.count("data:image/png;base64,") == 5  # self-contained
+    assert page.count("data:image/png;base64,") == 6  # self-contained
     # 12 runs expected (2 tasks x 2 algos x 3 seeds); 5 exist, one of them cut short.
     assert "7 of 12 runs have no results" in page
     assert ("1 finished runs are left out of the figures and tables:</p><ul><li>data/runs/ede/"
@@ -125,6 +125,12 @@ def test_every_section_with_runs_missing_and_one_cut_short(project: Path, embedd
     assert "data/runs/ede/Pusher-v0/td3/seed0" in page and "data/runs/ede/ReacherVertical-v0/td3/seed2" in page
     metrics = json.loads((project / "data/report-metrics.json").read_text())
     assert metrics["missing_runs"] == 7 and metrics["excluded_runs"] == 1
+    # Across tasks: only ReacherVertical has runs of both, sharing seed 0 alone; EDE-TD3's
+    # final -4 beats TD3's -8 there.
+    across = metrics["across_tasks"]
+    assert across["tasks"] == ["ede/ReacherVertical-v0"] and across["runs_per_task"] == 1
+    assert across["final_return"]["probability_of_improvement"]["value"] == 1.0
+    assert "P(EDE-TD3 &gt; TD3)" in page
     assert metrics["ede/ReacherVertical-v0"]["td3"] == {"final_return": -8.0, "auc": pytest.approx(
         (-20 + -12) / 2 * 0.5 + (-12 + -8) / 2 * 0.5), "seeds": 1}
     assert metrics["ede/ReacherVertical-v0"]["ede-td3"]["final_return"] == -3.0
