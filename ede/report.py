@@ -30,6 +30,7 @@ from ede.stats import (  # noqa: E402
     area_under_curve,
     bin_curve,
     bootstrap_mean,
+    global_numpy_seed,
     normalised,
     steps_to_threshold,
 )
@@ -509,13 +510,9 @@ def across_tasks_section(curves: dict[tuple[str, str], list[Curve]], lows: dict[
         if name == "final_return":
             normalised_final = {"td3": td3, "ede-td3": ede}
     thresholds = np.linspace(0.0, 1.0, 41)
-    saved = np.random.get_state()  # rliable's bootstrap draws from NumPy's global generator
-    try:
-        np.random.seed(seed)
+    with global_numpy_seed(seed):
         profiles, bands = rly.create_performance_profile(normalised_final, thresholds,
                                                          reps=samples)
-    finally:
-        np.random.set_state(saved)
     figure, ax = plt.subplots(figsize=(5.0, 3.4))
     for algo, (label, colour) in ALGO_STYLE.items():
         ax.plot(thresholds, profiles[algo], color=colour, label=label)

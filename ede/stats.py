@@ -2,17 +2,22 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
 
 __all__ = [
+    "across_tasks",
     "Interval",
     "align_curves",
     "area_under_curve",
     "bin_curve",
     "bootstrap_mean",
     "divergence",
+    "global_numpy_seed",
+    "normalised",
     "Divergence",
     "separation",
     "steps_to_threshold",
@@ -162,6 +167,18 @@ def normalised(scores: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndar
     return (np.asarray(scores, dtype=float) - low) / span
 
 
+@contextmanager
+def global_numpy_seed(seed: int) -> Iterator[None]:
+    """NumPy's global generator seeded for the block, then put back as it was: rliable's
+    stratified bootstrap draws its runs from it, whatever its ``random_state`` says."""
+    saved = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        yield
+    finally:
+        np.random.set_state(saved)
+
+
 def across_tasks(
     ours: np.ndarray, theirs: np.ndarray, confidence: float, samples: int, seed: int
 ) -> dict[str, Interval]:
@@ -181,11 +198,7 @@ def across_tasks(
                          "(runs, tasks), at least one of each")
     kwargs = {"reps": samples, "confidence_interval_size": confidence}
     runs = ours.shape[0]
-    # rliable's StratifiedBootstrap draws its runs from NumPy's global generator whatever
-    # random_state says: seeded here, and put back as it was.
-    saved = np.random.get_state()
-    try:
-        np.random.seed(seed)
+    with global_numpy_seed(seed):
         point, band = rly.get_interval_estimates(
             {"pair": (ours, theirs)}, metrics.probability_of_improvement,
             random_state=np.random.RandomState(seed), **kwargs)
@@ -195,8 +208,6 @@ def across_tasks(
         point, band = rly.get_interval_estimates(
             {"ours": ours, "theirs": theirs}, lambda s: np.array([metrics.aggregate_iqm(s)]),
             random_state=np.random.RandomState(seed), **kwargs)
-    finally:
-        np.random.set_state(saved)
     for name in ("ours", "theirs"):
         found[f"iqm_{name}"] = Interval(float(point[name][0]), float(band[name][0, 0]),
                                         float(band[name][1, 0]), runs)
