@@ -85,7 +85,23 @@ def _block(entry: dict[str, Any], base: str, baseline: dict[str, Any]) -> list[s
         )
         seeds = "/".join(_number(per_algo.get(a, {}).get("seeds"), 0) for a in algos)
         lines.append(f"  {task[-24:]:24s}{cells}{seeds:>7s}")
+    lines += _across_tasks(entry)
     return lines
+
+
+def _across_tasks(entry: dict[str, Any]) -> list[str]:
+    """One line: P(EDE-TD3 > TD3) across tasks, over final returns and areas, with intervals."""
+    files = (entry.get("data") or {}).get("metrics") or {}
+    report = (files.get(layout.REPORT_METRICS.as_posix()) or {}).get("data") or {}
+    across = report.get("across_tasks")
+    if not isinstance(across, dict):
+        return []
+    cells = []
+    for score, label in (("final_return", "final"), ("auc", "AUC")):
+        p = (across.get(score) or {}).get("probability_of_improvement") or {}
+        cells.append(f"{label} {_number(p.get('value'))} "
+                     f"[{_number(p.get('low'))}, {_number(p.get('high'))}]")
+    return [f"  P(EDE-TD3 > TD3), {_number(across.get('task_count'), 0)} tasks: {'; '.join(cells)}"]
 
 
 def experiment_blocks(commits: Iterable[dict[str, Any]]) -> list[str]:

@@ -356,7 +356,8 @@ def _across_tasks(page: Page, metrics: dict[str, Any], curves: dict[tuple[str, s
         page.add("<p>No task has finished runs of both algorithms yet.</p>")
         return
     rows = []
-    summary: dict[str, Any] = {"tasks": found.tasks, "runs_per_task": found.runs}
+    summary: dict[str, Any] = {"tasks": found.tasks, "task_count": len(found.tasks),
+                               "runs_per_task": found.runs}  # DVC's metrics keep numbers only
     for score, label in (("final_return", "final return"), ("auc", "area under the curve")):
         a = found.aggregates[score]
         rows.append(f"<tr><td>{label}</td><td>{_interval(a['probability_of_improvement'])}</td>"

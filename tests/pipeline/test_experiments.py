@@ -27,6 +27,10 @@ metrics = {
         "ede-td3": {"final_return": -500 * lr, "auc": -1500 * lr, "seeds": len(seeds)},
     },
     "missing_runs": 0,
+    "across_tasks": {"tasks": ["ede/ReacherVertical-v0"], "task_count": 1, "runs_per_task": len(seeds),
+                     "final_return": {"probability_of_improvement":
+                                      {"value": 0.75, "low": 0.5, "high": 1.0}},
+                     "auc": {"probability_of_improvement": {"value": 0.5, "low": 0.25, "high": 0.75}}},
 }
 json.dump(metrics, open("data/report-metrics.json", "w"))
 json.dump({"r2": 0.5}, open("data/other.json", "w"))
@@ -82,6 +86,7 @@ def test_each_experiment_shows_its_changes_and_returns_in_80_columns(repo: Path,
     row = next(line for line in smaller.splitlines() if TASK in line).split()
     # final and AUC of TD3, then of EDE-TD3, then the seeds of each
     assert row[1:] == ["-0.30", "-0.60", "-0.15", "-0.45", "2/2"]
+    assert "  P(EDE-TD3 > TD3), 1 tasks: final 0.75 [0.50, 1.00]; AUC 0.50 [0.25, 0.75]" in smaller
 
     three = blocks["three-seeds"]
     assert "td3.batch_size: 100 → 256" in three and "runs.seeds: [0, 1] → [0, 1, 2]" in three

@@ -128,7 +128,8 @@ def test_every_section_with_runs_missing_and_one_cut_short(project: Path, embedd
     # Across tasks: only ReacherVertical has runs of both, sharing seed 0 alone; EDE-TD3's
     # final -4 beats TD3's -8 there.
     across = metrics["across_tasks"]
-    assert across["tasks"] == ["ede/ReacherVertical-v0"] and across["runs_per_task"] == 1
+    assert across["tasks"] == ["ede/ReacherVertical-v0"] and across["task_count"] == 1
+    assert across["runs_per_task"] == 1
     assert across["final_return"]["probability_of_improvement"]["value"] == 1.0
     assert "P(EDE-TD3 &gt; TD3)" in page
     assert metrics["ede/ReacherVertical-v0"]["td3"] == {"final_return": -8.0, "auc": pytest.approx(
