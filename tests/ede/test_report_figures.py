@@ -47,3 +47,27 @@ def test_the_diagnostics_titles_fit_one_task_or_many(tasks: list[str]) -> None:
            "critic_loss": np.linspace(0.1, 2.0, len(STEPS))}
     figure = diagnostics_figure("hopper", tasks, {(task, "td3"): [run] for task in tasks})
     assert cut_off(figure) == []
+
+
+def test_across_tasks_on_hand_built_runs_whose_aggregates_are_known() -> None:
+    from ede.report import Curve, across_tasks_section
+
+    steps = np.array([0.0, 500.0, 1000.0])
+
+    def runs(offset: float, seeds: range) -> list[Curve]:
+        return [Curve(s, steps, np.array([-10.0, -5.0, -2.0]) + offset + 0.1 * s) for s in seeds]
+
+    lows = {"a": -20.0, "b": -30.0}
+    better = {("a", "td3"): runs(0, range(3)), ("a", "ede-td3"): runs(5, range(3)),
+              ("b", "td3"): runs(-10, range(4)), ("b", "ede-td3"): runs(-3, range(1, 4))}
+    found = across_tasks_section(better, lows, 0.95, 300, seed=0)
+    assert found.tasks == ["a", "b"] and found.runs == 3  # b shares seeds 1-3 only
+    for score in ("final_return", "auc"):
+        p = found.aggregates[score]["probability_of_improvement"]
+        assert (p.mean, p.low, p.high) == (1.0, 1.0, 1.0)
+        assert found.aggregates[score]["iqm_ours"].low > found.aggregates[score]["iqm_theirs"].high
+    assert found.figure.axes[0].get_xlabel().startswith("normalised final return")
+    same = {key: runs(0, range(3)) for key in better}
+    p = across_tasks_section(same, lows, 0.95, 300, seed=0).aggregates["auc"]["probability_of_improvement"]
+    assert p.mean == 0.5 and p.low <= 0.5 <= p.high
+    assert across_tasks_section({("a", "td3"): runs(0, range(2))}, lows, 0.95, 300, 0) is None
