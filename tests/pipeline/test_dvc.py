@@ -79,10 +79,12 @@ def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
     first = dvc(repo_copy, "repro")
     assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
     page = (repo_copy / "data/report/index.html").read_text()
-    for section in ("Learning curves", "Figure 6", "Figure 7", "Missing and excluded runs", "Provenance"):
+    for section in ("Learning curves", "Across tasks", "Figure 6", "Figure 7", "Missing and excluded runs",
+                    "Provenance"):
         assert section in page
     assert "None: every run the params name is here." in page
-    assert page.count("data:image/png;base64,") == 6  # curves and diagnostics per family, Figures 6, 7
+    # curves and diagnostics per family, the performance profile across tasks, Figures 6 and 7
+    assert page.count("data:image/png;base64,") == 7
     assert "diagnostics-reacher" in page and "diagnostics-sevendof" in page
 
     # Where and how fast runs go changes no result: nothing is stale.
