@@ -13,7 +13,12 @@ run's budget, as the report draws them) and prints, per task, in Markdown:
 - final return and area under the curve per algorithm, with bootstrap intervals over seeds;
 - the bins where the two algorithms' intervals are disjoint, and which lies above;
 - per seed, whether it diverged (:func:`ede.stats.divergence`: its last quarter of bins all below
-  its best earlier bin by more than half of what it had gained by then).
+  its best earlier bin by more than half of what it had gained by then);
+
+and, per family and over every task with runs of both algorithms, the report's aggregates across
+tasks (rliable: the probability that EDE-TD3 beats TD3 and each one's interquartile mean of
+normalised scores, over final returns and areas, with stratified bootstrap intervals), drawing the
+performance profile of all of them to ``<figures>/performance-profile.png``.
 
 The confidence, the bootstrap's resamples and its seed are the report's (``report`` in
 ``params.yaml``), so the numbers are the same on every machine.
@@ -30,10 +35,14 @@ import numpy as np
 from ede.config import load_params
 from ede.report import (
     ALGO_STYLE,
+    RANDOM_EPISODES,
+    AcrossTasks,
     Curve,
     RunRejected,
+    across_tasks_section,
     curve_band,
     learning_curve_figure,
+    random_policy_return,
     read_run,
     summarise_task,
 )
@@ -126,6 +135,19 @@ def task_section(task: str, family: str, source: str, curves: dict[str, list[Cur
     return "\n".join(lines) + "\n"
 
 
+def across_section(title: str, found: AcrossTasks, params) -> str:
+    """The aggregates across tasks as a Markdown table, after what they are over."""
+    report = params.report
+    lines = [f"### Across tasks: {title}", "", found.describe(report.confidence,
+                                                             report.bootstrap_samples), "",
+             "| score | P(EDE-TD3 > TD3) | IQM, EDE-TD3 | IQM, TD3 |", "|---|---|---|---|"]
+    for score, label in (("final_return", "final return"), ("auc", "area under the curve")):
+        a = found.aggregates[score]
+        lines.append(f"| {label} | {a['probability_of_improvement']} | {a['iqm_ours']} | "
+                     f"{a['iqm_theirs']} |")
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=Path, default=REPO / "docs/results/runs")
@@ -138,6 +160,7 @@ def main() -> None:
     families: dict[str, list[str]] = {}
     for task, family in params.runs.tasks.items():
         families.setdefault(family, []).append(task)
+    by_family: dict[str, dict[tuple[str, str], list[Curve]]] = {}
     for family, tasks in families.items():
         found = {}
         for task in tasks:
@@ -158,6 +181,19 @@ def main() -> None:
         args.figures.mkdir(parents=True, exist_ok=True)
         figure.savefig(args.figures / f"{family}.png", dpi=120)
         print(f"Figure: {args.figures / f'{family}.png'}\n")
+        by_family[family] = {(t, a): c for t, (cs, _, _) in found.items() for a, c in cs.items()}
+    report = params.report
+    both = {task for curves in by_family.values() for (task, _) in curves}
+    lows = {task: random_policy_return(task, RANDOM_EPISODES, report.seed) for task in sorted(both)}
+    everything = {key: c for curves in by_family.values() for key, c in curves.items()}
+    sets = [(f"the {family} family", curves) for family, curves in by_family.items()]
+    for title, curves in sets + [("every task", everything)] * (len(by_family) > 1):
+        found = across_tasks_section(curves, {t: lows[t] for t, _ in curves}, report.confidence,
+                                     report.bootstrap_samples, report.seed)
+        if found is not None:
+            print(across_section(title, found, params))
+            if title == "every task" or len(by_family) == 1:
+                found.figure.savefig(args.figures / "performance-profile.png", dpi=120)
 
 
 if __name__ == "__main__":

@@ -30,6 +30,7 @@ from ede.stats import (  # noqa: E402
     area_under_curve,
     bin_curve,
     bootstrap_mean,
+    bootstrap_means,
     global_numpy_seed,
     normalised,
     steps_to_threshold,
@@ -236,10 +237,13 @@ def curve_band(
         pairs = [bin_curve(s, r, bin_steps) for s, r in pairs]
     steps, table = align_curves(pairs)
     mean, low, high, n = (np.full(len(steps), np.nan) for _ in range(4))
-    for t in range(len(steps)):
-        values = table[:, t][~np.isnan(table[:, t])]
-        interval = bootstrap_mean(values, confidence, samples, rng)
-        mean[t], low[t], high[t], n[t] = interval.mean, interval.low, interval.high, interval.n
+    # One bootstrap per set of seeds that have data: all of them, unless runs are unequal.
+    present = ~np.isnan(table)  # (N, T)
+    for seeds in np.unique(present, axis=1).T:
+        points = np.flatnonzero((present == seeds[:, None]).all(axis=0))
+        intervals = bootstrap_means(table[np.ix_(seeds, points)], confidence, samples, rng)
+        for t, interval in zip(points, intervals):
+            mean[t], low[t], high[t], n[t] = interval.mean, interval.low, interval.high, interval.n
     return steps, mean, low, high, n
 
 
@@ -446,6 +450,9 @@ def exploration(
     return Exploration(raw, ede, raw_cov, ede_cov, figure)
 
 
+RANDOM_EPISODES = 10  # episodes of uniform random actions behind a task's normalised 0
+
+
 def random_policy_return(task: str, episodes: int, seed: int) -> float:
     """The mean return of uniform random actions on ``task`` over ``episodes`` episodes, episode e
     from ``reset(seed=seed + e)``: the low end of a task's normalised scores."""
@@ -474,6 +481,15 @@ class AcrossTasks:
     runs: int  # per task and algorithm: the seeds all of them share
     aggregates: dict[str, dict[str, Interval]]  # per score ("final_return", "auc"): across_tasks'
     figure: Figure
+
+    def describe(self, confidence: float, samples: int) -> str:
+        """What the aggregates are over and how they were made, in one paragraph."""
+        return (f"{len(self.tasks)} tasks ({', '.join(self.tasks)}), {self.runs} runs of each "
+                "algorithm per task (the seeds all of them share). Computed with rliable "
+                f"(Agarwal et al., 2021): stratified bootstrap intervals ({100 * confidence:.0f}%, "
+                f"{samples} resamples). Scores are normalised per task: 0 is uniform random "
+                f"actions' mean return ({RANDOM_EPISODES} episodes), 1 the best evaluation any run "
+                "reached there.")
 
 
 def across_tasks_section(curves: dict[tuple[str, str], list[Curve]], lows: dict[str, float],

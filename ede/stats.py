@@ -15,6 +15,7 @@ __all__ = [
     "area_under_curve",
     "bin_curve",
     "bootstrap_mean",
+    "bootstrap_means",
     "divergence",
     "global_numpy_seed",
     "normalised",
@@ -68,20 +69,42 @@ class Interval:
 def bootstrap_mean(
     values: np.ndarray, confidence: float, samples: int, rng: np.random.Generator
 ) -> Interval:
-    """Percentile bootstrap interval of the mean of ``values`` (one per seed).
+    """Percentile bootstrap interval of the mean of ``values`` (one per seed): rliable's
+    stratified bootstrap of one task (:func:`bootstrap_means`)."""
+    values = np.asarray(values, dtype=float)
+    return bootstrap_means(values[:, None], confidence, samples, rng)[0]
+
+
+def bootstrap_means(
+    table: np.ndarray, confidence: float, samples: int, rng: np.random.Generator
+) -> list[Interval]:
+    """The mean of each column of ``table`` (runs, points), with its percentile bootstrap interval.
+
+    The runs are resampled within each column, independently (rliable's stratified bootstrap, the
+    points as its strata), ``samples`` times; NumPy's global generator, which rliable draws from,
+    is seeded from ``rng`` for the call.
 
     Infinite values (a seed that never reached a threshold) make every resample that draws them
-    infinite, so the interval is honest about them: its high end is ``inf`` as soon as more than
-    ``(1 - confidence) / 2`` of the resamples draw one.
+    infinite, so the interval is honest about them: an end is ``inf`` as soon as the percentile
+    falls among such resamples. rliable's percentiles interpolate, and ``inf - inf`` is NaN, so
+    they are given a finite stand-in far above every finite mean and read back as ``inf``.
     """
-    values = np.asarray(values, dtype=float)
-    n = len(values)
-    if n == 0:
-        return Interval(float("nan"), float("nan"), float("nan"), 0)
-    resamples = values[rng.integers(0, n, size=(samples, n))].mean(axis=1)  # (samples,)
-    alpha = (1 - confidence) / 2
-    low, high = np.quantile(resamples, [alpha, 1 - alpha], method="inverted_cdf")
-    return Interval(float(values.mean()), float(low), float(high), n)
+    from rliable import library as rly
+
+    table = np.asarray(table, dtype=float)
+    runs, points = table.shape
+    if runs == 0:
+        return [Interval(float("nan"), float("nan"), float("nan"), 0)] * points
+    finite = table[np.isfinite(table)]
+    ceiling = float(np.abs(finite).max()) if finite.size else 0.0
+    stand_in = np.finfo(float).max / (2 * runs)  # n of them sum to half the largest double
+    scores = np.where(np.isposinf(table), stand_in, table)
+    with global_numpy_seed(int(rng.integers(2**32))):
+        _, band = rly.get_interval_estimates({"mean": scores}, lambda s: s.mean(axis=0),
+                                             reps=samples, confidence_interval_size=confidence)
+    low, high = np.where(band["mean"] > ceiling, np.inf, band["mean"])  # (points,) each
+    means = table.mean(axis=0)
+    return [Interval(float(m), float(lo), float(hi), runs) for m, lo, hi in zip(means, low, high)]
 
 
 def bin_curve(steps: np.ndarray, returns: np.ndarray, width: float) -> tuple[np.ndarray, np.ndarray]:
@@ -200,14 +223,13 @@ def across_tasks(
     runs = ours.shape[0]
     with global_numpy_seed(seed):
         point, band = rly.get_interval_estimates(
-            {"pair": (ours, theirs)}, metrics.probability_of_improvement,
-            random_state=np.random.RandomState(seed), **kwargs)
+            {"pair": (ours, theirs)}, metrics.probability_of_improvement, **kwargs)
         low, high = np.ravel(band["pair"])
         found = {"probability_of_improvement": Interval(float(point["pair"]), float(low),
                                                         float(high), runs)}
         point, band = rly.get_interval_estimates(
             {"ours": ours, "theirs": theirs}, lambda s: np.array([metrics.aggregate_iqm(s)]),
-            random_state=np.random.RandomState(seed), **kwargs)
+            **kwargs)
     for name in ("ours", "theirs"):
         found[f"iqm_{name}"] = Interval(float(point[name][0]), float(band[name][0, 0]),
                                         float(band[name][1, 0]), runs)

@@ -37,6 +37,7 @@ from ede.report import (
     learning_curve_figure,
     RunRejected,
     across_tasks_section,
+    RANDOM_EPISODES,
     random_policy_return,
     read_run,
     summarise_task,
@@ -338,9 +339,6 @@ def _expected(params: Params, inputs: Inputs, task: str, algo: str, seed: int) -
     return expected
 
 
-RANDOM_EPISODES = 10  # episodes of uniform random actions behind a task's normalised 0
-
-
 def _across_tasks(page: Page, metrics: dict[str, Any], curves: dict[tuple[str, str], list[Curve]],
                   params: Params) -> None:
     """The claim across tasks, as rliable states it: probability of improvement and IQM of
@@ -367,12 +365,7 @@ def _across_tasks(page: Page, metrics: dict[str, Any], curves: dict[tuple[str, s
             "iqm": {"ede-td3": _as_json(a["iqm_ours"]), "td3": _as_json(a["iqm_theirs"])},
         }
     metrics["across_tasks"] = summary
-    page.add(f"<p>{len(found.tasks)} tasks ({', '.join(found.tasks)}), {found.runs} runs of each "
-             "algorithm per task (the seeds all of them share). Computed with rliable "
-             "(Agarwal et al., 2021): stratified bootstrap intervals "
-             f"({100 * config.confidence:.0f}%, {config.bootstrap_samples} resamples). Scores are "
-             f"normalised per task: 0 is uniform random actions' mean return ({RANDOM_EPISODES} "
-             "episodes), 1 the best evaluation any run reached there.</p>"
+    page.add(f"<p>{html.escape(found.describe(config.confidence, config.bootstrap_samples))}</p>"
              "<table><tr><th>score</th><th>P(EDE-TD3 &gt; TD3)</th><th>IQM, EDE-TD3</th>"
              "<th>IQM, TD3</th></tr>" + "".join(rows) + "</table>")
     page.figure("performance-profile", found.figure, "performance profile across tasks")

@@ -13,6 +13,7 @@ from ede.stats import (
     bin_curve,
     across_tasks,
     bootstrap_mean,
+    bootstrap_means,
     divergence,
     normalised,
     separation,
@@ -108,6 +109,25 @@ def test_binned_band_is_the_mean_over_seeds_of_each_seeds_bin_means() -> None:
     assert low[1] == 4.0 and high[1] == 9.0  # two seeds: the band spans their bin means
     raw = curve_band(curves, 0.95, 200, rng)
     assert raw[0].tolist() == steps.tolist()
+
+
+def test_a_band_over_runs_of_unequal_length_uses_the_seeds_each_point_has() -> None:
+    from ede.report import Curve, curve_band
+
+    steps = np.array([0, 1000, 2000])
+    curves = [Curve(0, steps, np.array([0.0, 4.0, 8.0])), Curve(1, steps[:2], np.array([2.0, 6.0])),
+              Curve(2, steps[:2], np.array([4.0, 8.0]))]
+    _, mean, low, high, n = curve_band(curves, 0.95, 500, np.random.default_rng(0))
+    assert n.tolist() == [3, 3, 1] and mean.tolist() == [2.0, 6.0, 8.0]
+    assert (low[2], high[2]) == (8.0, 8.0)  # one seed left: no spread to resample
+    assert low[0] == 0.0 and high[0] == 4.0  # 1/27 of the resamples draw one seed thrice
+
+
+def test_each_column_has_its_own_interval_from_its_own_resamples() -> None:
+    table = np.array([[1.0, 5.0, 0.0], [1.0, 5.0, 10.0], [1.0, 5.0, math.inf]])
+    same, other, never = bootstrap_means(table, 0.95, 1000, np.random.default_rng(4))
+    assert (same.low, same.high, other.low, other.high) == (1.0, 1.0, 5.0, 5.0)
+    assert never.mean == math.inf and never.high == math.inf and never.low == 0.0
 
 
 def test_separation_marks_disjoint_intervals_by_which_side_is_above() -> None:
