@@ -484,7 +484,8 @@ class AcrossTasks:
 
     def describe(self, confidence: float, samples: int) -> str:
         """What the aggregates are over and how they were made, in one paragraph."""
-        return (f"{len(self.tasks)} tasks ({', '.join(self.tasks)}), {self.runs} runs of each "
+        tasks = f"{len(self.tasks)} task{'s' * (len(self.tasks) != 1)}"
+        return (f"{tasks} ({', '.join(self.tasks)}), {self.runs} runs of each "
                 "algorithm per task (the seeds all of them share). Computed with rliable "
                 f"(Agarwal et al., 2021): stratified bootstrap intervals ({100 * confidence:.0f}%, "
                 f"{samples} resamples). Scores are normalised per task: 0 is uniform random "

@@ -101,7 +101,8 @@ def _across_tasks(entry: dict[str, Any]) -> list[str]:
         p = (across.get(score) or {}).get("probability_of_improvement") or {}
         cells.append(f"{label} {_number(p.get('value'))} "
                      f"[{_number(p.get('low'))}, {_number(p.get('high'))}]")
-    return [f"  P(EDE-TD3 > TD3), {_number(across.get('task_count'), 0)} tasks: {'; '.join(cells)}"]
+    count = _number(across.get("task_count"), 0)
+    return [f"  P(EDE-TD3 > TD3), {count} task{'s' * (count != '1')}: {'; '.join(cells)}"]
 
 
 def experiment_blocks(commits: Iterable[dict[str, Any]]) -> list[str]:

@@ -86,7 +86,7 @@ def test_each_experiment_shows_its_changes_and_returns_in_80_columns(repo: Path,
     row = next(line for line in smaller.splitlines() if TASK in line).split()
     # final and AUC of TD3, then of EDE-TD3, then the seeds of each
     assert row[1:] == ["-0.30", "-0.60", "-0.15", "-0.45", "2/2"]
-    assert "  P(EDE-TD3 > TD3), 1 tasks: final 0.75 [0.50, 1.00]; AUC 0.50 [0.25, 0.75]" in smaller
+    assert "  P(EDE-TD3 > TD3), 1 task: final 0.75 [0.50, 1.00]; AUC 0.50 [0.25, 0.75]" in smaller
 
     three = blocks["three-seeds"]
     assert "td3.batch_size: 100 → 256" in three and "runs.seeds: [0, 1] → [0, 1, 2]" in three
