@@ -30,6 +30,7 @@ import argparse
 import json
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
 
 from ede.config import load_params
@@ -180,20 +181,23 @@ def main() -> None:
             {t: budget / args.bins for t, (_, budget, _) in found.items()})
         args.figures.mkdir(parents=True, exist_ok=True)
         figure.savefig(args.figures / f"{family}.png", dpi=120)
+        plt.close(figure)
         print(f"Figure: {args.figures / f'{family}.png'}\n")
         by_family[family] = {(t, a): c for t, (cs, _, _) in found.items() for a, c in cs.items()}
     report = params.report
-    both = {task for curves in by_family.values() for (task, _) in curves}
+    both = {task for curves in by_family.values() for (task, _) in curves
+            if all((task, a) in curves for a in ALGO_STYLE)}
     lows = {task: random_policy_return(task, RANDOM_EPISODES, report.seed) for task in sorted(both)}
     everything = {key: c for curves in by_family.values() for key, c in curves.items()}
     sets = [(f"the {family} family", curves) for family, curves in by_family.items()]
     for title, curves in sets + [("every task", everything)] * (len(by_family) > 1):
-        found = across_tasks_section(curves, {t: lows[t] for t, _ in curves}, report.confidence,
-                                     report.bootstrap_samples, report.seed)
+        found = across_tasks_section(curves, {t: lows[t] for t, _ in curves if t in lows},
+                                     report.confidence, report.bootstrap_samples, report.seed)
         if found is not None:
             print(across_section(title, found, params))
             if title == "every task" or len(by_family) == 1:
                 found.figure.savefig(args.figures / "performance-profile.png", dpi=120)
+            plt.close(found.figure)
 
 
 if __name__ == "__main__":

@@ -478,67 +478,85 @@ class AcrossTasks:
     """rliable's aggregates of EDE-TD3 against TD3 over every task with runs of both."""
 
     tasks: list[str]
-    runs: int  # per task and algorithm: the seeds all of them share
+    runs: dict[str, int]  # per algorithm: the runs of each task behind the aggregates
+    left_out: list[str]  # tasks and seeds that are not in them, each with why
     aggregates: dict[str, dict[str, Interval]]  # per score ("final_return", "auc"): across_tasks'
     figure: Figure
 
     def describe(self, confidence: float, samples: int) -> str:
         """What the aggregates are over and how they were made, in one paragraph."""
         tasks = f"{len(self.tasks)} task{'s' * (len(self.tasks) != 1)}"
-        return (f"{tasks} ({', '.join(self.tasks)}), {self.runs} runs of each "
-                "algorithm per task (the seeds all of them share). Computed with rliable "
-                f"(Agarwal et al., 2021): stratified bootstrap intervals ({100 * confidence:.0f}%, "
-                f"{samples} resamples). Scores are normalised per task: 0 is uniform random "
-                f"actions' mean return ({RANDOM_EPISODES} episodes), 1 the best evaluation any run "
-                "reached there.")
+        runs = " and ".join(f"{n} of {ALGO_STYLE[a][0]}" for a, n in self.runs.items())
+        left_out = f" Left out: {'; '.join(self.left_out)}." if self.left_out else ""
+        return (f"{tasks} ({', '.join(self.tasks)}); per task {runs} (each task's lowest seeds, as "
+                "many as every task has). Computed with rliable (Agarwal et al., 2021): stratified "
+                f"bootstrap intervals ({100 * confidence:.0f}%, {samples} resamples). Scores are "
+                f"normalised per task: 0 is uniform random actions' mean return ({RANDOM_EPISODES} "
+                f"episodes), 1 the best evaluation any run reached there.{left_out}")
 
 
 def across_tasks_section(curves: dict[tuple[str, str], list[Curve]], lows: dict[str, float],
                          confidence: float, samples: int, seed: int) -> AcrossTasks | None:
     """Probability of improvement and IQM over final returns and areas under the curve, scores
     normalised per task between ``lows[task]`` (a random policy's return) and the best evaluation
-    any run reached there; and the performance profile of the normalised final returns. None
-    where no task has runs of both algorithms."""
+    any run reached there; and the performance profile of the normalised final returns.
+
+    rliable stratifies by task and so needs the same number of runs of an algorithm on every
+    task: each algorithm keeps each task's lowest seeds, as many as its fewest on any task, and
+    the seeds beyond are named in ``left_out``. So is a task whose best evaluation is not above
+    the random policy's return, which has no scale to normalise by. None where no task is left.
+    """
     from rliable import library as rly
 
-    tasks = [t for t in lows if curves.get((t, "td3")) and curves.get((t, "ede-td3"))]
-    shared = {t: sorted({c.seed for c in curves[(t, "td3")]} & {c.seed for c in curves[(t, "ede-td3")]})
-              for t in tasks}
-    tasks = [t for t in tasks if shared[t]]
+    algos = ("ede-td3", "td3")
+    left_out = []
+    tasks = [t for t in lows if all(curves.get((t, a)) for a in algos)]
+    highs = {t: max(float(c.returns.max()) for a in algos for c in curves[(t, a)]) for t in tasks}
+    for task in [t for t in tasks if highs[t] <= lows[t]]:
+        left_out.append(f"{task} (its best evaluation, {highs[task]:.4g}, is not above the random "
+                        f"policy's {lows[task]:.4g})")
+        tasks.remove(task)
     if not tasks:
         return None
-    runs = min(len(shared[t]) for t in tasks)
-    highs = np.array([max(float(c.returns.max()) for a in ALGO_STYLE for c in curves[(t, a)])
-                      for t in tasks])
-    low = np.array([lows[t] for t in tasks])
+    chosen = {}
+    for algo in algos:
+        count = min(len(curves[(t, algo)]) for t in tasks)
+        for task in tasks:
+            ordered = sorted(curves[(task, algo)], key=lambda c: c.seed)
+            chosen[(task, algo)] = ordered[:count]
+            if ordered[count:]:
+                left_out.append(f"{task} {ALGO_STYLE[algo][0]} seed"
+                                f"{'s' * (len(ordered) > count + 1)} "
+                                f"{', '.join(str(c.seed) for c in ordered[count:])}")
+    low, high = np.array([lows[t] for t in tasks]), np.array([highs[t] for t in tasks])
 
     def table(algo: str, score: Callable[[Curve], float]) -> np.ndarray:  # (runs, tasks)
-        by_seed = [{c.seed: c for c in curves[(t, algo)]} for t in tasks]
-        return np.array([[score(by_seed[j][shared[t][i]]) for j, t in enumerate(tasks)]
-                         for i in range(runs)])
+        return np.array([[score(c) for c in chosen[(t, algo)]] for t in tasks]).T
 
     scores = {"final_return": lambda c: float(c.returns[-1]),
               "auc": lambda c: area_under_curve(c.steps, c.returns)}
     aggregates = {}
     normalised_final = {}
     for name, score in scores.items():
-        ede, td3 = (normalised(table(a, score), low, highs) for a in ("ede-td3", "td3"))
+        ede, td3 = (normalised(table(a, score), low, high) for a in algos)
         aggregates[name] = across_tasks(ede, td3, confidence, samples, seed)
         if name == "final_return":
             normalised_final = {"td3": td3, "ede-td3": ede}
     thresholds = np.linspace(0.0, 1.0, 41)
     with global_numpy_seed(seed):
-        profiles, bands = rly.create_performance_profile(normalised_final, thresholds,
-                                                         reps=samples)
+        profiles, bands = rly.create_performance_profile(
+            normalised_final, thresholds, reps=samples, confidence_interval_size=confidence)
     figure, ax = plt.subplots(figsize=(5.0, 3.4))
     for algo, (label, colour) in ALGO_STYLE.items():
         ax.plot(thresholds, profiles[algo], color=colour, label=label)
         ax.fill_between(thresholds, bands[algo][0], bands[algo][1], color=colour, alpha=0.2,
                         linewidth=0)
+    runs = {a: len(chosen[(tasks[0], a)]) for a in algos}
     ax.set_xlabel("normalised final return τ")
     ax.set_ylabel("fraction of runs with score > τ")
-    ax.set_title(f"performance profile: {len(tasks)} tasks, {runs} runs each", fontsize=10)
+    ax.set_title(f"performance profile: {len(tasks)} task{'s' * (len(tasks) != 1)}, "
+                 f"{runs['ede-td3']} and {runs['td3']} runs each", fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     figure.tight_layout()
-    return AcrossTasks(tasks, runs, aggregates, figure)
+    return AcrossTasks(tasks, runs, left_out, aggregates, figure)

@@ -88,10 +88,13 @@ def bootstrap_means(
     infinite, so the interval is honest about them: an end is ``inf`` as soon as the percentile
     falls among such resamples. rliable's percentiles interpolate, and ``inf - inf`` is NaN, so
     they are given a finite stand-in far above every finite mean and read back as ``inf``.
+    ``-inf`` has no such meaning and is refused; NaN gives NaN.
     """
     from rliable import library as rly
 
     table = np.asarray(table, dtype=float)
+    if np.isneginf(table).any():
+        raise ValueError("a value of -inf: only +inf (never reached) has a meaning here")
     runs, points = table.shape
     if runs == 0:
         return [Interval(float("nan"), float("nan"), float("nan"), 0)] * points
@@ -185,9 +188,12 @@ def divergence(
 
 
 def normalised(scores: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
-    """Scores (runs, tasks) mapped per task so that ``low`` is 0 and ``high`` is 1."""
-    span = np.where(high > low, high - low, 1.0)
-    return (np.asarray(scores, dtype=float) - low) / span
+    """Scores (runs, tasks) mapped per task so that ``low`` is 0 and ``high`` is 1; a task whose
+    ``high`` is not above its ``low`` has no scale and is refused."""
+    low, high = np.asarray(low, dtype=float), np.asarray(high, dtype=float)
+    if np.any(~(high > low)):
+        raise ValueError(f"tasks {np.flatnonzero(~(high > low)).tolist()}: high not above low")
+    return (np.asarray(scores, dtype=float) - low) / (high - low)
 
 
 @contextmanager
@@ -206,31 +212,33 @@ def across_tasks(
     ours: np.ndarray, theirs: np.ndarray, confidence: float, samples: int, seed: int
 ) -> dict[str, Interval]:
     """rliable's aggregates of two methods' scores, each (runs, tasks) with runs stratified by
-    task: the probability that a run of ``ours`` beats one of ``theirs`` on a task, averaged over
-    tasks, and each method's interquartile mean, all with stratified bootstrap intervals.
+    task (the two may have different numbers of runs): the probability that a run of ``ours``
+    beats one of ``theirs`` on a task, averaged over tasks, and each method's interquartile mean,
+    all with stratified bootstrap intervals.
 
     Returns:
-        ``probability_of_improvement``, ``iqm_ours``, ``iqm_theirs``.
+        ``probability_of_improvement``, ``iqm_ours``, ``iqm_theirs``; each interval's ``n`` is the
+        runs per task behind it (the pair's: the fewer of the two).
     """
     from rliable import library as rly
     from rliable import metrics
 
     ours, theirs = np.asarray(ours, dtype=float), np.asarray(theirs, dtype=float)
-    if ours.shape != theirs.shape or ours.ndim != 2 or min(ours.shape) == 0:
-        raise ValueError(f"scores of shapes {ours.shape} and {theirs.shape}: expected the same "
-                         "(runs, tasks), at least one of each")
+    if ours.ndim != 2 or theirs.ndim != 2 or ours.shape[1] != theirs.shape[1] or min(
+            *ours.shape, *theirs.shape) == 0:
+        raise ValueError(f"scores of shapes {ours.shape} and {theirs.shape}: expected (runs, tasks) "
+                         "each, over the same tasks, at least one of each")
     kwargs = {"reps": samples, "confidence_interval_size": confidence}
-    runs = ours.shape[0]
     with global_numpy_seed(seed):
         point, band = rly.get_interval_estimates(
             {"pair": (ours, theirs)}, metrics.probability_of_improvement, **kwargs)
         low, high = np.ravel(band["pair"])
-        found = {"probability_of_improvement": Interval(float(point["pair"]), float(low),
-                                                        float(high), runs)}
+        found = {"probability_of_improvement": Interval(
+            float(point["pair"]), float(low), float(high), min(len(ours), len(theirs)))}
         point, band = rly.get_interval_estimates(
             {"ours": ours, "theirs": theirs}, lambda s: np.array([metrics.aggregate_iqm(s)]),
             **kwargs)
-    for name in ("ours", "theirs"):
+    for name, scores in (("ours", ours), ("theirs", theirs)):
         found[f"iqm_{name}"] = Interval(float(point[name][0]), float(band[name][0, 0]),
-                                        float(band[name][1, 0]), runs)
+                                        float(band[name][1, 0]), len(scores))
     return found

@@ -351,7 +351,8 @@ def _across_tasks(page: Page, metrics: dict[str, Any], curves: dict[tuple[str, s
     found = across_tasks_section(curves, lows, config.confidence, config.bootstrap_samples,
                                  config.seed)
     if found is None:
-        page.add("<p>No task has finished runs of both algorithms yet.</p>")
+        page.add("<p>No task has finished runs of both algorithms yet, or none has one whose best "
+                 "evaluation is above a random policy's return.</p>")
         return
     rows = []
     summary: dict[str, Any] = {"tasks": found.tasks, "task_count": len(found.tasks),

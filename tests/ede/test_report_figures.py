@@ -61,7 +61,11 @@ def test_across_tasks_on_hand_built_runs_whose_aggregates_are_known() -> None:
     better = {("a", "td3"): runs(0, range(3)), ("a", "ede-td3"): runs(5, range(3)),
               ("b", "td3"): runs(-10, range(4)), ("b", "ede-td3"): runs(-3, range(1, 4))}
     found = across_tasks_section(better, lows, 0.95, 300, seed=0)
-    assert found.tasks == ["a", "b"] and found.runs == 3  # b shares seeds 1-3 only
+    # Each algorithm keeps its fewest seeds on any task, each task's lowest: 3 of each here, so
+    # b's TD3 seed 3 is named as left out; EDE-TD3 keeps b's seeds 1-3, all it has there.
+    assert found.tasks == ["a", "b"] and found.runs == {"ede-td3": 3, "td3": 3}
+    assert found.left_out == ["b TD3 seed 3"]
+    assert "Left out: b TD3 seed 3." in found.describe(0.95, 300)
     for score in ("final_return", "auc"):
         p = found.aggregates[score]["probability_of_improvement"]
         assert (p.mean, p.low, p.high) == (1.0, 1.0, 1.0)
@@ -69,5 +73,49 @@ def test_across_tasks_on_hand_built_runs_whose_aggregates_are_known() -> None:
     assert found.figure.axes[0].get_xlabel().startswith("normalised final return")
     same = {key: runs(0, range(3)) for key in better}
     p = across_tasks_section(same, lows, 0.95, 300, seed=0).aggregates["auc"]["probability_of_improvement"]
-    assert p.mean == 0.5 and p.low <= 0.5 <= p.high
+    assert p.mean == 0.5 and p.low < 0.5 < p.high
     assert across_tasks_section({("a", "td3"): runs(0, range(2))}, lows, 0.95, 300, 0) is None
+
+
+def test_unequal_run_counts_of_the_two_algorithms_are_all_used() -> None:
+    from ede.report import Curve, across_tasks_section
+
+    steps = np.array([0.0, 1000.0])
+    # TD3's 2 seeds end at 0 and 2, EDE-TD3's 4 at 1, 3, 3, 3: of the 8 pairs EDE-TD3 wins 7.
+    curves = {("a", "td3"): [Curve(s, steps, np.array([0.0, 2.0 * s])) for s in range(2)],
+              ("a", "ede-td3"): [Curve(s, steps, np.array([0.0, 1.0 + 2 * min(s, 1)]))
+                                 for s in range(4)]}
+    found = across_tasks_section(curves, {"a": -1.0}, 0.95, 300, seed=0)
+    assert found.runs == {"ede-td3": 4, "td3": 2} and found.left_out == []
+    assert found.aggregates["final_return"]["probability_of_improvement"].mean == 7 / 8
+
+
+def test_a_task_no_run_lifted_above_a_random_policy_is_left_out_by_name() -> None:
+    from ede.report import Curve, across_tasks_section
+
+    steps = np.array([0.0, 1000.0])
+    good = {(t, a): [Curve(s, steps, np.array([-9.0, -1.0 - s - (a == "td3")])) for s in range(3)]
+            for t in ("a", "b") for a in ("td3", "ede-td3")}
+    found = across_tasks_section(good, {"a": -10.0, "b": -1.0}, 0.9, 300, seed=0)
+    assert found.tasks == ["a"]
+    assert found.left_out == ["b (its best evaluation, -1, is not above the random policy's -1)"]
+    assert across_tasks_section(good, {"b": -1.0}, 0.9, 300, seed=0) is None
+
+
+def test_the_performance_profile_band_has_the_reports_confidence() -> None:
+    from ede.report import Curve, across_tasks_section
+
+    steps = np.array([0.0, 1000.0])
+    rng = np.random.default_rng(5)
+    curves = {("a", a): [Curve(s, steps, np.array([-9.0, -5 + rng.normal()])) for s in range(6)]
+              for a in ("td3", "ede-td3")}
+
+    def band_area(confidence: float) -> float:  # of both algorithms' bands, by the shoelace
+        found = across_tasks_section(curves, {"a": -10.0}, confidence, 500, seed=0)
+        area = 0.0
+        for band in found.figure.axes[0].collections:
+            x, y = band.get_paths()[0].vertices.T
+            area += 0.5 * abs(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1)))
+        return area
+
+    assert 0 < band_area(0.5) < 0.8 * band_area(0.99)

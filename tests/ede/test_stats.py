@@ -188,11 +188,18 @@ def test_across_tasks_is_determined_by_its_seed_and_refuses_mismatched_tables() 
     before = np.random.get_state()[1].copy()
     assert across_tasks(ours, theirs, 0.95, 300, 7) == across_tasks(ours, theirs, 0.95, 300, 7)
     np.testing.assert_array_equal(np.random.get_state()[1], before)  # the global generator kept
-    with pytest.raises(ValueError, match="expected the same"):
-        across_tasks(ours, theirs[:3], 0.95, 300, 7)
+    with pytest.raises(ValueError, match="over the same tasks"):
+        across_tasks(ours, theirs[:, :1], 0.95, 300, 7)
 
 
 def test_normalised_scores_run_from_low_to_high_per_task() -> None:
     scores = np.array([[-10.0, 5.0], [0.0, 15.0]])
     np.testing.assert_allclose(normalised(scores, np.array([-10.0, 5.0]), np.array([0.0, 15.0])),
                                [[0.0, 0.0], [1.0, 1.0]])
+    with pytest.raises(ValueError, match=r"tasks \[1\]: high not above low"):
+        normalised(scores, np.array([-10.0, 5.0]), np.array([0.0, 5.0]))
+
+
+def test_minus_infinity_has_no_meaning_in_a_bootstrap_of_means() -> None:
+    with pytest.raises(ValueError, match="-inf"):
+        bootstrap_mean(np.array([1.0, -math.inf]), 0.95, 100, np.random.default_rng(0))

@@ -27,7 +27,8 @@ metrics = {
         "ede-td3": {"final_return": -500 * lr, "auc": -1500 * lr, "seeds": len(seeds)},
     },
     "missing_runs": 0,
-    "across_tasks": {"tasks": ["ede/ReacherVertical-v0"], "task_count": 1, "runs_per_task": len(seeds),
+    "across_tasks": {"tasks": ["ede/ReacherVertical-v0"], "task_count": 1,
+                     "runs_per_task": {"ede-td3": len(seeds), "td3": len(seeds)},
                      "final_return": {"probability_of_improvement":
                                       {"value": 0.75, "low": 0.5, "high": 1.0}},
                      "auc": {"probability_of_improvement": {"value": 0.5, "low": 0.25, "high": 0.75}}},

@@ -125,11 +125,11 @@ def test_every_section_with_runs_missing_and_one_cut_short(project: Path, embedd
     assert "data/runs/ede/Pusher-v0/td3/seed0" in page and "data/runs/ede/ReacherVertical-v0/td3/seed2" in page
     metrics = json.loads((project / "data/report-metrics.json").read_text())
     assert metrics["missing_runs"] == 7 and metrics["excluded_runs"] == 1
-    # Across tasks: only ReacherVertical has runs of both, sharing seed 0 alone; EDE-TD3's
-    # final -4 beats TD3's -8 there.
+    # Across tasks: only ReacherVertical has runs of both, all 3 of EDE-TD3's seeds and TD3's
+    # seed 0 (its seed 1 is left out above); every EDE-TD3 final return beats TD3's -8 there.
     across = metrics["across_tasks"]
     assert across["tasks"] == ["ede/ReacherVertical-v0"] and across["task_count"] == 1
-    assert across["runs_per_task"] == 1
+    assert across["runs_per_task"] == {"ede-td3": 3, "td3": 1}
     assert across["final_return"]["probability_of_improvement"]["value"] == 1.0
     assert "P(EDE-TD3 &gt; TD3)" in page
     assert metrics["ede/ReacherVertical-v0"]["td3"] == {"final_return": -8.0, "auc": pytest.approx(

@@ -57,7 +57,7 @@ def test_tables_name_disjoint_bins_and_diverged_seeds(tmp_path: Path) -> None:
     assert (tmp_path / "figures" / "reacher.png").stat().st_size > 10_000
     # Across tasks (one here): every EDE-TD3 seed ends above every TD3 seed, so P is 1 at both ends.
     across = out.split("### Across tasks: the reacher family")[1]
-    assert "1 task (ede/ReacherTurn-v0), 4 runs of each algorithm" in across
+    assert "1 task (ede/ReacherTurn-v0); per task 4 of EDE-TD3 and 4 of TD3" in across
     final = across.split("| final return | ")[1].split(" |")
     assert final[0] == "1 [1, 1]" and float(final[1].split()[0]) > float(final[2].split()[0])
     assert (tmp_path / "figures" / "performance-profile.png").stat().st_size > 10_000
