@@ -18,7 +18,9 @@ run's budget, as the report draws them) and prints, per task, in Markdown:
 and, per family and over every task with runs of both algorithms, the report's aggregates across
 tasks (rliable: the probability that EDE-TD3 beats TD3 and each one's interquartile mean of
 normalised scores, over final returns and areas, with stratified bootstrap intervals), drawing the
-performance profile of all of them to ``<figures>/performance-profile.png``.
+performance profile of all of them to ``<figures>/performance-profile.png``. A task with fewer
+runs of an algorithm than the others (an experiment still running) waits, named, rather than
+cutting every task's seeds to its count.
 
 The confidence, the bootstrap's resamples and its seed are the report's (``report`` in
 ``params.yaml``), so the numbers are the same on every machine.
@@ -136,6 +138,18 @@ def task_section(task: str, family: str, source: str, curves: dict[str, list[Cur
     return "\n".join(lines) + "\n"
 
 
+def complete_tasks(curves: dict[tuple[str, str], list[Curve]], both: set[str]) -> tuple[list[str], str]:
+    """The tasks with as many runs of each algorithm as the most any task has — so no task's
+    seeds are cut to fit one still running — and a line naming those that wait."""
+    tasks = list(dict.fromkeys(t for t, _ in curves if t in both))
+    counts = {t: min(len(curves[(t, a)]) for a in ALGO_STYLE) for t in tasks}
+    most = max(counts.values(), default=0)
+    waiting = [f"{t} ({counts[t]} of {most})" for t in tasks if counts[t] < most]
+    note = (f"\nNot yet in these aggregates, with fewer runs of an algorithm than the others: "
+            f"{', '.join(waiting)}.\n") if waiting else ""
+    return [t for t in tasks if counts[t] == most], note
+
+
 def across_section(title: str, found: AcrossTasks, params) -> str:
     """The aggregates across tasks as a Markdown table, after what they are over."""
     report = params.report
@@ -191,10 +205,11 @@ def main() -> None:
     everything = {key: c for curves in by_family.values() for key, c in curves.items()}
     sets = [(f"the {family} family", curves) for family, curves in by_family.items()]
     for title, curves in sets + [("every task", everything)] * (len(by_family) > 1):
-        found = across_tasks_section(curves, {t: lows[t] for t, _ in curves if t in lows},
-                                     report.confidence, report.bootstrap_samples, report.seed)
+        tasks, waiting = complete_tasks(curves, both)
+        found = across_tasks_section(curves, {t: lows[t] for t in tasks}, report.confidence,
+                                     report.bootstrap_samples, report.seed)
         if found is not None:
-            print(across_section(title, found, params))
+            print(across_section(title, found, params) + waiting)
             if title == "every task" or len(by_family) == 1:
                 found.figure.savefig(args.figures / "performance-profile.png", dpi=120)
             plt.close(found.figure)
