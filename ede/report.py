@@ -554,8 +554,10 @@ def across_tasks_section(curves: dict[tuple[str, str], list[Curve]], lows: dict[
     runs = {a: len(chosen[(tasks[0], a)]) for a in algos}
     ax.set_xlabel("normalised final return τ")
     ax.set_ylabel("fraction of runs with score > τ")
-    ax.set_title(f"performance profile: {len(tasks)} task{'s' * (len(tasks) != 1)}, "
-                 f"{runs['ede-td3']} and {runs['td3']} runs each", fontsize=10)
+    each = (f"{runs['td3']} runs of each" if runs["td3"] == runs["ede-td3"] else
+            f"{runs['ede-td3']} runs of EDE-TD3 and {runs['td3']} of TD3 each")
+    ax.set_title(f"performance profile: {len(tasks)} task{'s' * (len(tasks) != 1)}, {each}",
+                 fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     figure.tight_layout()
