@@ -39,6 +39,7 @@ from ede.config import load_params
 from ede.report import (
     ALGO_STYLE,
     RANDOM_EPISODES,
+    SCORES,
     AcrossTasks,
     Curve,
     RunRejected,
@@ -156,7 +157,7 @@ def across_section(title: str, found: AcrossTasks, params) -> str:
     lines = [f"### Across tasks: {title}", "", found.describe(report.confidence,
                                                              report.bootstrap_samples), "",
              "| score | P(EDE-TD3 > TD3) | IQM, EDE-TD3 | IQM, TD3 |", "|---|---|---|---|"]
-    for score, label in (("final_return", "final return"), ("auc", "area under the curve")):
+    for score, label in SCORES.items():
         a = found.aggregates[score]
         lines.append(f"| {label} | {a['probability_of_improvement']} | {a['iqm_ours']} | "
                      f"{a['iqm_theirs']} |")

@@ -41,6 +41,7 @@ from ede.td3 import CodeExecutor, EmbeddingAdapter, IdentityAdapter  # noqa: E40
 __all__ = [
     "ALGO_STYLE",
     "AcrossTasks",
+    "SCORES",
     "Curve",
     "across_tasks_section",
     "TaskRow",
@@ -471,6 +472,10 @@ def random_policy_return(task: str, episodes: int, seed: int) -> float:
     finally:
         env.close()
     return total / episodes
+
+
+# The scores the aggregates are over: each one's key in ``AcrossTasks.aggregates`` and its name.
+SCORES = {"final_return": "final return", "auc": "area under the curve"}
 
 
 @dataclass

@@ -38,6 +38,7 @@ from ede.report import (
     RunRejected,
     across_tasks_section,
     RANDOM_EPISODES,
+    SCORES,
     random_policy_return,
     read_run,
     summarise_task,
@@ -357,7 +358,7 @@ def _across_tasks(page: Page, metrics: dict[str, Any], curves: dict[tuple[str, s
     rows = []
     summary: dict[str, Any] = {"tasks": found.tasks, "task_count": len(found.tasks),
                                "runs_per_task": found.runs}  # DVC's metrics keep numbers only
-    for score, label in (("final_return", "final return"), ("auc", "area under the curve")):
+    for score, label in SCORES.items():
         a = found.aggregates[score]
         rows.append(f"<tr><td>{label}</td><td>{_interval(a['probability_of_improvement'])}</td>"
                     f"<td>{_interval(a['iqm_ours'])}</td><td>{_interval(a['iqm_theirs'])}</td></tr>")
