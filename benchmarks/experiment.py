@@ -52,7 +52,7 @@ def variant_params(task: str, overrides: str, budget: int | None = None) -> dict
     else:
         if budget is None:
             raise SystemExit(f"--task {task}: not in params.yaml's runs.tasks; give --budget")
-        family = "".join(c for c in task.split("/")[-1].split("-v")[0].lower() if c.isalnum())
+        family = layout.own_family(task)
         params["families"] = {family: {"source": task}}
     params["runs"]["tasks"] = {task: family}
     params["runs"]["budgets"] = {task: budget or params["runs"]["budgets"][task]}
@@ -134,7 +134,7 @@ def summarise(workdir: Path, task: str, algos: list[str], seeds: list[int],
         rows = [summarise_task(task, algo, curves, [], t, 0.95, 2_000, rng)
                 for t in thresholds or (None,)]
         print(f"{algo:8s} seeds {len(curves)}: final {rows[0].final}; AUC {rows[0].auc}"
-              + "".join(f"; to {t:g}: {r.to_threshold}" for t, r in zip(thresholds, rows)))
+              + "".join(f"; to {t:g}: {r.to_threshold.steps()}" for t, r in zip(thresholds, rows)))
         bands[algo] = curve_band(curves, 0.95, 2_000, rng, params.report.bin_steps)
     if bands:
         steps = next(iter(bands.values()))[0]

@@ -4,26 +4,32 @@
 
 ``--runs`` holds one folder per finished run, ``<task>/<algorithm>/seed<N>/`` with its
 ``eval.csv``, ``run.json`` and ``metrics.json`` (as ``ede-pipeline train`` writes them), and per
-task a ``source.json`` naming the commit and command that made its runs. For each family of the
-committed ``params.yaml`` with runs, this draws its figure (``<figures>/<family>.png``: each task's
-mean return over seeds with its bootstrap band, evaluations averaged in ``--bins`` bins of a
-run's budget, as the report draws them) and prints, per task, in Markdown:
+task a ``source.json`` naming the commit and command that made its runs and, optionally, the
+returns whose first crossing to report (``"thresholds": [500, 1000]``). The tasks are those of the
+committed ``params.yaml``'s families, then every other task with a folder there, each its own
+family (as ``benchmarks/experiment.py`` runs a task ``params.yaml`` does not train on). For each
+family with runs, this draws its figure (``<figures>/<family>.png``: each task's mean return over
+seeds with its bootstrap band, evaluations averaged in ``--bins`` bins of a run's budget, as the
+report draws them) and prints, per task, in Markdown:
 
-- the budget a run, as a fraction of the paper's (``runs.budgets``), the seeds, the commit;
-- final return and area under the curve per algorithm, with bootstrap intervals over seeds;
+- the budget a run, as a fraction of the paper's (``runs.budgets``; none beyond the paper), the
+  seeds, the commit;
+- final return, area under the curve and the steps to reach each threshold per algorithm, with
+  bootstrap intervals over seeds;
 - the bins where the two algorithms' intervals are disjoint, and which lies above;
 - per seed, whether it diverged (:func:`ede.stats.divergence`: its last quarter of bins all below
   its best earlier bin by more than half of what it had gained by then);
 
-and, per family and over every task with runs of both algorithms, the report's aggregates across
-tasks (rliable: the probability that EDE-TD3 beats TD3 and each one's interquartile mean of
-normalised scores, over final returns and areas, with stratified bootstrap intervals), drawing the
-performance profile of all of them to ``<figures>/performance-profile.png``. A task with fewer
-runs of an algorithm than the others (an experiment still running) waits, named, rather than
-cutting every task's seeds to its count.
+and, per family, over the paper's tasks (where there are tasks beyond them) and over every task
+with runs of both algorithms, the report's aggregates across tasks (rliable: the probability that
+EDE-TD3 beats TD3 and each one's interquartile mean of normalised scores, over final returns and
+areas, with stratified bootstrap intervals), drawing the performance profile of all of them to
+``<figures>/performance-profile.png``. A task with fewer runs of an algorithm than the others (an
+experiment still running) waits, named, rather than cutting every task's seeds to its count.
 
 The confidence, the bootstrap's resamples and its seed are the report's (``report`` in
-``params.yaml``), so the numbers are the same on every machine.
+``params.yaml``), and each task's bootstrap starts afresh from that seed, so a task's numbers are
+the same on every machine and whatever other tasks are beside it.
 """
 
 from __future__ import annotations
@@ -51,6 +57,7 @@ from ede.report import (
     summarise_task,
 )
 from ede.stats import divergence, separation
+from ede_pipeline import layout
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -100,26 +107,39 @@ def spans(steps: np.ndarray, width: float) -> str:
 
 
 def task_section(task: str, family: str, source: str, curves: dict[str, list[Curve]], budget: int,
-                 paper_budget: int, made: dict, bins: int, params, rng: np.random.Generator) -> str:
+                 paper_budget: int | None, made: dict, bins: int, params) -> str:
+    """One task's tables: per algorithm final return, area under the curve and the steps to
+    reach each of ``made``'s ``thresholds``; the disjoint bins; per seed, whether it diverged.
+    ``paper_budget`` is None for a task beyond the paper. The bootstrap starts afresh from the
+    report's seed for each task, so a task's numbers depend on its runs alone."""
     report = params.report
+    rng = np.random.default_rng(report.seed)
     width = budget / bins
-    role = "the family's source task" if task == source else "transferred"
+    thresholds = [float(t) for t in made.get("thresholds", [])]
+    if paper_budget is None:
+        origin = f"{family} family, its own (beyond the paper). {budget:,} steps a run"
+    else:
+        role = "the family's source task" if task == source else "transferred"
+        origin = (f"{family} family, embedding learned on {source} ({role}). {budget:,} steps a "
+                  f"run, {budget / paper_budget:.1%} of the paper's {paper_budget:,}")
     lines = [
         f"### {task}",
         "",
-        f"{family} family, embedding learned on {source} ({role}). {budget:,} steps a run, "
-        f"{budget / paper_budget:.1%} of the paper's {paper_budget:,}; commit {made['commit'][:7]}; "
-        f"curves binned per {width:,.0f} steps.",
+        f"{origin}; commit {made['commit'][:7]}; curves binned per {width:,.0f} steps.",
         "",
-        "| algorithm | seeds | final return | area under the curve |",
-        "|---|---|---|---|",
+        "| algorithm | seeds | final return | area under the curve |"
+        + "".join(f" steps to reach {t:g} |" for t in thresholds),
+        "|---|---|---|---|" + "---|" * len(thresholds),
     ]
     bands = {}
     for algo, runs in curves.items():
         row = summarise_task(task, algo, runs, [], None, report.confidence,
                              report.bootstrap_samples, rng)
-        lines.append(f"| {ALGO_STYLE[algo][0]} | {seed_list(runs)} | {row.final} | {row.auc} |")
         bands[algo] = curve_band(runs, report.confidence, report.bootstrap_samples, rng, width)
+        reached = [summarise_task(task, algo, runs, [], t, report.confidence,
+                                  report.bootstrap_samples, rng).to_threshold for t in thresholds]
+        lines.append(f"| {ALGO_STYLE[algo][0]} | {seed_list(runs)} | {row.final} | {row.auc} |"
+                     + "".join(f" {r.steps()} |" for r in reached))
     lines.append("")
     if len(bands) == 2:
         (steps, _, low_a, high_a, _), (_, _, low_b, high_b, _) = bands["ede-td3"], bands["td3"]
@@ -164,6 +184,30 @@ def across_section(title: str, found: AcrossTasks, params) -> str:
     return "\n".join(lines) + "\n"
 
 
+def run_task(folder: Path) -> str | None:
+    """The task a folder's runs trained on, as their ``run.json`` names it; None with no runs."""
+    for made in sorted(folder.glob("*/seed*/run.json")):
+        try:
+            return str(json.loads(made.read_text())["task"])
+        except (ValueError, KeyError, TypeError):
+            raise SystemExit(f"{made}: not a run record; expected JSON naming its 'task'") from None
+    return None
+
+
+def families_of(runs: Path, params) -> dict[str, list[str]]:
+    """Each family's tasks: ``params.yaml``'s, in its order, then every task with a folder under
+    ``runs`` that it does not train on, as its own family (as ``benchmarks/experiment.py`` runs
+    such a task: its embedding learned on its own random data)."""
+    families: dict[str, list[str]] = {}
+    for task, family in params.runs.tasks.items():
+        families.setdefault(family, []).append(task)
+    known = {task_folder(t) for t in params.runs.tasks}
+    for folder in sorted(p for p in runs.glob("*") if p.is_dir() and p.name not in known):
+        if (task := run_task(folder)) is not None:
+            families.setdefault(layout.own_family(task), []).append(task)
+    return families
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=Path, default=REPO / "docs/results/runs")
@@ -172,12 +216,8 @@ def main() -> None:
     parser.add_argument("--params", type=Path, default=REPO / "params.yaml")
     args = parser.parse_args()
     params = load_params(args.params)
-    rng = np.random.default_rng(params.report.seed)
-    families: dict[str, list[str]] = {}
-    for task, family in params.runs.tasks.items():
-        families.setdefault(family, []).append(task)
     by_family: dict[str, dict[tuple[str, str], list[Curve]]] = {}
-    for family, tasks in families.items():
+    for family, tasks in families_of(args.runs, params).items():
         found = {}
         for task in tasks:
             folder = args.runs / task_folder(task)
@@ -186,14 +226,14 @@ def main() -> None:
                 found[task] = (curves, budget, json.loads((folder / "source.json").read_text()))
         if not found:
             continue
-        source = params.families[family].source
+        source = params.families[family].source if family in params.families else tasks[0]
         for task, (curves, budget, made) in found.items():
-            print(task_section(task, family, source, curves, budget, params.runs.budgets[task],
-                               made, args.bins, params, rng))
+            print(task_section(task, family, source, curves, budget, params.runs.budgets.get(task),
+                               made, args.bins, params))
         figure = learning_curve_figure(
             family, list(found), {(t, a): c for t, (cs, _, _) in found.items() for a, c in cs.items()},
-            params.report.confidence, params.report.bootstrap_samples, rng,
-            {t: budget / args.bins for t, (_, budget, _) in found.items()})
+            params.report.confidence, params.report.bootstrap_samples,
+            np.random.default_rng(params.report.seed), {t: budget / args.bins for t, (_, budget, _) in found.items()})
         args.figures.mkdir(parents=True, exist_ok=True)
         figure.savefig(args.figures / f"{family}.png", dpi=120)
         plt.close(figure)
@@ -204,7 +244,11 @@ def main() -> None:
             if all((task, a) in curves for a in ALGO_STYLE)}
     lows = {task: random_policy_return(task, RANDOM_EPISODES, report.seed) for task in sorted(both)}
     everything = {key: c for curves in by_family.values() for key, c in curves.items()}
+    paper = {key: c for f, curves in by_family.items() if f in params.families
+             for key, c in curves.items()}
     sets = [(f"the {family} family", curves) for family, curves in by_family.items()]
+    if len(by_family) > len(set(by_family) & set(params.families)) > 1:
+        sets.append(("the paper's tasks", paper))  # and tasks beyond it, in "every task"
     for title, curves in sets + [("every task", everything)] * (len(by_family) > 1):
         tasks, waiting = complete_tasks(curves, both)
         found = across_tasks_section(curves, {t: lows[t] for t in tasks}, report.confidence,

@@ -57,11 +57,18 @@ class Interval:
 
     def __str__(self) -> str:
         """``mean [low, high]``; ``inf`` (a threshold never reached) reads "never"."""
+        return self._show("{:.4g}")
+
+    def steps(self) -> str:
+        """The same for a number of environment steps: whole steps, in thousands, ``12,000``."""
+        return self._show("{:,.0f}")
+
+    def _show(self, form: str) -> str:
         if self.n == 0:
             return "missing"
 
         def show(value: float) -> str:
-            return "never" if np.isinf(value) else f"{value:.4g}"
+            return "never" if np.isinf(value) else form.format(value)
 
         return f"{show(self.mean)} [{show(self.low)}, {show(self.high)}]"
 

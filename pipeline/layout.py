@@ -21,6 +21,7 @@ __all__ = [
     "decoder",
     "embedding",
     "encoder",
+    "own_family",
     "rollouts",
     "run",
     "task_code",
@@ -63,6 +64,12 @@ def encoder(family: str) -> Path:
 
 def decoder(family: str) -> Path:
     return embedding(family) / DECODER
+
+
+def own_family(task: str) -> str:
+    """The name of the family a task forms alone, its embedding learned on its own random data:
+    ``HalfCheetah-v5`` is ``halfcheetah``, ``ede/Pusher-v0`` is ``pusher``."""
+    return "".join(c for c in task.split("/")[-1].split("-v")[0].lower() if c.isalnum())
 
 
 def task_inputs(task: str) -> Path:

@@ -66,11 +66,15 @@ def _png(figure: Figure) -> bytes:
 
 
 def _interval(interval: Any) -> str:
-    if interval is None:
-        return "no threshold set"
     if interval.n == 0:
         return '<span class="missing">missing</span>'
     return str(interval)
+
+
+def _steps(interval: Any) -> str:
+    if interval is None:
+        return "no threshold set"
+    return _interval(interval) if interval.n == 0 else interval.steps()
 
 
 class Page:
@@ -103,7 +107,7 @@ def _table(rows: list[TaskRow]) -> str:
         missing = (f' <span class="missing">(missing: {", ".join(map(str, row.missing))})</span>'
                    if row.missing else "")
         body.append(f"<tr><td>{label}</td><td>{_interval(row.final)}</td><td>{_interval(row.auc)}</td>"
-                    f"<td>{_interval(row.to_threshold)}</td><td>{len(row.seeds)}{missing}</td></tr>")
+                    f"<td>{_steps(row.to_threshold)}</td><td>{len(row.seeds)}{missing}</td></tr>")
     return f"<table>{head}{''.join(body)}</table>"
 
 

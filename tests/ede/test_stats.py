@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from ede.stats import (
+    Interval,
     align_curves,
     area_under_curve,
     bin_curve,
@@ -72,7 +73,15 @@ def test_a_seed_that_never_reaches_the_threshold_shows_in_the_interval() -> None
     interval = bootstrap_mean(np.array(reached), 0.95, 2000, np.random.default_rng(3))
     assert interval.mean == math.inf and interval.high == math.inf
     assert interval.low == 100.0  # the resample of the fastest seed three times
+    assert str(interval) == interval.steps() == "never [100, never]"
     assert str(bootstrap_mean(np.array([]), 0.95, 10, np.random.default_rng(0))) == "missing"
+
+
+def test_steps_read_as_whole_steps_where_significant_digits_would_round_them() -> None:
+    interval = Interval(mean=12_345.4, low=9_000.0, high=15_600.6, n=4)
+    assert str(interval) == "1.235e+04 [9000, 1.56e+04]"
+    assert interval.steps() == "12,345 [9,000, 15,601]"
+    assert Interval(math.nan, math.nan, math.nan, 0).steps() == "missing"
 
 
 def test_curves_of_unequal_length_align_on_the_union_of_steps() -> None:

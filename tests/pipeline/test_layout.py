@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shlex
+from pathlib import Path
 
 import yaml
 
@@ -67,3 +68,16 @@ def test_a_runs_inputs_are_its_tasks_folder_which_copies_its_familys() -> None:
             str(layout.task_code(family, task))} <= set(deps)
     assert stages["task_inputs"]["do"]["outs"] == [str(layout.task_inputs(task))]
     assert str(layout.task_inputs("${item.task}")) in stages["train"]["deps"]
+
+
+def test_a_task_alone_is_a_family_named_after_it_that_params_accept(tmp_path: Path) -> None:
+    from ede.config import load_params
+
+    names = {t: layout.own_family(t) for t in ("HalfCheetah-v5", "ede/Pusher-v0", "Humanoid-v5",
+                                               "ede/ReacherVertical-v0")}
+    assert names == {"HalfCheetah-v5": "halfcheetah", "ede/Pusher-v0": "pusher",
+                     "Humanoid-v5": "humanoid", "ede/ReacherVertical-v0": "reachervertical"}
+    params = yaml.safe_load((REPO / "params.yaml").read_text())  # a family key must be valid
+    params["families"][names["HalfCheetah-v5"]] = {"source": "HalfCheetah-v5"}
+    (path := tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    assert names["HalfCheetah-v5"] in load_params(path).families

@@ -86,3 +86,57 @@ def test_the_committed_runs_redraw(tmp_path: Path) -> None:
     committed = {p.parent.parent.name for p in (REPO / "docs/results/runs").glob("*/*/seed*")}
     for task in committed:
         assert f"### ede/{task}\n" in done.stdout
+
+
+def task_table(out: str, task: str) -> str:
+    """One task's section of results.py's output."""
+    return out.split(f"### {task}\n")[1].split("\n### ")[0]
+
+
+def test_a_tasks_numbers_do_not_depend_on_the_other_tasks_present(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    for seed in range(8):  # enough for the bootstrap's percentiles not to fall on the same means
+        for algo in ("td3", "ede-td3"):
+            write_run(runs, algo, seed, np.random.default_rng([seed, len(algo)]).normal(-100, 20, 21))
+    (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
+    alone = results(runs, tmp_path / "figures")
+    assert alone.returncode == 0, alone.stderr
+    # ReacherVertical comes first in params.yaml: its bootstraps run before ReacherTurn's.
+    for seed in range(3):
+        for algo in ("td3", "ede-td3"):
+            write_run(runs, algo, seed, np.random.default_rng(seed + 7).normal(-20, 5, 21),
+                      budget=50_000, task="ede/ReacherVertical-v0")
+    (runs / "ReacherVertical-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
+    beside = results(runs, tmp_path / "figures")
+    assert beside.returncode == 0, beside.stderr
+    assert beside.stdout.index("### ede/ReacherVertical-v0") < beside.stdout.index("### ede/ReacherTurn-v0")
+    assert task_table(beside.stdout, "ede/ReacherTurn-v0") == task_table(alone.stdout, "ede/ReacherTurn-v0")
+
+
+def test_a_task_beyond_the_paper_is_its_own_family_with_its_thresholds(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    x = np.linspace(0, 1, 21)
+    for seed in range(3):
+        write_run(runs, "ede-td3", seed, -1200 + 1100 * np.sqrt(x) + seed, task="Pendulum-v1")
+        write_run(runs, "td3", seed, -1200 + 1100 * x + seed, task="Pendulum-v1")
+    made = {"commit": "0123456789ab", "thresholds": [-600, -50]}
+    (runs / "Pendulum-v1" / "source.json").write_text(json.dumps(made))
+    for algo in ("td3", "ede-td3"):  # and a task of the paper's, beside it
+        for seed in range(3):
+            write_run(runs, algo, seed, np.linspace(-200, -100 - 20 * (algo == "ede-td3"), 21))
+    (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
+
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 0, done.stderr
+    table = task_table(done.stdout, "Pendulum-v1")
+    assert "pendulum family, its own (beyond the paper). 20,000 steps a run; commit 0123456" in table
+    assert "| steps to reach -600 | steps to reach -50 |" in table
+    # EDE-TD3 passes -600 at x = 0.3 (6,000 steps), TD3 at x = 0.55 (11,000): the same for every
+    # seed, so the intervals are points; neither reaches -50.
+    rows = {line.split(" | ")[0]: line for line in table.splitlines() if " | 0–2 | " in line}
+    assert rows["| EDE-TD3"].endswith("| 6,000 [6,000, 6,000] | never [never, never] |")
+    assert rows["| TD3"].endswith("| 11,000 [11,000, 11,000] | never [never, never] |")
+    assert (tmp_path / "figures" / "pendulum.png").stat().st_size > 10_000
+    assert "### Across tasks: the pendulum family" in done.stdout
+    every = done.stdout.split("### Across tasks: every task")[1]
+    assert "2 tasks (ede/ReacherTurn-v0, Pendulum-v1)" in every
