@@ -1,6 +1,7 @@
 """The measured results of docs/results.md, redrawn from the per-run files committed beside it.
 
     python benchmarks/results.py [--runs docs/results/runs] [--figures docs/results] [--bins 20]
+                                 [--ablations docs/results/ablations]
 
 ``--runs`` holds one folder per finished run, ``<task>/<algorithm>/seed<N>/`` with its
 ``eval.csv``, ``run.json`` and ``metrics.json`` (as ``ede-pipeline train`` writes them), and per
@@ -26,6 +27,11 @@ EDE-TD3 beats TD3 and each one's interquartile mean of normalised scores, over f
 areas, with stratified bootstrap intervals), drawing the performance profile of all of them to
 ``<figures>/performance-profile.png``. A task with fewer runs of an algorithm than the others (an
 experiment still running) waits, named, rather than cutting every task's seeds to its count.
+
+``--ablations`` holds the fidelity ablations' runs the same way, one folder per variant
+(``<variant>/<task>/<algorithm>/seed<N>/``, ``source.json`` per task, and where kept the variant's
+embedding metrics in ``<task>/embedding/``): each is printed against the default's runs of the
+same task, algorithm and seeds in ``--runs``, with the bins where their intervals are disjoint.
 
 The confidence, the bootstrap's resamples and its seed are the report's (``report`` in
 ``params.yaml``), and each task's bootstrap starts afresh from that seed, so a task's numbers are
@@ -106,11 +112,44 @@ def spans(steps: np.ndarray, width: float) -> str:
     return ", ".join(short(g[0]) if len(g) == 1 else f"{short(g[0])}–{short(g[-1])}" for g in groups)
 
 
+def summary_table(first: str, second: str, arms: dict[str, tuple[list[Curve], str]], task: str,
+                  algos: dict[str, str], thresholds: list[float], width: float, params,
+                  rng: np.random.Generator) -> tuple[list[str], dict[str, tuple]]:
+    """A table of one row per arm (its name: its runs and second column), with final return, area
+    under the curve and the steps to reach each threshold, with bootstrap intervals over the
+    runs; and each arm's binned band. ``algos`` names each arm's algorithm."""
+    report = params.report
+    lines = [f"| {first} | {second} | final return | area under the curve |"
+             + "".join(f" steps to reach {t:g} |" for t in thresholds),
+             "|---|---|---|---|" + "---|" * len(thresholds)]
+    bands = {}
+    for name, (runs, column) in arms.items():
+        row = summarise_task(task, algos[name], runs, [], None, report.confidence,
+                             report.bootstrap_samples, rng)
+        bands[name] = curve_band(runs, report.confidence, report.bootstrap_samples, rng, width)
+        reached = [summarise_task(task, algos[name], runs, [], t, report.confidence,
+                                  report.bootstrap_samples, rng).to_threshold for t in thresholds]
+        lines.append(f"| {name} | {column} | {row.final} | {row.auc} |"
+                     + "".join(f" {r.steps()} |" for r in reached))
+    return lines, bands
+
+
+def disjoint_bins(ours: tuple, theirs: tuple, width: float, names: tuple[str, str],
+                  confidence: float) -> str:
+    """The bins (right ends) where two bands' intervals are disjoint, and which lies above."""
+    (steps, _, low_a, high_a, _), (_, _, low_b, high_b, _) = ours, theirs
+    sign = separation(low_a, high_a, low_b, high_b)
+    return (f"Bins (right ends) where the {confidence:.0%} intervals are disjoint: {names[0]} "
+            f"above {names[1]} at {spans(steps[sign > 0], width) or 'none'}; below at "
+            f"{spans(steps[sign < 0], width) or 'none'}.")
+
+
 def task_section(task: str, family: str, source: str, curves: dict[str, list[Curve]], budget: int,
-                 paper_budget: int | None, made: dict, bins: int, params) -> str:
+                 paper_budget: int | None, made: dict, bins: int, params, embedding: str | None) -> str:
     """One task's tables: per algorithm final return, area under the curve and the steps to
     reach each of ``made``'s ``thresholds``; the disjoint bins; per seed, whether it diverged.
-    ``paper_budget`` is None for a task beyond the paper. The bootstrap starts afresh from the
+    ``paper_budget`` is None for a task beyond the paper; ``embedding``, the held-out figures of
+    the embedding EDE-TD3 used (:func:`embedding_figures`). The bootstrap starts afresh from the
     report's seed for each task, so a task's numbers depend on its runs alone."""
     report = params.report
     rng = np.random.default_rng(report.seed)
@@ -122,33 +161,16 @@ def task_section(task: str, family: str, source: str, curves: dict[str, list[Cur
         role = "the family's source task" if task == source else "transferred"
         origin = (f"{family} family, embedding learned on {source} ({role}). {budget:,} steps a "
                   f"run, {budget / paper_budget:.1%} of the paper's {paper_budget:,}")
-    lines = [
-        f"### {task}",
-        "",
-        f"{origin}; commit {made['commit'][:7]}; curves binned per {width:,.0f} steps.",
-        "",
-        "| algorithm | seeds | final return | area under the curve |"
-        + "".join(f" steps to reach {t:g} |" for t in thresholds),
-        "|---|---|---|---|" + "---|" * len(thresholds),
-    ]
-    bands = {}
-    for algo, runs in curves.items():
-        row = summarise_task(task, algo, runs, [], None, report.confidence,
-                             report.bootstrap_samples, rng)
-        bands[algo] = curve_band(runs, report.confidence, report.bootstrap_samples, rng, width)
-        reached = [summarise_task(task, algo, runs, [], t, report.confidence,
-                                  report.bootstrap_samples, rng).to_threshold for t in thresholds]
-        lines.append(f"| {ALGO_STYLE[algo][0]} | {seed_list(runs)} | {row.final} | {row.auc} |"
-                     + "".join(f" {r.steps()} |" for r in reached))
-    lines.append("")
+    labels = {ALGO_STYLE[algo][0]: algo for algo in curves}
+    table, bands = summary_table("algorithm", "seeds", {ALGO_STYLE[a][0]: (runs, seed_list(runs))
+                                                       for a, runs in curves.items()},
+                                 task, labels, thresholds, width, params, rng)
+    lines = [f"### {task}", "",
+             f"{origin}; commit {made['commit'][:7]}; curves binned per {width:,.0f} steps."
+             + (f" Its embedding, held out: {embedding}." if embedding else ""), "", *table, ""]
     if len(bands) == 2:
-        (steps, _, low_a, high_a, _), (_, _, low_b, high_b, _) = bands["ede-td3"], bands["td3"]
-        sign = separation(low_a, high_a, low_b, high_b)
-        above, below = spans(steps[sign > 0], width), spans(steps[sign < 0], width)
-        confidence = f"{report.confidence:.0%}"
-        lines.append(f"Bins (right ends) where the {confidence} intervals are disjoint: EDE-TD3 above "
-                     f"TD3 at {above or 'none'}; below at {below or 'none'}.")
-        lines.append("")
+        lines += [disjoint_bins(bands["EDE-TD3"], bands["TD3"], width, ("EDE-TD3", "TD3"),
+                                report.confidence), ""]
     lines += ["| algorithm | seed | first bin | best bin before the last quarter | last quarter "
               "| diverged |", "|---|---|---|---|---|---|"]
     for algo, runs in curves.items():
@@ -184,6 +206,69 @@ def across_section(title: str, found: AcrossTasks, params) -> str:
     return "\n".join(lines) + "\n"
 
 
+def embedding_figures(folder: Path) -> str | None:
+    """The held-out figures of the embedding a task's EDE-TD3 runs used, where its metrics are kept
+    beside them (``<task>/embedding/{encoder,decoder}_metrics.json``, as ``pretrain`` writes them)."""
+    encoder, decoder = (folder / "embedding" / f"{part}_metrics.json" for part in ("encoder", "decoder"))
+    if not encoder.is_file():
+        return None
+    e = json.loads(encoder.read_text())
+    parts = [f"prediction ratio {e['prediction_ratio']:.3f}", f"KL {e['kl']:.1f} nats"]
+    if decoder.is_file():
+        d = json.loads(decoder.read_text())
+        parts += [f"inverse error {d['inverse_error']:.2g}", f"at a bound {d['at_bounds']:.2g}"]
+    return ", ".join(parts)
+
+
+def ablation_sections(ablations: Path, runs: Path, bins: int, params) -> str:
+    """Each variant under ``ablations`` (``<variant>/<task>/<algorithm>/seed<N>/``, a ``source.json``
+    per task) against the default's runs of the same task, algorithm and seeds under ``runs``."""
+    sections = []
+    for variant in sorted(p for p in ablations.glob("*") if p.is_dir()):
+        for folder in sorted(p for p in variant.glob("*") if (p / "source.json").is_file()):
+            if (task := run_task(folder)) is None:
+                continue
+            ours, budget = read_task(folder, task)
+            default = runs / folder.name
+            theirs, default_budget = read_task(default, task) if default.is_dir() else ({}, 0)
+            if default_budget != budget:
+                raise SystemExit(f"{folder}: runs of {budget} steps against the default's "
+                                 f"{default_budget} in {default}; compare like with like")
+            made = json.loads((folder / "source.json").read_text())
+            for algo, variant_runs in ours.items():
+                seeds = {c.seed for c in variant_runs}
+                reference = [c for c in theirs.get(algo, []) if c.seed in seeds]
+                if {c.seed for c in reference} != seeds:
+                    raise SystemExit(f"{folder / algo}: the default's runs of seeds {sorted(seeds)} "
+                                     f"are not all in {default / algo}; compare like with like")
+                sections.append(ablation_section(
+                    variant.name, task, algo, {"default": (reference, embedding_figures(default)),
+                                               variant.name: (variant_runs, embedding_figures(folder))},
+                    budget, made, bins, params))
+    return "\n".join(sections)
+
+
+def ablation_section(variant: str, task: str, algo: str,
+                     arms: dict[str, tuple[list[Curve], str | None]], budget: int, made: dict,
+                     bins: int, params) -> str:
+    """The default and one variant (``arms``: each one's runs and embedding figures): final
+    return, area and steps to each threshold with bootstrap intervals, and the bins where the
+    two's intervals are disjoint."""
+    rng = np.random.default_rng(params.report.seed)
+    width = budget / bins
+    thresholds = [float(t) for t in made.get("thresholds", [])]
+    table, bands = summary_table("runs", "embedding (held out)",
+                                 {name: (runs, embedding or "—") for name, (runs, embedding) in arms.items()},
+                                 task, dict.fromkeys(arms, algo), thresholds, width, params, rng)
+    lines = [f"### {variant}: {task}, {ALGO_STYLE[algo][0]}", "",
+             f"{budget:,} steps a run, seeds {seed_list(arms[variant][0])} of each; commit "
+             f"{made['commit'][:7]}, `{made.get('command', '')}`; curves binned per {width:,.0f} "
+             "steps.", "", *table, "",
+             disjoint_bins(bands[variant], bands["default"], width, (variant, "the default"),
+                           params.report.confidence)]
+    return "\n".join(lines) + "\n"
+
+
 def run_task(folder: Path) -> str | None:
     """The task a folder's runs trained on, as their ``run.json`` names it; None with no runs."""
     for made in sorted(folder.glob("*/seed*/run.json")):
@@ -214,7 +299,10 @@ def main() -> None:
     parser.add_argument("--figures", type=Path, default=REPO / "docs/results")
     parser.add_argument("--bins", type=int, default=20, help="bins per run's budget")
     parser.add_argument("--params", type=Path, default=REPO / "params.yaml")
+    parser.add_argument("--ablations", type=Path, help="one folder per variant, each compared with "
+                        "the default's runs in --runs [default: 'ablations' beside --runs]")
     args = parser.parse_args()
+    args.ablations = args.ablations or args.runs.parent / "ablations"
     params = load_params(args.params)
     by_family: dict[str, dict[tuple[str, str], list[Curve]]] = {}
     for family, tasks in families_of(args.runs, params).items():
@@ -223,22 +311,24 @@ def main() -> None:
             folder = args.runs / task_folder(task)
             curves, budget = read_task(folder, task) if folder.is_dir() else ({}, 0)
             if curves:
-                found[task] = (curves, budget, json.loads((folder / "source.json").read_text()))
+                found[task] = (curves, budget, json.loads((folder / "source.json").read_text()),
+                               embedding_figures(folder))
         if not found:
             continue
         source = params.families[family].source if family in params.families else tasks[0]
-        for task, (curves, budget, made) in found.items():
+        for task, (curves, budget, made, embedding) in found.items():
             print(task_section(task, family, source, curves, budget, params.runs.budgets.get(task),
-                               made, args.bins, params))
+                               made, args.bins, params, embedding))
         figure = learning_curve_figure(
-            family, list(found), {(t, a): c for t, (cs, _, _) in found.items() for a, c in cs.items()},
+            family, list(found), {(t, a): c for t, (cs, *_) in found.items() for a, c in cs.items()},
             params.report.confidence, params.report.bootstrap_samples,
-            np.random.default_rng(params.report.seed), {t: budget / args.bins for t, (_, budget, _) in found.items()})
+            np.random.default_rng(params.report.seed),
+            {t: budget / args.bins for t, (_, budget, *_) in found.items()})
         args.figures.mkdir(parents=True, exist_ok=True)
         figure.savefig(args.figures / f"{family}.png", dpi=120)
         plt.close(figure)
         print(f"Figure: {args.figures / f'{family}.png'}\n")
-        by_family[family] = {(t, a): c for t, (cs, _, _) in found.items() for a, c in cs.items()}
+        by_family[family] = {(t, a): c for t, (cs, *_) in found.items() for a, c in cs.items()}
     report = params.report
     both = {task for curves in by_family.values() for (task, _) in curves
             if all((task, a) in curves for a in ALGO_STYLE)}
@@ -258,6 +348,8 @@ def main() -> None:
             if title == "every task" or len(by_family) == 1:
                 found.figure.savefig(args.figures / "performance-profile.png", dpi=120)
             plt.close(found.figure)
+    if args.ablations.is_dir():
+        print(ablation_sections(args.ablations, args.runs, args.bins, params))
 
 
 if __name__ == "__main__":

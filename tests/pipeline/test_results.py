@@ -140,3 +140,45 @@ def test_a_task_beyond_the_paper_is_its_own_family_with_its_thresholds(tmp_path:
     assert "### Across tasks: the pendulum family" in done.stdout
     every = done.stdout.split("### Across tasks: every task")[1]
     assert "2 tasks (ede/ReacherTurn-v0, Pendulum-v1)" in every
+
+
+def test_an_ablation_is_set_against_the_defaults_runs_of_the_same_seeds(tmp_path: Path) -> None:
+    runs, ablations = tmp_path / "runs", tmp_path / "ablations"
+    x = np.linspace(0, 1, 21)
+    for seed in range(4):  # the default: seeds 0-3, each ending at -100 - 10 * seed
+        write_run(runs, "ede-td3", seed, -200 + (100 - 10 * seed) * x)
+        write_run(runs, "td3", seed, -200 + 50 * x)
+    (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
+    for seed in (0, 1):  # the variant: seeds 0 and 1 of EDE-TD3, learning twice as fast
+        write_run(ablations / "fast", "ede-td3", seed, -200 + 150 * np.sqrt(x) + seed)
+    made = {"commit": "fedcba987654", "command": "experiment.py --variant fast:x=1",
+            "thresholds": [-150]}
+    (ablations / "fast" / "ReacherTurn-v0" / "source.json").write_text(json.dumps(made))
+    embedding = ablations / "fast" / "ReacherTurn-v0" / "embedding"
+    embedding.mkdir()
+    (embedding / "encoder_metrics.json").write_text(json.dumps({"prediction_ratio": 0.7021, "kl": 7.94}))
+
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 0, done.stderr
+    section = done.stdout.split("### fast: ede/ReacherTurn-v0, EDE-TD3\n")[1]
+    assert "20,000 steps a run, seeds 0, 1 of each; commit fedcba9, `experiment.py --variant fast:x=1`" in section
+    rows = {line.split(" | ")[0]: line.split(" | ") for line in section.splitlines() if line.startswith("| ")}
+    # The default's seeds 0 and 1 only (-100 and -110): not seeds 2 and 3 (-120, -130).
+    assert rows["| default"][1] == "—" and rows["| default"][2].startswith("-105 [")
+    assert rows["| fast"][1] == "prediction ratio 0.702, KL 7.9 nats"
+    assert rows["| fast"][2].startswith("-49.5 [")
+    # -150 first reached at x = 0.15 by the variant (3,000 steps), at x = 0.5 and 0.6 by the default.
+    assert rows["| fast"][4] == "3,000 [3,000, 3,000] |" and rows["| default"][4].startswith("11,000 [")
+    assert "TD3" not in section.split("\n### ")[0].replace("EDE-TD3", "")  # no TD3 variant runs
+    assert "fast above the default at 1K–20K; below at none." in section
+
+
+def test_an_ablation_without_the_defaults_seeds_is_refused_by_name(tmp_path: Path) -> None:
+    runs, ablations = tmp_path / "runs", tmp_path / "ablations"
+    write_run(runs, "ede-td3", 0, np.zeros(21))
+    (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
+    write_run(ablations / "fast", "ede-td3", 3, np.zeros(21))
+    (ablations / "fast" / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0"}))
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert "the default's runs of seeds [3] are not all in" in done.stderr
