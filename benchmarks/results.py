@@ -42,12 +42,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ede.config import load_params
+from ede.config import ParamsError, load_params
 from ede.report import (
     ALGO_STYLE,
     RANDOM_EPISODES,
@@ -68,6 +69,11 @@ from ede_pipeline import layout
 REPO = Path(__file__).resolve().parents[1]
 
 
+class Refused(Exception):
+    """Input this cannot use: one line naming the file and what is expected (exit code 2, before
+    anything is written)."""
+
+
 def task_folder(task: str) -> str:
     """``ede/ReacherTurn-v0`` is kept in ``ReacherTurn-v0``."""
     return task.split("/")[-1]
@@ -82,12 +88,12 @@ def read_task(folder: Path, task: str) -> tuple[dict[str, list[Curve]], int]:
             try:
                 record = read_run(run, {"task": task, "algo": algo, "seed": int(run.name[4:])})
             except RunRejected as error:
-                raise SystemExit(str(error)) from None
+                raise Refused(str(error)) from None
             if record is not None:
                 curves.setdefault(algo, []).append(record.curve)
                 budgets.add(int(record.curve.steps[-1]))  # checked: the run's budget
     if len(budgets) > 1:
-        raise SystemExit(f"{folder}: runs of different budgets {sorted(budgets)}; keep one per task")
+        raise Refused(f"{folder}: runs of different budgets {sorted(budgets)}; keep one per task")
     return curves, budgets.pop() if budgets else 0
 
 
@@ -216,14 +222,16 @@ def embedding_figures(folder: Path) -> str | None:
     parts = [f"prediction ratio {e['prediction_ratio']:.3f}", f"KL {e['kl']:.1f} nats"]
     if decoder.is_file():
         d = json.loads(decoder.read_text())
-        parts += [f"inverse error {d['inverse_error']:.2g}", f"at a bound {d['at_bounds']:.2g}"]
+        parts += [f"inverse error {d['inverse_error']:.2g}",
+                  f"{d['at_bounds']:.1%} of decoded actions at a bound"]
     return ", ".join(parts)
 
 
-def ablation_sections(ablations: Path, runs: Path, bins: int, params) -> str:
+def read_ablations(ablations: Path, runs: Path) -> list[tuple]:
     """Each variant under ``ablations`` (``<variant>/<task>/<algorithm>/seed<N>/``, a ``source.json``
-    per task) against the default's runs of the same task, algorithm and seeds under ``runs``."""
-    sections = []
+    per task) with the default's runs of the same task, algorithm and seeds under ``runs``: the
+    arguments of :func:`ablation_section` but ``bins`` and ``params``, one tuple per algorithm."""
+    found = []
     for variant in sorted(p for p in ablations.glob("*") if p.is_dir()):
         for folder in sorted(p for p in variant.glob("*") if (p / "source.json").is_file()):
             if (task := run_task(folder)) is None:
@@ -232,41 +240,52 @@ def ablation_sections(ablations: Path, runs: Path, bins: int, params) -> str:
             default = runs / folder.name
             theirs, default_budget = read_task(default, task) if default.is_dir() else ({}, 0)
             if default_budget != budget:
-                raise SystemExit(f"{folder}: runs of {budget} steps against the default's "
-                                 f"{default_budget} in {default}; compare like with like")
-            made = json.loads((folder / "source.json").read_text())
+                raise Refused(f"{folder}: runs of {budget} steps against the default's "
+                              f"{default_budget} in {default}; compare like with like")
+            made = read_source(folder)
             for algo, variant_runs in ours.items():
                 seeds = {c.seed for c in variant_runs}
                 reference = [c for c in theirs.get(algo, []) if c.seed in seeds]
                 if {c.seed for c in reference} != seeds:
-                    raise SystemExit(f"{folder / algo}: the default's runs of seeds {sorted(seeds)} "
-                                     f"are not all in {default / algo}; compare like with like")
-                sections.append(ablation_section(
-                    variant.name, task, algo, {"default": (reference, embedding_figures(default)),
-                                               variant.name: (variant_runs, embedding_figures(folder))},
-                    budget, made, bins, params))
-    return "\n".join(sections)
+                    raise Refused(f"{folder / algo}: the default's runs of seeds {sorted(seeds)} "
+                                  f"are not all in {default / algo}; compare like with like")
+                arms = {name: (curves, f"{source['commit'][:7]}; {embedding_figures(where) or '—'}")
+                        for name, curves, where, source in (
+                            ("default", reference, default, read_source(default)),
+                            (variant.name, variant_runs, folder, made))}
+                found.append((variant.name, task, algo, arms, budget, made))
+    return found
 
 
-def ablation_section(variant: str, task: str, algo: str,
-                     arms: dict[str, tuple[list[Curve], str | None]], budget: int, made: dict,
-                     bins: int, params) -> str:
-    """The default and one variant (``arms``: each one's runs and embedding figures): final
-    return, area and steps to each threshold with bootstrap intervals, and the bins where the
-    two's intervals are disjoint."""
+def ablation_section(variant: str, task: str, algo: str, arms: dict[str, tuple[list[Curve], str]],
+                     budget: int, made: dict, bins: int, params) -> str:
+    """The default and one variant (``arms``: each one's runs, and its commit and embedding
+    figures): final return, area and steps to each threshold with bootstrap intervals, and the
+    bins where the two's intervals are disjoint."""
     rng = np.random.default_rng(params.report.seed)
     width = budget / bins
     thresholds = [float(t) for t in made.get("thresholds", [])]
-    table, bands = summary_table("runs", "embedding (held out)",
-                                 {name: (runs, embedding or "—") for name, (runs, embedding) in arms.items()},
-                                 task, dict.fromkeys(arms, algo), thresholds, width, params, rng)
+    table, bands = summary_table("runs", "commit; embedding (held out)", arms, task,
+                                 dict.fromkeys(arms, algo), thresholds, width, params, rng)
     lines = [f"### {variant}: {task}, {ALGO_STYLE[algo][0]}", "",
-             f"{budget:,} steps a run, seeds {seed_list(arms[variant][0])} of each; commit "
-             f"{made['commit'][:7]}, `{made.get('command', '')}`; curves binned per {width:,.0f} "
-             "steps.", "", *table, "",
+             f"{budget:,} steps a run, seeds {seed_list(arms[variant][0])} of each; the variant's "
+             f"command `{made.get('command', '')}`; curves binned per {width:,.0f} steps.", "",
+             *table, "",
              disjoint_bins(bands[variant], bands["default"], width, (variant, "the default"),
                            params.report.confidence)]
     return "\n".join(lines) + "\n"
+
+
+def read_source(folder: Path) -> dict:
+    """A task folder's ``source.json``: the commit and command that made its runs."""
+    try:
+        made = json.loads((folder / "source.json").read_text())
+    except (OSError, ValueError):
+        made = None
+    if not isinstance(made, dict) or not isinstance(made.get("commit"), str):
+        raise Refused(f"{folder / 'source.json'}: expected JSON naming the 'commit' that made "
+                         "the runs beside it")
+    return made
 
 
 def run_task(folder: Path) -> str | None:
@@ -275,7 +294,7 @@ def run_task(folder: Path) -> str | None:
         try:
             return str(json.loads(made.read_text())["task"])
         except (ValueError, KeyError, TypeError):
-            raise SystemExit(f"{made}: not a run record; expected JSON naming its 'task'") from None
+            raise Refused(f"{made}: not a run record; expected JSON naming its 'task'") from None
     return None
 
 
@@ -304,18 +323,21 @@ def main() -> None:
     args = parser.parse_args()
     args.ablations = args.ablations or args.runs.parent / "ablations"
     params = load_params(args.params)
-    by_family: dict[str, dict[tuple[str, str], list[Curve]]] = {}
+    found_by_family: dict[str, dict[str, tuple]] = {}
     for family, tasks in families_of(args.runs, params).items():
         found = {}
         for task in tasks:
             folder = args.runs / task_folder(task)
             curves, budget = read_task(folder, task) if folder.is_dir() else ({}, 0)
             if curves:
-                found[task] = (curves, budget, json.loads((folder / "source.json").read_text()),
-                               embedding_figures(folder))
-        if not found:
-            continue
-        source = params.families[family].source if family in params.families else tasks[0]
+                found[task] = (curves, budget, read_source(folder), embedding_figures(folder))
+        if found:
+            found_by_family[family] = found
+    ablations = read_ablations(args.ablations, args.runs) if args.ablations.is_dir() else []
+    # Every input is read and checked: from here on, print and draw.
+    by_family: dict[str, dict[tuple[str, str], list[Curve]]] = {}
+    for family, found in found_by_family.items():
+        source = params.families[family].source if family in params.families else next(iter(found))
         for task, (curves, budget, made, embedding) in found.items():
             print(task_section(task, family, source, curves, budget, params.runs.budgets.get(task),
                                made, args.bins, params, embedding))
@@ -348,9 +370,13 @@ def main() -> None:
             if title == "every task" or len(by_family) == 1:
                 found.figure.savefig(args.figures / "performance-profile.png", dpi=120)
             plt.close(found.figure)
-    if args.ablations.is_dir():
-        print(ablation_sections(args.ablations, args.runs, args.bins, params))
+    for ablation in ablations:
+        print(ablation_section(*ablation, args.bins, params))
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except (Refused, ParamsError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        raise SystemExit(2) from None

@@ -76,7 +76,7 @@ def test_runs_of_different_budgets_are_refused_by_name(tmp_path: Path) -> None:
     write_run(runs, "td3", 0, np.zeros(21))
     write_run(runs, "td3", 1, np.zeros(21), budget=2 * BUDGET)
     done = results(runs, tmp_path / "figures")
-    assert done.returncode == 1 and "runs of different budgets [20000, 40000]" in done.stderr
+    assert done.returncode == 2 and "runs of different budgets [20000, 40000]" in done.stderr
     assert "Traceback" not in done.stderr and not (tmp_path / "figures").exists()
 
 
@@ -161,11 +161,11 @@ def test_an_ablation_is_set_against_the_defaults_runs_of_the_same_seeds(tmp_path
     done = results(runs, tmp_path / "figures")
     assert done.returncode == 0, done.stderr
     section = done.stdout.split("### fast: ede/ReacherTurn-v0, EDE-TD3\n")[1]
-    assert "20,000 steps a run, seeds 0, 1 of each; commit fedcba9, `experiment.py --variant fast:x=1`" in section
+    assert "20,000 steps a run, seeds 0, 1 of each; the variant's command `experiment.py --variant fast:x=1`" in section
     rows = {line.split(" | ")[0]: line.split(" | ") for line in section.splitlines() if line.startswith("| ")}
     # The default's seeds 0 and 1 only (-100 and -110): not seeds 2 and 3 (-120, -130).
-    assert rows["| default"][1] == "—" and rows["| default"][2].startswith("-105 [")
-    assert rows["| fast"][1] == "prediction ratio 0.702, KL 7.9 nats"
+    assert rows["| default"][1] == "0123456; —" and rows["| default"][2].startswith("-105 [")
+    assert rows["| fast"][1] == "fedcba9; prediction ratio 0.702, KL 7.9 nats"
     assert rows["| fast"][2].startswith("-49.5 [")
     # -150 first reached at x = 0.15 by the variant (3,000 steps), at x = 0.5 and 0.6 by the default.
     assert rows["| fast"][4] == "3,000 [3,000, 3,000] |" and rows["| default"][4].startswith("11,000 [")
@@ -180,5 +180,16 @@ def test_an_ablation_without_the_defaults_seeds_is_refused_by_name(tmp_path: Pat
     write_run(ablations / "fast", "ede-td3", 3, np.zeros(21))
     (ablations / "fast" / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0"}))
     done = results(runs, tmp_path / "figures")
-    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert done.returncode == 2 and "Traceback" not in done.stderr
     assert "the default's runs of seeds [3] are not all in" in done.stderr
+    assert not (tmp_path / "figures").exists()  # refused before the default's figure is drawn
+
+
+def test_a_source_without_its_commit_is_refused_by_name(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    write_run(runs, "td3", 0, np.zeros(21))
+    (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"command": "experiment.py"}))
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert "ReacherTurn-v0/source.json: expected JSON naming the 'commit'" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1
