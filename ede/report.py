@@ -260,13 +260,16 @@ def learning_curve_figure(
     curves: dict[tuple[str, str], list[Curve]],
     confidence: float,
     samples: int,
-    rng: np.random.Generator,
+    rng: np.random.Generator | None,
     bin_steps: float | Mapping[str, float] | None = None,
+    bands: Mapping[tuple[str, str], tuple] | None = None,
 ) -> Figure:
     """One panel per task of a family: each algorithm's mean return with its bootstrap band.
 
     With ``bin_steps`` the curves are binned as the paper's figures (:func:`curve_band`); a
-    mapping gives each task its own width, named in its panel's title.
+    mapping gives each task its own width, named in its panel's title. ``bands`` gives each
+    (task, algorithm)'s band as :func:`curve_band` returned it, drawn as it is (so a figure shows
+    the intervals its tables were read from); the others are computed with ``rng``.
     """
     figure, axes = plt.subplots(1, len(tasks), figsize=(_panels_width(len(tasks)), 3.4),
                                 squeeze=False)
@@ -277,7 +280,11 @@ def learning_curve_figure(
             runs = curves.get((task, algo), [])
             if not runs:
                 continue
-            steps, mean, low, high, _ = curve_band(runs, confidence, samples, rng, width)
+            band = (bands or {}).get((task, algo))
+            if band is None:
+                assert rng is not None, "a band to compute needs rng"
+                band = curve_band(runs, confidence, samples, rng, width)
+            steps, mean, low, high, _ = band
             ax.plot(steps, mean, color=colour, label=f"{label} ({len(runs)} seeds)")
             ax.fill_between(steps, low, high, color=colour, alpha=0.2, linewidth=0)
         ax.set_title(f"{task}\nbins of {width:,.0f} steps" if per_task and width else task,

@@ -60,7 +60,8 @@ class Interval:
         return self._show("{:.4g}")
 
     def steps(self) -> str:
-        """The same for a number of environment steps: whole steps, in thousands, ``12,000``."""
+        """The same for a number of environment steps: whole steps with thousands separators,
+        ``12,000 [9,000, 15,600]``."""
         return self._show("{:,.0f}")
 
     def _show(self, form: str) -> str:

@@ -119,3 +119,15 @@ def test_the_performance_profile_band_has_the_reports_confidence() -> None:
         return area
 
     assert 0 < band_area(0.5) < 0.8 * band_area(0.99)
+
+
+def test_a_band_given_is_drawn_as_it_is_and_the_others_computed() -> None:
+    curves = {("HalfCheetah-v5", algo): [Curve(seed, STEPS, np.linspace(0.0, 100.0, len(STEPS)) + seed)
+                                         for seed in range(3)] for algo in ("td3", "ede-td3")}
+    given = (STEPS, np.full(len(STEPS), 7.0), np.full(len(STEPS), 6.0), np.full(len(STEPS), 8.0),
+             np.full(len(STEPS), 3.0))
+    figure = learning_curve_figure("halfcheetah", ["HalfCheetah-v5"], curves, 0.95, 200,
+                                   np.random.default_rng(0), bands={("HalfCheetah-v5", "ede-td3"): given})
+    drawn = {line.get_label().split(" (")[0]: line.get_ydata() for line in figure.axes[0].lines}
+    assert np.array_equal(drawn["EDE-TD3"], given[1])  # not the curves' mean, 1 to 101
+    assert np.allclose(drawn["TD3"], np.linspace(0.0, 100.0, len(STEPS)) + 1.0)  # computed: the mean

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from tests.support import REPO
 
@@ -101,16 +104,25 @@ def test_a_tasks_numbers_do_not_depend_on_the_other_tasks_present(tmp_path: Path
     (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
     alone = results(runs, tmp_path / "figures")
     assert alone.returncode == 0, alone.stderr
-    # ReacherVertical comes first in params.yaml: its bootstraps run before ReacherTurn's.
+    # ReacherVertical comes first in params.yaml: its bootstraps run before ReacherTurn's; and
+    # ReacherTurn gains a threshold, bootstrapped between its final returns and its bands.
     for seed in range(3):
         for algo in ("td3", "ede-td3"):
             write_run(runs, algo, seed, np.random.default_rng(seed + 7).normal(-20, 5, 21),
                       budget=50_000, task="ede/ReacherVertical-v0")
     (runs / "ReacherVertical-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
+    made = {"commit": "0123456789ab", "thresholds": [-110]}
+    (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps(made))
     beside = results(runs, tmp_path / "figures")
     assert beside.returncode == 0, beside.stderr
     assert beside.stdout.index("### ede/ReacherVertical-v0") < beside.stdout.index("### ede/ReacherTurn-v0")
-    assert task_table(beside.stdout, "ede/ReacherTurn-v0") == task_table(alone.stdout, "ede/ReacherTurn-v0")
+    with_threshold = task_table(beside.stdout, "ede/ReacherTurn-v0")
+    assert "| steps to reach -110 |" in with_threshold
+
+    def first_columns(section: str) -> list[str]:  # every table cut to its first four columns
+        return ["|".join(line.split("|")[:5]) for line in section.splitlines()]
+
+    assert first_columns(with_threshold) == first_columns(task_table(alone.stdout, "ede/ReacherTurn-v0"))
 
 
 def test_a_task_beyond_the_paper_is_its_own_family_with_its_thresholds(tmp_path: Path) -> None:
@@ -169,7 +181,7 @@ def test_an_ablation_is_set_against_the_defaults_runs_of_the_same_seeds(tmp_path
     assert rows["| fast"][2].startswith("-49.5 [")
     # -150 first reached at x = 0.15 by the variant (3,000 steps), at x = 0.5 and 0.6 by the default.
     assert rows["| fast"][4] == "3,000 [3,000, 3,000] |" and rows["| default"][4].startswith("11,000 [")
-    assert "TD3" not in section.split("\n### ")[0].replace("EDE-TD3", "")  # no TD3 variant runs
+    assert "### fast: ede/ReacherTurn-v0, TD3" not in done.stdout  # the variant ran no TD3
     assert "fast above the default at 1K–20K; below at none." in section
 
 
@@ -185,11 +197,55 @@ def test_an_ablation_without_the_defaults_seeds_is_refused_by_name(tmp_path: Pat
     assert not (tmp_path / "figures").exists()  # refused before the default's figure is drawn
 
 
-def test_a_source_without_its_commit_is_refused_by_name(tmp_path: Path) -> None:
+def test_a_task_alone_never_joins_a_family_of_the_papers_and_one_seed_claims_no_interval(
+        tmp_path: Path) -> None:
     runs = tmp_path / "runs"
-    write_run(runs, "td3", 0, np.zeros(21))
-    (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"command": "experiment.py"}))
+    for algo in ("td3", "ede-td3"):  # gymnasium's Reacher-v5 would be family "reacher"
+        write_run(runs, algo, 0, np.linspace(-50, -5 - 5 * (algo == "td3"), 21), task="Reacher-v5")
+    (runs / "Reacher-v5" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
     done = results(runs, tmp_path / "figures")
-    assert done.returncode == 2 and "Traceback" not in done.stderr
-    assert "ReacherTurn-v0/source.json: expected JSON naming the 'commit'" in done.stderr
-    assert len(done.stderr.strip().splitlines()) == 1
+    assert done.returncode == 0, done.stderr
+    assert "reacher-v5 family, its own (beyond the paper)" in done.stdout
+    assert (tmp_path / "figures" / "reacher-v5.png").is_file()
+    assert not (tmp_path / "figures" / "reacher.png").exists()
+    assert "intervals are disjoint" not in done.stdout  # one seed each: its intervals are points
+
+
+def bad_input_cases() -> dict[str, tuple]:
+    """Each case: what to break in a folder of good runs, and the line expected."""
+    def source(value: object) -> Callable[[Path], None]:
+        return lambda runs: (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps(value))
+
+    def embedding(runs: Path) -> None:
+        (runs / "ReacherTurn-v0" / "embedding").mkdir()
+        (runs / "ReacherTurn-v0" / "embedding" / "encoder_metrics.json").write_text("{}")
+
+    def unknown_task(runs: Path) -> None:
+        for algo in ("td3", "ede-td3"):
+            write_run(runs, algo, 0, np.zeros(21), task="HalfCheetah-v99")
+        (runs / "HalfCheetah-v99" / "source.json").write_text(json.dumps({"commit": "0123456"}))
+
+    def misplaced(runs: Path) -> None:
+        shutil.copytree(runs / "ReacherTurn-v0", runs / "ReacherTurn-v0-copy")
+
+    return {
+        "no commit": (source({"command": "experiment.py"}), "source.json: expected JSON naming the 'commit'"),
+        "thresholds": (source({"commit": "0123456", "thresholds": "150"}),
+                       "source.json: 'thresholds' is '150'; expected a list of returns"),
+        "embedding": (embedding, "embedding: expected pretrain's metrics"),
+        "unknown task": (unknown_task, "HalfCheetah-v99: cannot be made to measure a random policy's return"),
+        "misplaced": (misplaced, "its runs are of ede/ReacherTurn-v0; keep them in ReacherTurn-v0/"),
+    }
+
+
+@pytest.mark.parametrize("case", list(bad_input_cases()))
+def test_bad_input_is_one_line_exit_2_and_nothing_drawn(tmp_path: Path, case: str) -> None:
+    runs = tmp_path / "runs"
+    for algo in ("td3", "ede-td3"):
+        write_run(runs, algo, 0, np.linspace(-200, -100, 21))
+    (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
+    breaks, expected = bad_input_cases()[case]
+    breaks(runs)
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 2 and expected in done.stderr, done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and not (tmp_path / "figures").exists()
