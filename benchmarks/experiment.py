@@ -52,7 +52,7 @@ def variant_params(task: str, overrides: str, budget: int | None = None) -> dict
     else:
         if budget is None:
             raise SystemExit(f"--task {task}: not in params.yaml's runs.tasks; give --budget")
-        family = layout.own_family(task)
+        family = layout.own_family(task, params["families"])
         params["families"] = {family: {"source": task}}
     params["runs"]["tasks"] = {task: family}
     params["runs"]["budgets"] = {task: budget or params["runs"]["budgets"][task]}

@@ -183,9 +183,7 @@ def read_runs(runs: Path, params) -> dict[str, list[TaskRuns]]:
             continue
         if folder.name != task_folder(task):
             raise Refused(f"{folder}: its runs are of {task}; keep them in {task_folder(task)}/")
-        family = layout.own_family(task)
-        if family in params.families:  # Reacher-v5 is not of the paper's reacher family
-            family = folder.name.lower()
+        family = layout.own_family(task, params.families)
         if found := read_folder(folder, task):
             families.setdefault(family, []).append(found)
     return families

@@ -6,6 +6,7 @@ holds the two together); the commands use these as the defaults of their path op
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from pathlib import Path
 
 __all__ = [
@@ -66,10 +67,12 @@ def decoder(family: str) -> Path:
     return embedding(family) / DECODER
 
 
-def own_family(task: str) -> str:
+def own_family(task: str, taken: Collection[str] = ()) -> str:
     """The name of the family a task forms alone, its embedding learned on its own random data:
-    ``HalfCheetah-v5`` is ``halfcheetah``, ``ede/Pusher-v0`` is ``pusher``."""
-    return "".join(c for c in task.split("/")[-1].split("-v")[0].lower() if c.isalnum())
+    ``HalfCheetah-v5`` is ``halfcheetah``, ``ede/Pusher-v0`` is ``pusher``. Never one of the
+    ``taken`` families (params.yaml's): there, ``Reacher-v5`` is ``reacher-v5``, not ``reacher``."""
+    name = "".join(c for c in task.split("/")[-1].split("-v")[0].lower() if c.isalnum())
+    return task.split("/")[-1].lower() if name in taken else name
 
 
 def task_inputs(task: str) -> Path:

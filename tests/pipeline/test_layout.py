@@ -81,3 +81,9 @@ def test_a_task_alone_is_a_family_named_after_it_that_params_accept(tmp_path: Pa
     params["families"][names["HalfCheetah-v5"]] = {"source": "HalfCheetah-v5"}
     (path := tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
     assert names["HalfCheetah-v5"] in load_params(path).families
+    # Never a family already taken: gymnasium's Reacher is not of the paper's reacher family.
+    assert layout.own_family("Reacher-v5", params["families"]) == "reacher-v5"
+    assert layout.own_family("Hopper-v5", params["families"]) == "hopper"
+    params["families"]["reacher-v5"] = {"source": "Reacher-v5"}
+    path.write_text(yaml.safe_dump(params))
+    assert "reacher-v5" in load_params(path).families
