@@ -220,7 +220,12 @@ def build(
 ) -> tuple[Page, dict[str, Any], dict[str, str]]:
     """The page, the DVC metrics and the curve CSVs of the report."""
     config = params.report
-    rng = np.random.default_rng(config.seed)
+
+    def fresh() -> np.random.Generator:
+        """Each statistic bootstraps (or samples) afresh from the report's seed, so a number
+        depends on its own runs alone, not on which other tasks or runs came before it."""
+        return np.random.default_rng(config.seed)
+
     page = Page()
     page.add("<h1>Effect-Dependent Embeddings: EDE-TD3 against TD3</h1>")
     page.add(f"<p>{params.runs.count} runs expected: {len(params.runs.all_tasks)} tasks × "
@@ -262,19 +267,21 @@ def build(
                 curves[(task, algo)] = found
                 all_curves[(task, algo)] = found
                 row = summarise_task(task, algo, found, missing, config.thresholds.get(task),
-                                     config.confidence, config.bootstrap_samples, rng)
+                                     config.confidence, config.bootstrap_samples, fresh())
                 rows.setdefault(task, []).append(row)
                 metrics.setdefault(task, {})[algo] = {
                     "final_return": None if row.final.n == 0 else row.final.mean,
                     "auc": None if row.auc.n == 0 else row.auc.mean,
                     "seeds": row.final.n,
                 }
-            curve_files[task] = _curve_csv(task, params.runs.algos, curves, config, rng)
+            curve_files[task] = _curve_csv(task, params.runs.algos, curves, config, fresh)
         source = params.families[family].source
         page.add(f"<h3>{family} family (embedding learned on {source})</h3>")
         page.figure(f"curves-{family}", learning_curve_figure(
-            family, tasks, curves, config.confidence, config.bootstrap_samples, rng,
-            config.bin_steps),
+            family, tasks, curves, config.confidence, config.bootstrap_samples, None,
+            config.bin_steps, {key: curve_band(runs, config.confidence, config.bootstrap_samples,
+                                               fresh(), config.bin_steps)
+                               for key, runs in curves.items() if runs}),
             f"learning curves of the {family} family")
         if diagnostics:
             page.figure(f"diagnostics-{family}", diagnostics_figure(family, tasks, diagnostics),
@@ -293,7 +300,7 @@ def build(
         page.add("<p>Not drawn: <code>report.effect_space_family</code> is null.</p>")
     else:
         embedding, task = inputs.loaded[family], params.families[family].source
-        space = effect_space(embedding, rng, env_id=task)
+        space = effect_space(embedding, fresh(), env_id=task)
         metrics["effect_space_affine_r2"] = space.r_squared
         page.add(f"<p>Effects s[t+{embedding.k}] − s[t] of {len(space.effects)} random "
                  f"{embedding.k}-step sequences on {task} (left) and their codes E(a) under the "
@@ -307,7 +314,7 @@ def build(
         page.add("<p>Not drawn: <code>report.exploration_family</code> is null.</p>")
     else:
         embedding, task = inputs.loaded[family], params.families[family].source
-        explored = exploration(embedding, rng, env_id=task)
+        explored = exploration(embedding, fresh(), env_id=task)
         metrics["coverage"] = {"raw": explored.raw_coverage, "ede": explored.ede_coverage}
         page.add(f"<p>Positions over ten episodes on {task}: uniform random actions "
                  f"every step cover <b>{100 * explored.raw_coverage:.1f}%</b> of the arena (a 20×20 "
@@ -401,9 +408,11 @@ def _fell_back(task: str, curves: dict[tuple[str, str], list[Curve]], params: Pa
             f"sense): {html.escape('; '.join(flagged))}.</p>")
 
 
-def _curve_csv(task: str, algos: list[str], curves: dict, config: Any, rng: np.random.Generator) -> str:
+def _curve_csv(task: str, algos: list[str], curves: dict, config: Any,
+               fresh: Callable[[], np.random.Generator]) -> str:
     """Mean curve per algorithm on the union of steps, for ``dvc plots``."""
-    series = {algo: curve_band(curves[(task, algo)], config.confidence, config.bootstrap_samples, rng)
+    series = {algo: curve_band(curves[(task, algo)], config.confidence, config.bootstrap_samples,
+                               fresh())
               for algo in algos if curves[(task, algo)]}
     steps = sorted({float(s) for band in series.values() for s in band[0]})
     lines = [",".join(["step", *series])]

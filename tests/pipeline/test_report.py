@@ -338,3 +338,28 @@ def test_a_seed_that_falls_and_stays_below_its_best_is_flagged(project: Path) ->
     assert "Fell and stayed below their best (diverged, in the paper's sense): TD3 seed 0 " \
            "(best -12 at step 10,000, last quarter -33.5)." in page
     assert page.count("Fell and stayed below their best") == 1  # the others rise
+
+
+def test_a_tasks_intervals_do_not_depend_on_the_runs_of_tasks_before_it(
+        project: Path, write_params) -> None:
+    def eight_seeds(params: dict) -> None:  # 8 seeds: percentiles that resampling noise moves
+        params["runs"].update(tasks=TASKS, seeds=list(range(8)),
+                              budgets={"ede/ReacherVertical-v0": 2000, "ede/Pusher-v0": 2000})
+        params["report"].update(effect_space_family=None, exploration_family=None)
+
+    def pusher_table(page: str) -> str:
+        return page.split("<h4>ede/Pusher-v0")[1].split("</table>")[0]
+
+    write_params(eight_seeds)
+    for seed in range(8):
+        for algo in ("td3", "ede-td3"):
+            noise = np.random.default_rng([seed, len(algo)]).normal(0, 5, 3)
+            fake_run(project, "ede/Pusher-v0", algo, seed, list(-50 + noise))
+    _, alone = report(project)
+    for seed in range(8):  # ReacherVertical's runs come first in the params: bootstrapped before
+        for algo in ("td3", "ede-td3"):
+            noise = np.random.default_rng([seed, 9]).normal(0, 3, 3)
+            fake_run(project, "ede/ReacherVertical-v0", algo, seed, list(-20 + noise))
+    _, beside = report(project)
+    assert "<h4>ede/ReacherVertical-v0" in beside and "[" in pusher_table(alone)
+    assert pusher_table(beside) == pusher_table(alone)
