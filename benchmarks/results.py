@@ -16,6 +16,9 @@ report draws them) and prints, per task, in Markdown:
 
 - the budget a run, as a fraction of the paper's (``runs.budgets``; none beyond the paper), the
   seeds, the commit;
+- two reference returns: uniform random actions' (the normalised scores' 0, as the report's) and
+  zero actions' over ``ZERO_EPISODES`` episodes with its standard error (doing nothing: on a task
+  that penalises actions, a policy must beat it to have learned what the task rewards);
 - final return, area under the curve and the steps to reach each threshold per algorithm, with
   bootstrap intervals over seeds;
 - the bins where the two algorithms' intervals are disjoint, and which lies above (with two
@@ -70,11 +73,13 @@ from ede.report import (
     random_policy_return,
     read_run,
     summarise_task,
+    zero_action_return,
 )
 from ede.stats import bootstrap_mean, divergence, separation, steps_to_threshold
 from ede_pipeline import layout
 
 REPO = Path(__file__).resolve().parents[1]
+ZERO_EPISODES = 100  # episodes behind a task's zero-action return (its standard error ~10 on Reacher's)
 
 
 class Refused(Exception):
@@ -254,7 +259,7 @@ def disjoint_bins(arms: dict[str, tuple[str, list[Curve], str]], bands: dict[str
 
 
 def task_section(found: TaskRuns, family: str, source: str, paper_budget: int | None, bins: int,
-                 params) -> tuple[str, dict[str, tuple]]:
+                 refs: tuple[float, float, float], params) -> tuple[str, dict[str, tuple]]:
     """One task's tables: per algorithm final return, area under the curve and the steps to
     reach each of its ``thresholds``; the disjoint bins; per seed, whether it diverged. And each
     algorithm's band, for the family's figure. ``paper_budget`` is None beyond the paper."""
@@ -270,8 +275,10 @@ def task_section(found: TaskRuns, family: str, source: str, paper_budget: int | 
                                  width, params)
     lines = [f"### {found.task}", "",
              f"{origin}; commit {found.made['commit'][:7]}; curves binned per {width:,.0f} steps."
-             + (f" Its embedding, held out: {found.embedding}." if found.embedding else ""), "",
-             *table, ""]
+             + (f" Its embedding, held out: {found.embedding}." if found.embedding else "")
+             + f" References: uniform random actions {refs[0]:.4g} ({RANDOM_EPISODES} episodes), "
+             f"zero actions {refs[1]:.4g} ± {refs[2]:.2g} ({ZERO_EPISODES} episodes, ± standard error).",
+             "", *table, ""]
     if len(arms) == 2:
         lines += disjoint_bins(arms, bands, ("EDE-TD3", "TD3"), width, params.report.confidence)
     lines += ["| algorithm | seed | first bin | best bin before the last quarter | last quarter "
@@ -366,15 +373,17 @@ def ablation_sections(variant: str, ours: TaskRuns, theirs: TaskRuns, bins: int,
     return "\n".join(sections)
 
 
-def random_returns(tasks: set[str], params) -> dict[str, float]:
-    """Each task's random-policy return, the low end of its normalised scores."""
-    lows = {}
-    for task in sorted(tasks):
+def references(tasks: list[str], params) -> dict[str, tuple[float, float, float]]:
+    """Each task's reference returns: uniform random actions' (the low end of its normalised
+    scores) and zero actions' with its standard error (ZERO_EPISODES episodes)."""
+    found = {}
+    for task in tasks:
         try:
-            lows[task] = random_policy_return(task, RANDOM_EPISODES, params.report.seed)
+            found[task] = (random_policy_return(task, RANDOM_EPISODES, params.report.seed),
+                           *zero_action_return(task, ZERO_EPISODES, params.report.seed))
         except (gymnasium.error.Error, ValueError) as error:
-            raise Refused(f"{task}: cannot be made to measure a random policy's return: {error}") from None
-    return lows
+            raise Refused(f"{task}: cannot be made to measure its reference returns: {error}") from None
+    return found
 
 
 def positive(text: str) -> int:
@@ -401,14 +410,16 @@ def main() -> None:
                  for family, found in families.items()}
     both = {task for curves in curves_of.values() for (task, _) in curves
             if all((task, a) in curves for a in ALGO_STYLE)}
-    lows = random_returns(both, params)
+    refs = references([f.task for found in families.values() for f in found], params)
+    lows = {task: refs[task][0] for task in both}
     # Every input is read and checked: from here on, print and draw.
     for family, found in families.items():
         source = params.families[family].source if family in params.families else found[0].task
         bands = {}
         for task_runs in found:
             text, task_bands = task_section(task_runs, family, source,
-                                            params.runs.budgets.get(task_runs.task), args.bins, params)
+                                            params.runs.budgets.get(task_runs.task), args.bins,
+                                            refs[task_runs.task], params)
             print(text)
             bands.update({(task_runs.task, a): band for a, band in task_bands.items()})
         figure = learning_curve_figure(

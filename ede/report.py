@@ -17,6 +17,7 @@ import matplotlib
 
 matplotlib.use("Agg")  # files only, never a display
 
+import gymnasium  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
@@ -51,6 +52,7 @@ __all__ = [
     "exploration",
     "learning_curve_figure",
     "random_policy_return",
+    "zero_action_return",
     "Run",
     "RunRejected",
     "read_run",
@@ -464,21 +466,38 @@ RANDOM_EPISODES = 10  # episodes of uniform random actions behind a task's norma
 def random_policy_return(task: str, episodes: int, seed: int) -> float:
     """The mean return of uniform random actions on ``task`` over ``episodes`` episodes, episode e
     from ``reset(seed=seed + e)``: the low end of a task's normalised scores."""
-    env = make(task)
     rng = np.random.default_rng(seed)
-    total = 0.0
+    return float(np.mean(_episode_returns(task, episodes, seed,
+                                          lambda space: rng.uniform(space.low, space.high))))
+
+
+def zero_action_return(task: str, episodes: int, seed: int) -> tuple[float, float]:
+    """The mean return, and its standard error, of the action nearest zero on ``task`` (idle
+    actuators: on a task with an action penalty, the return of doing nothing) over ``episodes``
+    episodes, episode e from ``reset(seed=seed + e)``. A policy below it has learned nothing the
+    task rewards beyond sparing its actions."""
+    returns = _episode_returns(task, episodes, seed,
+                               lambda space: np.clip(0.0, space.low, space.high))
+    return float(np.mean(returns)), float(np.std(returns, ddof=1) / np.sqrt(episodes))
+
+
+def _episode_returns(task: str, episodes: int, seed: int,
+                     act: Callable[[gymnasium.spaces.Box], np.ndarray]) -> np.ndarray:
+    """Each episode's return on ``task`` with ``act(action_space)`` as the policy."""
+    env = make(task)
+    returns = np.zeros(episodes)
     try:
         for e in range(episodes):
             env.reset(seed=seed + e)
             done = False
             while not done:
-                action = rng.uniform(env.action_space.low, env.action_space.high)
-                _, reward, terminated, truncated, _ = env.step(action.astype(env.action_space.dtype))
-                total += float(reward)
+                action = np.asarray(act(env.action_space)).astype(env.action_space.dtype)
+                _, reward, terminated, truncated, _ = env.step(action)
+                returns[e] += float(reward)
                 done = terminated or truncated
     finally:
         env.close()
-    return total / episodes
+    return returns
 
 
 # The scores the aggregates are over: each one's key in ``AcrossTasks.aggregates`` and its name.

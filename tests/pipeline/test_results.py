@@ -54,6 +54,7 @@ def test_tables_name_disjoint_bins_and_diverged_seeds(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     out = done.stdout
     assert "2.0% of the paper's 1,000,000; commit 0123456" in out
+    assert "References: uniform random actions -2" in out and "zero actions -1" in out
     assert "| EDE-TD3 | 0–3 |" in out and "| TD3 | 0–3 |" in out
     # The same start, then EDE-TD3 ahead by up to 125 with noise of 5: apart at the end only.
     above = out.split("EDE-TD3 above TD3 at ")[1].split("; below at ")
@@ -233,7 +234,7 @@ def bad_input_cases() -> dict[str, tuple]:
         "thresholds": (source({"commit": "0123456", "thresholds": "150"}),
                        "source.json: 'thresholds' is '150'; expected a list of returns"),
         "embedding": (embedding, "embedding: expected pretrain's metrics"),
-        "unknown task": (unknown_task, "HalfCheetah-v99: cannot be made to measure a random policy's return"),
+        "unknown task": (unknown_task, "HalfCheetah-v99: cannot be made to measure its reference returns"),
         "misplaced": (misplaced, "its runs are of ede/ReacherTurn-v0; keep them in ReacherTurn-v0/"),
     }
 
