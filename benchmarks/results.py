@@ -36,7 +36,8 @@ experiment still running) waits, named, rather than cutting every task's seeds t
 ``--ablations`` holds the fidelity ablations' runs the same way, one folder per variant
 (``<variant>/<task>/<algorithm>/seed<N>/``, ``source.json`` per task, and where kept the variant's
 embedding metrics in ``<task>/embedding/``): each is printed against the default's runs of the
-same task, algorithm and seeds in ``--runs``, with the bins where their intervals are disjoint.
+same task, algorithm and seeds in ``--runs``, with the bins where their intervals are disjoint; a
+variant run with both algorithms is drawn as a family is, to ``<figures>/ablation-<variant>.png``.
 
 The confidence, the bootstrap's resamples and its seed are the report's (``report`` in
 ``params.yaml``), and every statistic's bootstrap (an interval, a band of the figure) starts afresh
@@ -348,12 +349,13 @@ def read_ablations(ablations: Path, runs: Path) -> list[tuple[str, TaskRuns, Tas
     return found
 
 
-def ablation_sections(variant: str, ours: TaskRuns, theirs: TaskRuns, bins: int, params) -> str:
+def ablation_sections(variant: str, ours: TaskRuns, theirs: TaskRuns, bins: int,
+                      params) -> tuple[str, dict[str, tuple]]:
     """Per algorithm, the default and the variant: final return, area and steps to each of the
     variant's thresholds with bootstrap intervals, and the bins where their intervals are
-    disjoint."""
+    disjoint. And the variant's band per algorithm, for its figure."""
     width = ours.budget / bins
-    sections = []
+    sections, variant_bands = [], {}
     for algo, runs in ours.curves.items():
         def column(kept: TaskRuns) -> str:  # TD3 runs use no embedding
             figures = kept.embedding if algo == "ede-td3" else None
@@ -370,7 +372,8 @@ def ablation_sections(variant: str, ours: TaskRuns, theirs: TaskRuns, bins: int,
                  *disjoint_bins(arms, bands, (variant, "default"), width, params.report.confidence,
                                 (variant, "the default"))]
         sections.append("\n".join(lines).rstrip("\n") + "\n")
-    return "\n".join(sections)
+        variant_bands[algo] = bands[variant]
+    return "\n".join(sections), variant_bands
 
 
 def references(tasks: list[str], params) -> dict[str, tuple[float, float, float]]:
@@ -443,8 +446,22 @@ def main() -> None:
             if title == "every task" or len(curves_of) == 1:
                 aggregates.figure.savefig(args.figures / "performance-profile.png", dpi=120)
             plt.close(aggregates.figure)
+    drawn: dict[str, list[tuple[TaskRuns, dict[str, tuple]]]] = {}
     for variant, ours, theirs in ablations:
-        print(ablation_sections(variant, ours, theirs, args.bins, params))
+        text, variant_bands = ablation_sections(variant, ours, theirs, args.bins, params)
+        print(text)
+        if set(ours.curves) == set(ALGO_STYLE):  # both algorithms: drawn as a family is
+            drawn.setdefault(variant, []).append((ours, variant_bands))
+    for variant, kept in drawn.items():
+        figure = learning_curve_figure(
+            variant, [k.task for k, _ in kept],
+            {(k.task, a): c for k, _ in kept for a, c in k.curves.items()}, report.confidence,
+            report.bootstrap_samples, None, {k.task: k.budget / args.bins for k, _ in kept},
+            {(k.task, a): band for k, bands in kept for a, band in bands.items()},
+            title=f"the {variant} variant (a fidelity ablation)")
+        figure.savefig(args.figures / f"ablation-{variant}.png", dpi=120)
+        plt.close(figure)
+        print(f"Figure: {args.figures / f'ablation-{variant}.png'}\n")
 
 
 if __name__ == "__main__":

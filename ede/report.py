@@ -265,13 +265,15 @@ def learning_curve_figure(
     rng: np.random.Generator | None,
     bin_steps: float | Mapping[str, float] | None = None,
     bands: Mapping[tuple[str, str], tuple] | None = None,
+    title: str | None = None,
 ) -> Figure:
     """One panel per task of a family: each algorithm's mean return with its bootstrap band.
 
     With ``bin_steps`` the curves are binned as the paper's figures (:func:`curve_band`); a
     mapping gives each task its own width, named in its panel's title. ``bands`` gives each
     (task, algorithm)'s band as :func:`curve_band` returned it, drawn as it is (so a figure shows
-    the intervals its tables were read from); the others are computed with ``rng``.
+    the intervals its tables were read from); the others are computed with ``rng``. ``title``
+    replaces "<family> family" atop the figure.
     """
     figure, axes = plt.subplots(1, len(tasks), figsize=(_panels_width(len(tasks)), 3.4),
                                 squeeze=False)
@@ -300,7 +302,7 @@ def learning_curve_figure(
     axes[0][0].set_ylabel("evaluation return")
     binned = ("evaluations averaged per bin, " if per_task else
               f"evaluations averaged per {bin_steps:,} steps, " if bin_steps else "")
-    figure.suptitle(f"{family} family\n{binned}mean over seeds, "
+    figure.suptitle(f"{title or f'{family} family'}\n{binned}mean over seeds, "
                     f"{100 * confidence:.0f}% bootstrap band", fontsize=10)
     figure.tight_layout()
     return figure

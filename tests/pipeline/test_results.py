@@ -170,8 +170,13 @@ def test_an_ablation_is_set_against_the_defaults_runs_of_the_same_seeds(tmp_path
     embedding = ablations / "fast" / "ReacherTurn-v0" / "embedding"
     embedding.mkdir()
     (embedding / "encoder_metrics.json").write_text(json.dumps({"prediction_ratio": 0.7021, "kl": 7.94}))
+    for algo in ("td3", "ede-td3"):  # a variant of both algorithms, drawn as a family is
+        write_run(ablations / "both", algo, 0, -200 + 20 * x)
+    (ablations / "both" / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0"}))
 
     done = results(runs, tmp_path / "figures")
+    assert (tmp_path / "figures" / "ablation-both.png").stat().st_size > 10_000
+    assert not (tmp_path / "figures" / "ablation-fast.png").exists()  # EDE-TD3 alone: no figure
     assert done.returncode == 0, done.stderr
     section = done.stdout.split("### fast: ede/ReacherTurn-v0, EDE-TD3\n")[1]
     assert "20,000 steps a run, seeds 0, 1 of each; the variant's command `experiment.py --variant fast:x=1`" in section
