@@ -6,7 +6,8 @@
 ``--runs`` holds one folder per finished run, ``<task>/<algorithm>/seed<N>/`` with its
 ``eval.csv``, ``run.json`` and ``metrics.json`` (as ``ede-pipeline train`` writes them), and per
 task a ``source.json`` naming the commit and command that made its runs and, optionally, the
-returns whose first crossing to report (``"thresholds": [500, 1000]``). The tasks are those of the
+returns whose first crossing to report (``"thresholds": [500, 1000]``) and the seeds its command
+runs (``"seeds": [0, 1, 2, 3]``). The tasks are those of the
 committed ``params.yaml``'s families, then every other task with a folder there, each its own
 family named after it (as ``benchmarks/experiment.py`` runs a task ``params.yaml`` does not
 train on; never one of ``params.yaml``'s families, whose name it then takes whole). For each
@@ -30,8 +31,10 @@ and, per family, over the paper's tasks (where they span two families and there 
 them) and over every task with runs of both algorithms, the report's aggregates across tasks (rliable: the probability that
 EDE-TD3 beats TD3 and each one's interquartile mean of normalised scores, over final returns and
 areas, with stratified bootstrap intervals), drawing the performance profile of all of them to
-``<figures>/performance-profile.png``. A task with fewer runs of an algorithm than the others (an
-experiment still running) waits, named, rather than cutting every task's seeds to its count.
+``<figures>/performance-profile.png``. A task with a seed of its ``source.json`` not yet
+finished by an algorithm (an experiment still running) waits, named, rather than cutting every
+task's seeds to its count; tasks run with more seeds than others (ReacherVertical's 8) give the
+aggregates each task's lowest seeds, as many as the fewest, and the rest are named.
 
 ``--ablations`` holds the fidelity ablations' runs the same way, one folder per variant
 (``<variant>/<task>/<algorithm>/seed<N>/``, ``source.json`` per task, and where kept the variant's
@@ -96,7 +99,7 @@ class TaskRuns:
     folder: Path
     curves: dict[str, list[Curve]]  # per algorithm, by seed
     budget: int  # the steps every run of the folder ran
-    made: dict  # source.json: "commit", "command", "thresholds"
+    made: dict  # source.json: "commit", "command", "thresholds", "seeds"
     embedding: str | None  # the held-out figures of the embedding EDE-TD3 used, where kept
 
 
@@ -142,6 +145,10 @@ def read_source(folder: Path) -> dict:
             isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t)
             for t in thresholds):
         raise Refused(f"{path}: 'thresholds' is {thresholds!r}; expected a list of returns")
+    seeds = made.get("seeds", [])
+    if not isinstance(seeds, list) or not all(
+            isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds):
+        raise Refused(f"{path}: 'seeds' is {seeds!r}; expected a list of seeds (whole numbers >= 0)")
     return made
 
 
@@ -292,16 +299,19 @@ def task_section(found: TaskRuns, family: str, source: str, paper_budget: int | 
     return "\n".join(lines) + "\n", {a: bands[ALGO_STYLE[a][0]] for a in found.curves}
 
 
-def complete_tasks(curves: dict[tuple[str, str], list[Curve]], both: set[str]) -> tuple[list[str], str]:
-    """The tasks with as many runs of each algorithm as the most any task has — so no task's
-    seeds are cut to fit one still running — and a line naming those that wait."""
+def complete_tasks(curves: dict[tuple[str, str], list[Curve]], both: set[str],
+                   planned: dict[str, list[int]]) -> tuple[list[str], str]:
+    """The tasks whose runs are all finished — of each algorithm, every seed its ``source.json``
+    plans (``"seeds"``; where it names none, the runs there are all there are) — and a line
+    naming those that wait, so that no task's seeds are cut to fit one still running."""
     tasks = list(dict.fromkeys(t for t, _ in curves if t in both))
-    counts = {t: min(len(curves[(t, a)]) for a in ALGO_STYLE) for t in tasks}
-    most = max(counts.values(), default=0)
-    waiting = [f"{t} ({counts[t]} of {most})" for t in tasks if counts[t] < most]
-    note = (f"\nNot yet in these aggregates, with fewer runs of an algorithm than the others: "
-            f"{', '.join(waiting)}.\n") if waiting else ""
-    return [t for t in tasks if counts[t] == most], note
+    finished = {t: min(len({c.seed for c in curves[(t, a)]} & set(planned.get(t, ())))
+                       for a in ALGO_STYLE) for t in tasks}
+    waiting = [t for t in tasks if finished[t] < len(planned.get(t, ()))]
+    named = ", ".join(f"{t} ({finished[t]} of its {len(planned[t])} seeds)" for t in waiting)
+    note = (f"\nNot yet in these aggregates, with runs of an algorithm still to finish: "
+            f"{named}.\n") if waiting else ""
+    return [t for t in tasks if t not in waiting], note
 
 
 def across_section(title: str, found: AcrossTasks, params) -> str:
@@ -415,6 +425,7 @@ def main() -> None:
             if all((task, a) in curves for a in ALGO_STYLE)}
     refs = references([f.task for found in families.values() for f in found], params)
     lows = {task: refs[task][0] for task in both}
+    planned = {f.task: f.made.get("seeds", []) for found in families.values() for f in found}
     # Every input is read and checked: from here on, print and draw.
     for family, found in families.items():
         source = params.families[family].source if family in params.families else found[0].task
@@ -438,7 +449,7 @@ def main() -> None:
     if len(curves_of) > len(paper) > 1:  # and the tasks beyond, in "every task"
         sets.append(("the paper's tasks", {k: c for f in paper for k, c in curves_of[f].items()}))
     for title, curves in sets + [("every task", everything)] * (len(curves_of) > 1):
-        tasks, waiting = complete_tasks(curves, both)
+        tasks, waiting = complete_tasks(curves, both, planned)
         aggregates = across_tasks_section(curves, {t: lows[t] for t in tasks}, report.confidence,
                                           report.bootstrap_samples, report.seed)
         if aggregates is not None:

@@ -46,9 +46,10 @@ def test_tables_name_disjoint_bins_and_diverged_seeds(tmp_path: Path) -> None:
         td3 = np.where(x < 0.5, -200 + 100 * x, -150 - 100 * (x - 0.5))  # falls after half
         write_run(runs, "td3", seed, td3 + noise[1])
     (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
-    for algo in ("td3", "ede-td3"):  # a task still running: one seed of each so far
+    for algo in ("td3", "ede-td3"):  # a task still running: one seed of each of its 4 so far
         write_run(runs, algo, 0, np.linspace(-200, -100, 41), task="ede/ReacherPush-v0")
-    (runs / "ReacherPush-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
+    made = {"commit": "0123456789ab", "seeds": [0, 1, 2, 3]}
+    (runs / "ReacherPush-v0" / "source.json").write_text(json.dumps(made))
 
     done = results(runs, tmp_path / "figures")
     assert done.returncode == 0, done.stderr
@@ -68,8 +69,8 @@ def test_tables_name_disjoint_bins_and_diverged_seeds(tmp_path: Path) -> None:
     # above every TD3 seed, so P is 1 at both ends.
     across = out.split("### Across tasks: the reacher family")[1]
     assert "1 task (ede/ReacherTurn-v0); per task 4 of EDE-TD3 and 4 of TD3" in across
-    assert "Not yet in these aggregates, with fewer runs of an algorithm than the others: " \
-        "ede/ReacherPush-v0 (1 of 4)." in across
+    assert "Not yet in these aggregates, with runs of an algorithm still to finish: " \
+        "ede/ReacherPush-v0 (1 of its 4 seeds)." in across
     final = across.split("| final return | ")[1].split(" |")
     assert final[0] == "1 [1, 1]" and float(final[1].split()[0]) > float(final[2].split()[0])
     assert (tmp_path / "figures" / "performance-profile.png").stat().st_size > 10_000
@@ -124,6 +125,27 @@ def test_a_tasks_numbers_do_not_depend_on_the_other_tasks_present(tmp_path: Path
         return ["|".join(line.split("|")[:5]) for line in section.splitlines()]
 
     assert first_columns(with_threshold) == first_columns(task_table(alone.stdout, "ede/ReacherTurn-v0"))
+
+
+def test_a_task_run_with_more_seeds_joins_the_aggregates_with_as_many_as_the_others(
+        tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    # Both finished; each ends above its random policy's return (-93 and -210).
+    for task, seeds, start in (("ede/ReacherVertical-v0", 8, -60), (TASK, 4, -200)):
+        for seed in range(seeds):
+            write_run(runs, "td3", seed, np.linspace(start, start / 2 - seed, 21), task=task)
+            write_run(runs, "ede-td3", seed, np.linspace(start, start / 4 - seed, 21), task=task)
+        made = {"commit": "0123456789ab", "seeds": list(range(seeds))}
+        (runs / task.split("/")[-1] / "source.json").write_text(json.dumps(made))
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 0, done.stderr
+    across = done.stdout.split("### Across tasks: the reacher family")[1]
+    assert "2 tasks (ede/ReacherVertical-v0, ede/ReacherTurn-v0); per task 4 of EDE-TD3 and 4 " \
+        "of TD3" in across
+    assert "Left out: ede/ReacherVertical-v0 EDE-TD3 seeds 4, 5, 6, 7; ede/ReacherVertical-v0 " \
+        "TD3 seeds 4, 5, 6, 7." in across
+    assert "Not yet in these aggregates" not in across
+    assert "| final return | 1 [1, 1] |" in across  # every EDE-TD3 run ends above every TD3 run
 
 
 def test_a_task_beyond_the_paper_is_its_own_family_with_its_thresholds(tmp_path: Path) -> None:
@@ -238,6 +260,8 @@ def bad_input_cases() -> dict[str, tuple]:
         "no commit": (source({"command": "experiment.py"}), "source.json: expected JSON naming the 'commit'"),
         "thresholds": (source({"commit": "0123456", "thresholds": "150"}),
                        "source.json: 'thresholds' is '150'; expected a list of returns"),
+        "seeds": (source({"commit": "0123456", "seeds": [0, -1]}),
+                  "source.json: 'seeds' is [0, -1]; expected a list of seeds (whole numbers >= 0)"),
         "embedding": (embedding, "embedding: expected pretrain's metrics"),
         "unknown task": (unknown_task, "HalfCheetah-v99: cannot be made to measure its reference returns"),
         "misplaced": (misplaced, "its runs are of ede/ReacherTurn-v0; keep them in ReacherTurn-v0/"),
