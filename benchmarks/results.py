@@ -24,6 +24,8 @@ report draws them) and prints, per task, in Markdown:
   bootstrap intervals over seeds;
 - the bins where the two algorithms' intervals are disjoint, and which lies above (with two
   seeds or more of each);
+- rliable's probability that an EDE-TD3 run beats a TD3 run there, over all the task's seeds,
+  on the final return and on the area;
 - per seed, whether it diverged (:func:`ede.stats.divergence`: its last quarter of bins all below
   its best earlier bin by more than half of what it had gained by then);
 
@@ -73,6 +75,7 @@ from ede.report import (
     RunRejected,
     across_tasks_section,
     curve_band,
+    improvement_on_task,
     learning_curve_figure,
     random_policy_return,
     read_run,
@@ -289,6 +292,12 @@ def task_section(found: TaskRuns, family: str, source: str, paper_budget: int | 
              "", *table, ""]
     if len(arms) == 2:
         lines += disjoint_bins(arms, bands, ("EDE-TD3", "TD3"), width, params.report.confidence)
+        report = params.report
+        improvement = improvement_on_task(found.curves["ede-td3"], found.curves["td3"],
+                                          report.confidence, report.bootstrap_samples, report.seed)
+        lines += ["P(EDE-TD3 > TD3) over this task's seeds (rliable, as the aggregates across tasks): "
+                  + " and ".join(f"{improvement[s]} on the {label}" for s, label in SCORES.items())
+                  + ".", ""]
     lines += ["| algorithm | seed | first bin | best bin before the last quarter | last quarter "
               "| diverged |", "|---|---|---|---|---|---|"]
     for algo, runs in found.curves.items():

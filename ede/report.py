@@ -43,6 +43,7 @@ __all__ = [
     "ALGO_STYLE",
     "AcrossTasks",
     "SCORES",
+    "SCORE_OF",
     "Curve",
     "across_tasks_section",
     "TaskRow",
@@ -50,6 +51,7 @@ __all__ = [
     "diagnostics_figure",
     "effect_space",
     "exploration",
+    "improvement_on_task",
     "learning_curve_figure",
     "random_policy_return",
     "zero_action_return",
@@ -502,8 +504,26 @@ def _episode_returns(task: str, episodes: int, seed: int,
     return returns
 
 
-# The scores the aggregates are over: each one's key in ``AcrossTasks.aggregates`` and its name.
+# The scores the aggregates are over: each one's key in ``AcrossTasks.aggregates`` and its name,
+# and how each is read off a run's curve.
 SCORES = {"final_return": "final return", "auc": "area under the curve"}
+SCORE_OF: dict[str, Callable[[Curve], float]] = {
+    "final_return": lambda c: float(c.returns[-1]),
+    "auc": lambda c: area_under_curve(c.steps, c.returns),
+}
+
+
+def improvement_on_task(ours: list[Curve], theirs: list[Curve], confidence: float, samples: int,
+                        seed: int) -> dict[str, Interval]:
+    """rliable's probability that a run of ``ours`` beats a run of ``theirs`` on one task, per
+    score (``SCORES``), with its bootstrap interval over all the task's runs of each (the two may
+    have different numbers): the aggregates' evidence, for a task alone."""
+    def column(curves: list[Curve], score: Callable[[Curve], float]) -> np.ndarray:  # (runs, 1)
+        return np.array([[score(c)] for c in curves])
+
+    return {name: across_tasks(column(ours, score), column(theirs, score), confidence, samples,
+                               seed)["probability_of_improvement"]
+            for name, score in SCORE_OF.items()}
 
 
 @dataclass
@@ -566,11 +586,9 @@ def across_tasks_section(curves: dict[tuple[str, str], list[Curve]], lows: dict[
     def table(algo: str, score: Callable[[Curve], float]) -> np.ndarray:  # (runs, tasks)
         return np.array([[score(c) for c in chosen[(t, algo)]] for t in tasks]).T
 
-    scores = {"final_return": lambda c: float(c.returns[-1]),
-              "auc": lambda c: area_under_curve(c.steps, c.returns)}
     aggregates = {}
     normalised_final = {}
-    for name, score in scores.items():
+    for name, score in SCORE_OF.items():
         ede, td3 = (normalised(table(a, score), low, high) for a in algos)
         aggregates[name] = across_tasks(ede, td3, confidence, samples, seed)
         if name == "final_return":

@@ -90,6 +90,20 @@ def test_unequal_run_counts_of_the_two_algorithms_are_all_used() -> None:
     assert found.aggregates["final_return"]["probability_of_improvement"].mean == 7 / 8
 
 
+def test_the_probability_of_improvement_on_one_task_uses_all_its_runs() -> None:
+    from ede.report import Curve, improvement_on_task
+
+    steps = np.array([0.0, 1000.0])
+    # As above: of the 8 pairs EDE-TD3 wins 7, by its final return and so by its area too.
+    td3 = [Curve(s, steps, np.array([0.0, 2.0 * s])) for s in range(2)]
+    ede = [Curve(s, steps, np.array([0.0, 1.0 + 2 * min(s, 1)])) for s in range(4)]
+    found = improvement_on_task(ede, td3, 0.95, 300, seed=0)
+    assert set(found) == {"final_return", "auc"}
+    assert all(p.mean == 7 / 8 and p.n == 2 for p in found.values())
+    same = improvement_on_task(ede, ede, 0.95, 300, seed=0)["final_return"]
+    assert same.mean == 0.5 and same.low < 0.5 < same.high
+
+
 def test_a_task_no_run_lifted_above_a_random_policy_is_left_out_by_name() -> None:
     from ede.report import Curve, across_tasks_section
 

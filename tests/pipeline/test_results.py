@@ -62,6 +62,8 @@ def test_tables_name_disjoint_bins_and_diverged_seeds(tmp_path: Path) -> None:
     assert above[0].endswith("–20K") and not above[0].startswith("1K")
     assert above[1].startswith("none.")
     assert out.count("| **yes** |") == 4  # every TD3 seed fell by more than half its gain
+    assert "P(EDE-TD3 > TD3) over this task's seeds (rliable, as the aggregates across tasks): " \
+        "1 [1, 1] on the final return" in task_table(out, TASK)
     turn = out.split("### ede/ReacherPush-v0")[0]
     assert "| EDE-TD3 | 0 | " in turn and turn.count("| no |") == 4
     assert (tmp_path / "figures" / "reacher.png").stat().st_size > 10_000
