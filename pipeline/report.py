@@ -18,6 +18,7 @@ from typing import Any
 
 import click
 import numpy as np
+import matplotlib.pyplot as plt
 import torch
 from matplotlib.figure import Figure
 
@@ -60,8 +61,10 @@ code { font-size: 0.85em; }
 
 
 def _png(figure: Figure) -> bytes:
+    """The figure's PNG; the figure is closed, so that a report of many families holds none."""
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png", dpi=110)
+    plt.close(figure)
     return buffer.getvalue()
 
 

@@ -9,6 +9,7 @@ import shutil
 import subprocess
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 import torch
@@ -181,6 +182,7 @@ def test_the_inputs_are_the_command_lines_and_the_figures_families_the_params(
     _, page = report(project, "--runs", "elsewhere/runs", "--families", "elsewhere/families")
     assert "pointmass rollouts" in page and "point encoder weights" in page
     assert "<code>elsewhere/runs/ede/Pusher-v0/td3/seed0</code>" in page  # missing, by its path
+    assert not plt.get_fignums()  # every figure closed once drawn: two reports hold none
     metrics = json.loads((project / "data/report-metrics.json").read_text())
     assert metrics["ede/ReacherVertical-v0"]["td3"]["seeds"] == 1
 
