@@ -246,3 +246,29 @@ def test_a_run_that_diverges_fails_in_one_line_without_metrics(in_workdir: Path,
     assert lines[0].endswith(f"its last checkpoint, {out / 'checkpoint'}, is at step 400")
     assert "Traceback" not in result.output
     assert not (out / "metrics.json").exists()
+
+
+def test_through_embedding_rebuilds_the_final_actor_and_runs_it_through_the_embedding(
+        in_workdir: Path) -> None:
+    """benchmarks/through_embedding.py: its actor, rebuilt from policy/, replays the run's own
+    last evaluation; through the point embedding it still acts; bad --data is one line, exit 2."""
+    from tests.support import REPO
+
+    if not (in_workdir / "data/runs/ede/Point-v0/td3/seed0/metrics.json").exists():
+        assert run("train", "--task", "ede/Point-v0", "--algo", "td3", "--seed", "0").exit_code == 0
+    script = [sys.executable, str(REPO / "benchmarks/through_embedding.py"), "--task", "ede/Point-v0",
+              "--family", "point", "--episodes", "5"]
+    done = subprocess.run([*script, "--data", "data"], capture_output=True, text=True, check=False)
+    assert done.returncode == 0, done.stderr
+    line = done.stdout.splitlines()[-1]
+    as_is, last, through = (float(line.split(word)[1].split()[0].rstrip(";,")) for word in
+                            ("as is", "last evaluation", "through the embedding"))
+    # Training evaluates the stacked actor, the script a plain nn.Sequential: other kernels, the
+    # same weights; on a point mass over 100 steps their returns agree far inside 0.01.
+    assert abs(as_is - last) < 0.01, line
+    assert np.isfinite(through) and "of its codes clipped to the box" in line
+    missing = subprocess.run([*script, "--data", "nowhere"], capture_output=True, text=True,
+                             check=False)
+    assert missing.returncode == 2 and missing.stderr.count("\n") == 1, missing.stderr
+    assert "nowhere: expected families/point/embedding/" in missing.stderr
+    assert "Traceback" not in missing.stderr
