@@ -30,6 +30,7 @@ import json
 import sys
 from pathlib import Path
 
+import gymnasium
 import numpy as np
 import torch
 from safetensors.torch import load_file
@@ -57,11 +58,10 @@ def load_actor(policy: Path, obs_size: int):
     return mu
 
 
-def episode(task: str, mu, seed: int,
+def episode(env: gymnasium.Env, mu, seed: int,
             embedding: ActionEmbedding | None) -> tuple[float, np.ndarray, list[bool]]:
     """One episode's return and executed actions, and per window whether its code lay outside
     the box EDE-TD3 acts in (clipped); through ``embedding`` when one is given."""
-    env = make(task)
     sim = env.unwrapped
     obs, _ = env.reset(seed=seed)
     total, executed, clipped, done = 0.0, [], [], False
@@ -122,7 +122,7 @@ def main() -> None:
         starts = [EVAL_SEED_OFFSET * (seed + 1) + e for e in range(args.episodes)]
         line = []
         for through in (None, embedding):
-            done = [episode(args.task, mu, s, through) for s in starts]
+            done = [episode(env, mu, s, through) for s in starts]
             acts = np.concatenate([a for _, a, _ in done])
             line.append(f"{np.mean([r for r, _, _ in done]):9.1f} ({at_bound(acts, low, high):.0%} at a bound)")
         clipped = np.mean([c for _, _, cs in done for c in cs])

@@ -17,8 +17,8 @@ from pathlib import Path
 from typing import Any
 
 import click
-import numpy as np
 import matplotlib.pyplot as plt
+import numpy as np
 import torch
 from matplotlib.figure import Figure
 
