@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 import itertools
 import json
+import re
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -36,14 +37,42 @@ __all__ = [
     "Params",
     "ReportConfig",
     "RunsConfig",
+    "SEED_MAX",
+    "SEED_RANGE",
     "TD3Config",
+    "is_seed",
     "load_params",
+    "validate_params",
 ]
 
 ALGOS = ("td3", "ede-td3")
 
 PositiveInt = Annotated[int, Field(gt=0)]
-Seed = Annotated[int, Field(ge=0, description="seed of every random number generator of a stage")]
+
+SEED_MAX = 2**32 - 1
+"""The largest seed. NumPy's global generator, which the report seeds for rliable's bootstrap,
+takes 32 bits; every other consumer takes more, with room for what is added to a seed: torch's
+generators (64 bits) get ``seed + 1``, the environments' resets (any size) ``seed + i`` for
+sub-environment ``i`` and ``1_000_003 × (seed + 1) + e`` for evaluation episode ``e``, and
+``SeedSequence`` any size."""
+SEED_RANGE = f"from 0 to {SEED_MAX}"
+
+
+def is_seed(value: int) -> bool:
+    """Whether every consumer of a seed accepts ``value`` (:data:`SEED_MAX`)."""
+    return 0 <= value <= SEED_MAX
+
+
+def _seed(value: int) -> int:
+    if not is_seed(value):
+        raise ValueError(f"expected a seed {SEED_RANGE} (2**32 - 1)")
+    return value
+
+
+Seed = Annotated[
+    int, AfterValidator(_seed),
+    Field(description="seed of every random number generator of a stage"),
+]
 
 
 def _registered(task: str) -> str:
@@ -83,7 +112,9 @@ HiddenSizes = Annotated[
 
 class _Section(BaseModel):
     # Infinities and NaN are not numbers a parameter can mean (and not valid JSON in run.json).
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    # Strict: a value is what it says — true is no 1, "1" no number, 1 no string (an int is a
+    # float, as YAML writes 1 for 1.0).
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
 
 
 class FamilyConfig(_Section):
@@ -320,9 +351,10 @@ class ReportConfig(_Section):
 class Params(_Section):
     """The whole of ``params.yaml``.
 
-    Beyond each key's own constraint, keys must agree: tasks sit in their families, and the
-    numbers leave every stage something to do (a run reaches its first update and more than its
-    first and last evaluation; the rollouts fill a batch of windows).
+    Beyond each key's own constraint, keys must agree: tasks sit in their families, each once, and
+    the numbers leave every stage something to do (a run reaches its first update and more than its
+    first and last evaluation; the rollouts fill a batch of windows) and fit the families'
+    episodes (each sub-environment's share of the rollouts holds one).
     """
 
     families: dict[str, FamilyConfig] = Field(min_length=1)
@@ -342,7 +374,7 @@ class Params(_Section):
         return self
 
     def _placement_problems(self) -> list[str]:
-        """Tasks in their families, the report's families among ``families``."""
+        """Tasks in their families, each once; the report's families among ``families``."""
         problems = []
         for task, family in self.runs.tasks.items():
             if family not in self.families:
@@ -359,6 +391,12 @@ class Params(_Section):
             if family is not None and family not in self.families:
                 problems.append(f"report.{key}: got {family!r}; expected a family of `families` "
                                 f"({', '.join(self.families)}) or null")
+        for name, family in self.families.items():
+            repeated = [task for task in family.targets if family.tasks.count(task) > 1]
+            if repeated:
+                problems.append(f"families.{name}.targets: {', '.join(dict.fromkeys(repeated))} "
+                                "given twice in the family (its source counts); expected each "
+                                "task once")
         for a, b in itertools.combinations(self.families, 2):
             shared = set(self.families[a].tasks) & set(self.families[b].tasks)
             if shared:
@@ -382,17 +420,50 @@ class Params(_Section):
                                     "and so one embedding)")
         return problems
 
+    def _episode_problems(self) -> list[str]:
+        """Rollouts hold a window of k actions, and are whole episodes, one per sub-environment
+        at least.
+
+        ``collect`` splits ``collect.steps`` among its sub-environments, and each records whole
+        episodes until it has its share: at least one episode, whatever its share. So each share
+        must hold an episode of the longest source (its time limit), or the store holds far more
+        steps than asked for (2,000 sub-environments of 2,000 steps: 200,000). A source without a
+        time limit bounds nothing; each sub-environment still needs a step.
+        """
+        collect, k = self.collect, self.embedding.k
+        envs = collect.num_envs or 1  # null: one per core, which only the stage knows
+        lengths = {name: length for name, family in self.families.items()
+                   if (length := _episode_length(family.source)) is not None}
+        problems = []
+        if collect.steps < k:
+            problems.append(f"collect.steps: got {collect.steps}; expected at least embedding.k "
+                            f"({k}): no window of k actions fits in the rollouts")
+        if not lengths:
+            if envs > collect.steps:
+                problems.append(f"collect.num_envs: got {envs}; expected at most collect.steps "
+                                f"({collect.steps}): each sub-environment records an equal share "
+                                "of the steps, so some would record none")
+            return problems
+        longest = max(lengths, key=lengths.__getitem__)
+        length = lengths[longest]
+        episode = (f"{length}, the episode length of {self.families[longest].source} "
+                   f"(families.{longest}.source)")
+        recorded = f"record about {envs * length} steps, not {collect.steps}"
+        if collect.steps < length:
+            problems.append(f"collect.steps: got {collect.steps}; expected at least {episode}: "
+                            "collect records whole episodes, at least one per sub-environment, "
+                            f"so it would {recorded}")
+        elif envs * length > collect.steps:
+            problems.append(f"collect.num_envs: got {envs}; expected at most "
+                            f"{collect.steps // length} = collect.steps {collect.steps} // "
+                            f"{episode}: each sub-environment records whole episodes, at least "
+                            f"one, so {envs} of them would {recorded}")
+        return problems
+
     def _scale_problems(self) -> list[str]:
         """Numbers valid one by one that together leave a stage nothing to do."""
         collect, embedding, td3 = self.collect, self.embedding, self.td3
-        problems = []
-        if collect.num_envs is not None and collect.num_envs > collect.steps:
-            problems.append(f"collect.num_envs: got {collect.num_envs}; expected at most "
-                            f"collect.steps ({collect.steps}): each sub-environment records an "
-                            "equal share of the steps, so some would record none")
-        if collect.steps < embedding.k:
-            problems.append(f"collect.steps: got {collect.steps}; expected at least embedding.k "
-                            f"({embedding.k}): no window of k actions fits in the rollouts")
+        problems = self._episode_problems()
         # A loose bound: rollouts end in whole episodes and windows must stay inside one.
         windows = collect.steps * (1 - embedding.holdout)
         bound = f"collect.steps {collect.steps} × (1 - embedding.holdout {embedding.holdout})"
@@ -427,6 +498,14 @@ class Params(_Section):
                                 f"td3.eval_every ({td3.eval_every}): the run would have only "
                                 "its initial and final evaluations")
         return problems
+
+
+@functools.cache
+def _episode_length(task: str) -> int | None:
+    """The most steps an episode of a registered ``task`` lasts (its time limit), if it has one."""
+    import gymnasium
+
+    return gymnasium.spec(task).max_episode_steps
 
 
 @functools.cache
@@ -475,6 +554,16 @@ class _UniqueKeyLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
+# Floats of YAML 1.2 that PyYAML (YAML 1.1) reads as strings: an exponent after no dot, or without
+# a sign (1e-4, 1.0e4). DVC writes YAML 1.2: `dvc exp run -S embedding.beta=0.00001` leaves
+# `beta: 1e-05` in params.yaml.
+_UniqueKeyLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+.0123456789"),
+)
+
+
 def read_yaml(path: Path) -> Any:
     """A YAML file's content, each key of a mapping given once.
 
@@ -502,7 +591,15 @@ def load_params(path: str | Path) -> Params:
         ParamsError: naming each bad key, its value and what is expected.
     """
     path = Path(path)
-    raw = read_yaml(path)
+    return validate_params(read_yaml(path), path)
+
+
+def validate_params(raw: Any, path: Path) -> Params:
+    """Validate a params file's content, as plain data (``set-params`` merges overrides into it).
+
+    Raises:
+        ParamsError: naming ``path``, and each bad key, its value and what is expected.
+    """
     if not isinstance(raw, dict):
         raise ParamsError(path, [f"expected a mapping of sections, found {type(raw).__name__}"])
     try:
@@ -521,6 +618,10 @@ def _describe(error: Any) -> str:
         return f"{where}: missing; this key is required"
     if error["type"] == "value_error" and isinstance(error.get("input"), dict):
         return message  # cross-key checks name their own keys, one line per problem
+    if error["type"] in _EXPECTED:  # a value of another type: say which, in YAML's words
+        value = error.get("input")
+        kind = "" if value is None else f", {_KINDS.get(type(value), 'a ' + type(value).__name__)}"
+        return f"{where}: got {_short(value)}{kind}; expected {_EXPECTED[error['type']]}"
     if message.startswith("Input should be "):
         message = "expected " + message.removeprefix("Input should be ")
     elif message.startswith("a registered"):
@@ -528,8 +629,16 @@ def _describe(error: Any) -> str:
     return f"{where}: got {_short(error.get('input'))}; {message}"
 
 
+# A YAML value's type, and what each of pydantic's errors for a value of another type expects.
+_KINDS = {bool: "a boolean", int: "an integer", float: "a number", str: "a string",
+          list: "a list", dict: "a mapping"}
+_EXPECTED = {"bool_type": "true or false", "int_type": "an integer", "float_type": "a number",
+             "string_type": "a string", "list_type": "a list", "dict_type": "a mapping",
+             "model_type": "a mapping"}
+
+
 def _short(value: Any) -> str:
-    text = repr(value)
+    text = json.dumps(value) if value is None or isinstance(value, bool) else repr(value)
     return text if len(text) <= 60 else text[:57] + "..."
 
 

@@ -10,7 +10,7 @@ import click
 import torch
 
 from ede.artifacts import ArtifactError, load_action_embedding, params_mismatches
-from ede.config import ALGOS, Params
+from ede.config import ALGOS, SEED_RANGE, Params, is_seed
 from ede.nets import pick_device
 from ede.training import CheckpointError, CheckpointWriteError, Diverged, RunSpec, train_group
 from ede_pipeline import layout
@@ -113,8 +113,8 @@ def parse_seeds(text: str) -> list[int]:
             seeds = [int(part) for part in text.split(",")]
     except ValueError:
         raise BadInput(f"--seed {text!r}: expected a seed, a list (0,1,2) or a range (0-3)") from None
-    if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
-        raise BadInput(f"--seed {text}: expected distinct seeds >= 0")
+    if not seeds or not all(map(is_seed, seeds)) or len(set(seeds)) != len(seeds):
+        raise BadInput(f"--seed {text}: expected distinct seeds {SEED_RANGE}")
     return seeds
 
 

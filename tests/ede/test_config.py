@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 
+from ede import config
 from ede.config import Params, ParamsError, load_params, read_yaml
 from tests.support import REPO
 
@@ -116,10 +117,33 @@ def test_defaults_in_the_model_match_the_committed_file() -> None:
         (lambda p: p["decoder"].update(batch_size=90_001),
          "decoder.batch_size: got 90001; expected at most 90000 = collect.steps 100000 × "
          "(1 - embedding.holdout 0.1), the most"),
-        (lambda p: p["collect"].update(steps=3),
-         "collect.steps: got 3; expected at least embedding.k (4): no window of k actions fits"),
+        # Rollouts are whole episodes, at least one per sub-environment (every source: 100 steps).
+        (lambda p: p["collect"].update(steps=2_000, num_envs=2_000),
+         "collect.num_envs: got 2000; expected at most 20 = collect.steps 2000 // 100, the episode "
+         "length of ede/ReacherVertical-v0 (families.reacher.source): each sub-environment records "
+         "whole episodes, at least one, so 2000 of them would record about 200000 steps, not 2000"),
+        (lambda p: p["collect"].update(steps=299, num_envs=3),
+         "collect.num_envs: got 3; expected at most 2 = collect.steps 299 // 100"),
+        (lambda p: p["collect"].update(steps=99),
+         "collect.steps: got 99; expected at least 100, the episode length of "
+         "ede/ReacherVertical-v0 (families.reacher.source): collect records whole episodes, at "
+         "least one per sub-environment, so it would record about 100 steps, not 99"),
         (lambda p: p["collect"].update(steps=4, num_envs=5),
-         "collect.num_envs: got 5; expected at most collect.steps (4)"),
+         "collect.steps: got 4; expected at least 100"),
+        (lambda p: (p["collect"].update(steps=150), p["embedding"].update(k=151)),
+         "collect.steps: got 150; expected at least embedding.k (151): no window of k actions"),
+        # The longest source bounds the sub-environments (Pendulum-v1: 200 steps).
+        (lambda p: (p["families"].update(pendulum={"source": "Pendulum-v1"}),
+                    p["collect"].update(num_envs=501)),
+         "collect.num_envs: got 501; expected at most 500 = collect.steps 100000 // 200, the "
+         "episode length of Pendulum-v1 (families.pendulum.source)"),
+        # Each task of a family once.
+        (lambda p: p["families"]["point"].update(targets=["ede/Point-v0"]),
+         "families.point.targets: ede/Point-v0 given twice in the family (its source counts); "
+         "expected each task once"),
+        (lambda p: p["families"]["reacher"].update(
+            targets=["ede/ReacherTurn-v0", "ede/ReacherPush-v0", "ede/ReacherTurn-v0"]),
+         "families.reacher.targets: ede/ReacherTurn-v0 given twice in the family"),
         (lambda p: p["runs"].update(algos=[]), "runs.algos: got []"),
         (lambda p: p["runs"].update(algos=["td3", "td3"]),
          "runs.algos: ['td3', 'td3'] repeats an algorithm"),
@@ -143,6 +167,35 @@ def test_a_bad_file_names_the_key_and_value(write_params, edit, key: str) -> Non
         load_params(path)
     assert any(key in problem for problem in caught.value.problems), caught.value.problems
     assert all(str(path) in line for line in str(caught.value).splitlines())
+
+
+@pytest.mark.parametrize(
+    "edit",
+    [
+        lambda p: p["collect"].update(steps=2_000, num_envs=20),  # 100 steps each: one episode
+        lambda p: p["collect"].update(steps=299, num_envs=2),
+        lambda p: (p["families"].update(pendulum={"source": "Pendulum-v1"}),
+                   p["collect"].update(num_envs=500)),
+    ],
+)
+def test_numbers_that_just_fit_the_episodes_are_fine(write_params, edit) -> None:
+    load_params(write_params(edit))
+
+
+def test_sources_without_a_time_limit_bound_sub_environments_by_steps(
+    write_params, monkeypatch
+) -> None:
+    """No episode length to hold: a sub-environment needs a step, the rollouts a window."""
+    monkeypatch.setattr(config, "_episode_length", lambda task: None)
+    load_params(write_params(lambda p: p["collect"].update(steps=200, num_envs=200)))
+    with pytest.raises(ParamsError) as caught:
+        load_params(write_params(lambda p: p["collect"].update(steps=3, num_envs=5)))
+    assert caught.value.problems[:2] == [
+        "collect.steps: got 3; expected at least embedding.k (4): no window of k actions fits in "
+        "the rollouts",
+        "collect.num_envs: got 5; expected at most collect.steps (3): each sub-environment "
+        "records an equal share of the steps, so some would record none",
+    ]
 
 
 def test_every_problem_is_reported_not_just_the_first(write_params) -> None:
