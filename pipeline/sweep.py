@@ -19,10 +19,12 @@ repository's lock. A sweep takes that lock once, as ``dvc repro`` does, and insi
    outputs hashed, the outputs committed to DVC's cache and the run cache, its ``dvc.lock`` entry
    written. A following ``dvc repro`` or ``dvc status`` sees it as up to date.
 
-A run that fails (non-zero exit, a killed process or Ray worker) is reported with the path of its
-log and recorded nowhere; the others are recorded all the same, and the sweep exits 1. Its
-checkpoint stays, so the next ``sweep`` (or ``dvc repro``) runs only what is still out of date and
-resumes that run where it stopped.
+A run that fails (non-zero exit, a killed process) is reported with the path of its log and
+recorded nowhere; the others are recorded all the same, and the sweep exits 1. Its checkpoint
+stays, so the next ``sweep`` (or ``dvc repro``) runs only what is still out of date and resumes
+that run where it stopped. On Ray, a run lost with its worker or node is not a failure: Ray
+starts it again (``--retries`` times at most) on the nodes there are, and it resumes from its
+checkpoint within this sweep.
 
 On Ray, every node runs the command in this very checkout, which must be at the same path on every
 node (a shared filesystem); only this process touches DVC. A cluster without a shared filesystem
@@ -48,6 +50,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import click
+from click.core import ParameterSource
 from tqdm import tqdm
 
 from ede.atomic import unwritable
@@ -146,10 +149,15 @@ class Outcome:
     returncode: int | None  # None: no exit status, the executor lost the run (``error`` says why)
     seconds: float
     error: str = ""
+    attempts: int = 1  # the job's starts: more than one after a lost Ray worker or node
 
 
-def run_job(job: Job) -> Outcome:
+def run_job(job: Job, where: str = "") -> Outcome:
     """Run a job's commands one after the other, output to its log; stop at the first failure.
+
+    Each start is an attempt, counted in :func:`attempts_file`: Ray starts a job again when its
+    worker or node is lost. A first attempt starts the log afresh; a later one adds to it, under
+    a line saying which attempt it is and ``where`` it runs.
 
     Module-level and free of DVC so that a Ray worker can import and run it.
     """
@@ -159,11 +167,14 @@ def run_job(job: Job) -> Outcome:
     bin_dir = str(Path(sys.executable).parent)
     env["PATH"] = os.pathsep.join([bin_dir, env.get("PATH", "")])
     env[PROGRESS_ENV] = str(progress_file(job))  # the sweep's overall line reads it
-    progress_file(job).unlink(missing_ok=True)  # an earlier sweep's
+    progress_file(job).unlink(missing_ok=True)  # an earlier sweep's, or the lost attempt's
     log_path = Path(job.log)
     log_path.parent.mkdir(parents=True, exist_ok=True)
+    attempt = _start_attempt(job, where)
     returncode = 0
-    with log_path.open("w") as log:
+    with log_path.open("w" if attempt == 1 else "a") as log:
+        if where or attempt > 1:
+            log.write(f"# attempt {attempt}{f' on {where}' if where else ''}\n")
         for argv in job.argvs:
             log.write(f"$ {' '.join(argv)}\n")
             log.flush()
@@ -172,7 +183,33 @@ def run_job(job: Job) -> Outcome:
             ).returncode
             if returncode != 0:
                 break
-    return Outcome(job.stage, returncode, time.perf_counter() - start)
+    return Outcome(job.stage, returncode, time.perf_counter() - start, attempts=attempt)
+
+
+def attempts_file(job: Job) -> Path:
+    """Where each start of a job adds a line, beside its log.
+
+    Only the job sees that Ray started it again (the task's result says nothing of the lost
+    attempts, and Ray's state API needs its dashboard): a file on the shared filesystem, like the
+    log, is counted by the sweep wherever the attempts ran. The sweep removes an earlier sweep's
+    before it starts the job; the attempts of one job never run at once.
+    """
+    return Path(job.log).with_suffix(".attempts")
+
+
+def _start_attempt(job: Job, where: str) -> int:
+    """Count a start of the job; its number (1 for the first)."""
+    with attempts_file(job).open("a") as file:
+        file.write(f"{where or socket.gethostname()}\n")
+    return attempts(job)
+
+
+def attempts(job: Job) -> int:
+    """How many times the job has started in this sweep (0: not yet)."""
+    try:
+        return len(attempts_file(job).read_text().splitlines())
+    except FileNotFoundError:
+        return 0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -203,44 +240,118 @@ def _finite(param: click.Parameter, value: float) -> float:
 
 
 RAY_CONNECT_TIMEOUT = 10.0  # seconds the sweep waits for a Ray address to answer
+RETRIES = 3  # times Ray starts a run again when its worker or node is lost, unless told
 
 
-def check_ray_address(address: str | None, timeout: float = RAY_CONNECT_TIMEOUT) -> None:
-    """A Ray address the sweep cannot reach is refused at once, before anything runs: Ray itself
-    would retry for minutes, printing warnings. ``auto`` (and no address) are Ray's to resolve.
+def _import_ray() -> Any:
+    """Ray, or one line saying how to install it (with gRPC, which ``ray[default]`` brings and
+    :func:`check_ray_address` asks through)."""
+    try:
+        import grpc  # noqa: F401
+        import ray
+    except ImportError:
+        raise BadInput("--executor ray needs Ray: pip install -e '.[ray]'") from None
+    return ray
+
+
+def check_ray_address(address: str | None, timeout: float = RAY_CONNECT_TIMEOUT,
+                      name: str = "--address") -> None:
+    """A Ray address is refused at once, before anything runs, unless a Ray cluster answers there:
+    Ray itself would retry for minutes, printing warnings, after the upstream stages have run.
+    ``auto`` (and no address) are Ray's to resolve.
+
+    Two questions, within ``timeout`` seconds in all: does anything accept a connection there (if
+    not, the system's reason: refused, unknown host), and does it answer as Ray does — the GCS
+    (``HOST:PORT``, what ``ray start --head`` prints) with its cluster's id, the Ray Client server
+    (``ray://HOST:PORT``) to a ping. An HTTP server, a server that says nothing or one that hangs
+    up is not Ray.
 
     Raises:
-        BadInput: one line naming the address and why, within ``timeout`` seconds.
+        BadInput: one line naming the address (``name``: where it came from) and why.
     """
     if address is None or address in ("auto", "local"):
         return
-    host, colon, port = address.removeprefix("ray://").rpartition(":")
+    target = address.removeprefix("ray://")
+    host, colon, port = target.rpartition(":")
     if not colon or not host or not port.isdigit():
-        raise BadInput(f"--address {address!r}: expected HOST:PORT, ray://HOST:PORT or auto, as "
+        raise BadInput(f"{name} {address!r}: expected HOST:PORT, ray://HOST:PORT or auto, as "
                        "`ray start --head` prints it")
+    deadline = time.monotonic() + timeout
+    if why := _unreachable(host.strip("[]"), int(port), timeout):
+        raise BadInput(f"{name} {address}: no Ray cluster can be reached there ({why}); start "
+                       "one with `ray start --head`, or give the address it prints")
+    left = max(deadline - time.monotonic(), 0.01)
+    if why := _not_ray(target, address.startswith("ray://"), left, timeout):
+        raise BadInput(f"{name} {address}: {why}; give the address `ray start --head` prints "
+                       "(the GCS, HOST:6379 by default, or ray://HOST:10001 for Ray Client)")
+
+
+def _unreachable(host: str, port: int, timeout: float) -> str:
+    """Why nothing accepts a TCP connection at ``host:port`` within ``timeout`` s ("" if it does)."""
     try:
-        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+        socket.create_connection((host, port), timeout=timeout).close()
     except TimeoutError:
-        why = f"no answer within {timeout:g} s"
+        return f"no answer within {timeout:g} s"
     except socket.gaierror as error:
-        why = f"unknown host: {error.strerror}"
+        return f"unknown host: {error.strerror}"
     except OSError as error:
-        why = error.strerror or type(error).__name__
+        return error.strerror or type(error).__name__
+    return ""
+
+
+def _not_ray(target: str, client: bool, timeout: float, bound: float) -> str:
+    """Why the service at ``target`` is not a Ray cluster ("" if it is), asked over gRPC as Ray's
+    own clients ask (through Ray's channel: its TLS and token settings) within ``timeout`` s:
+    the GCS for its cluster's id, a Ray Client server (``client``) for a ping. ``bound``: the
+    whole check's time, as the line says it."""
+    _import_ray()  # its line if Ray is missing
+    import grpc
+    from ray._private.grpc_utils import init_grpc_channel
+
+    if client:
+        from ray.core.generated import ray_client_pb2 as messages
+        from ray.core.generated import ray_client_pb2_grpc as services
+
+        question = "asked for a Ray Client ping"
+        request = messages.ClusterInfoRequest(type=messages.ClusterInfoType.PING)
     else:
-        return
-    raise BadInput(f"--address {address}: no Ray cluster can be reached there ({why}); start one "
-                   "with `ray start --head`, or give the address it prints")
+        from ray.core.generated import gcs_service_pb2 as messages
+        from ray.core.generated import gcs_service_pb2_grpc as services
+
+        question = "asked for its Ray cluster id"
+        request = messages.GetClusterIdRequest()
+    try:
+        with init_grpc_channel(target) as channel:
+            if client:
+                services.RayletDriverStub(channel).ClusterInfo(request, timeout=timeout)
+            else:
+                services.NodeInfoGcsServiceStub(channel).GetClusterId(request, timeout=timeout)
+    except grpc.RpcError as error:
+        code = error.code()
+        if code == grpc.StatusCode.DEADLINE_EXCEEDED:
+            return f"what answers there is not Ray ({question}: no answer within {bound:g} s)"
+        # gRPC's own words end with the reason, e.g. "… last error: UNAVAILABLE: ipv4:…: Failed
+        # parsing HTTP/2 (…)" from an HTTP server, "Socket closed" from one that hangs up.
+        detail = (error.details() or "").rpartition("last error: ")[2]
+        answer = detail if detail.startswith(code.name) else f"{code.name}: {detail}".rstrip(": ")
+        if code in (grpc.StatusCode.UNAUTHENTICATED, grpc.StatusCode.PERMISSION_DENIED):
+            return f"the Ray cluster there refused this machine's credentials ({question}: {answer})"
+        return f"what answers there is not Ray ({question}: {answer})"
+    return ""
 
 
 class RayExecutor:
-    """One Ray task per job, ``num_cpus`` each; at most ``jobs`` in flight if given."""
+    """One Ray task per job, ``num_cpus`` each; at most ``jobs`` in flight if given.
 
-    def __init__(self, address: str | None, num_cpus: float, jobs: int | None) -> None:
-        try:
-            import ray
-        except ImportError:
-            raise BadInput("--executor ray needs Ray: pip install -e '.[ray]'") from None
-        self.ray = ray
+    A job lost with its Ray worker or node is started again by Ray, up to ``retries`` times, on
+    the nodes there are then; it resumes from the run's checkpoint (on the shared filesystem).
+    Only a lost job is: :func:`run_job` returns a failed command's exit status rather than
+    raising, and an exception is not retried (``retry_exceptions=False``).
+    """
+
+    def __init__(self, address: str | None, num_cpus: float, jobs: int | None,
+                 retries: int) -> None:
+        ray = self.ray = _import_ray()
         if not ray.is_initialized():
             try:
                 ray.init(address=address, include_dashboard=False, log_to_driver=False,
@@ -248,8 +359,8 @@ class RayExecutor:
             except ConnectionError as error:  # e.g. auto, and no cluster on this machine
                 first = (str(error).strip().splitlines() or [type(error).__name__])[0]
                 raise BadInput(f"--address {address}: {first}") from None
-        # No automatic retry: a lost run is reported, and the next sweep resumes it.
-        self.task = ray.remote(run_job).options(num_cpus=num_cpus, max_retries=0)
+        self.task = ray.remote(run_on_ray).options(num_cpus=num_cpus, max_retries=retries,
+                                                   retry_exceptions=False)
         self.jobs = jobs
 
     def map_unordered(self, jobs: list[Job]) -> Iterator[Outcome]:
@@ -265,10 +376,18 @@ class RayExecutor:
             job, start = running.pop(ref)
             try:
                 yield ray.get(ref)
-            except ray.exceptions.RayError as error:  # the worker or its node died, not the run
+            except ray.exceptions.RayError as error:  # lost every attempt, or run_job raised
                 first = str(error).strip().splitlines()[0] if str(error).strip() else ""
                 yield Outcome(job.stage, None, time.perf_counter() - start,
-                              error=f"{type(error).__name__}: {first}")
+                              error=f"{type(error).__name__}: {first}",
+                              attempts=attempts(job))
+
+
+def run_on_ray(job: Job) -> Outcome:
+    """:func:`run_job` as a Ray task, its log saying on which node each attempt ran."""
+    import ray
+
+    return run_job(job, where=f"Ray node {ray.get_runtime_context().get_node_id()}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -378,8 +497,9 @@ def job_steps(job: Job, budgets: dict[str, int]) -> int:
 
 class Tally:
     """The sweep's progress: a line per finished run, and one overall line — runs finished,
-    environment steps done of all, the aggregate rate and an ETA — live at the bottom of a
-    terminal (``watch``), or printed at every tenth of the steps in a log.
+    retries (runs started again after a lost Ray worker or node), environment steps done of all,
+    the aggregate rate and an ETA — live at the bottom of a terminal (``watch``), or printed at
+    every tenth of the steps in a log.
 
     Steps come from the runs' progress files (``EDE_PROGRESS``); the steps a resumed run had
     already done count as done but not towards the rate. Without step counts (stages other
@@ -428,15 +548,21 @@ class Tally:
             return "done"
         return f"ETA {_duration(elapsed / self.done * left)}" if self.done else "ETA unknown"
 
+    def retries(self) -> int:
+        """The jobs' starts after their first: each a job lost with its Ray worker or node."""
+        return sum(max(attempts(job) - 1, 0) for job in self.jobs.values())
+
     def overall(self) -> str:
-        """The one line: runs, steps, rate, ETA."""
+        """The one line: runs, retries (if any), steps, rate, ETA."""
         elapsed = max(time.perf_counter() - self.start, 1e-9)
         counts = done, total, before = self._counts()
+        retries = self.retries()
+        again = f", {retries} {'retry' if retries == 1 else 'retries'}" if retries else ""
         steps = ""
         if total:
             rate = (done - before) / elapsed
             steps = f", {_count(done)}/{_count(total)} steps ({done / total:.0%}), {rate:,.0f} steps/s"
-        return (f"sweep: {self.done}/{self.total} runs{steps}, elapsed {_duration(elapsed)}, "
+        return (f"sweep: {self.done}/{self.total} runs{again}{steps}, elapsed {_duration(elapsed)}, "
                 f"{self._eta(elapsed, counts)}")
 
     # Output ------------------------------------------------------------------------------
@@ -518,8 +644,12 @@ def _tail(text: str) -> str:
 @click.option("--executor", type=click.Choice(["local", "ray"]), default="local", show_default=True,
               help="Child processes on this machine, or Ray tasks on a cluster.")
 @click.option("--address", help="Ray: the cluster to join (`ray start --head` prints it; "
-              "default: $RAY_ADDRESS, else a new local Ray instance). One that does not answer "
-              "within 10 s is refused before anything runs.")
+              "default: $RAY_ADDRESS, else a new local Ray instance). One where no Ray cluster "
+              "answers within 10 s is refused before anything runs.")
+@click.option("--retries", type=click.IntRange(min=0), default=RETRIES, show_default=True,
+              help="Ray: times a run lost with its Ray worker or node is started again on the "
+                   "nodes there are (it resumes from its checkpoint). A run whose command fails "
+                   "is not.")
 @click.option("--cpus-per-run", type=click.FloatRange(min=0, min_open=True), default=1.0,
               callback=lambda ctx, param, value: _finite(param, value),
               show_default=True, help="Ray: the num_cpus of each run's task.")
@@ -531,7 +661,8 @@ def _tail(text: str) -> str:
               show_default=True, help="Where each run's output goes, one file per stage.")
 @click.pass_context
 def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, executor: str,
-          address: str | None, cpus_per_run: float, group_size: int | None, logs: Path) -> None:
+          address: str | None, retries: int, cpus_per_run: float, group_size: int | None,
+          logs: Path) -> None:
     """Run the out-of-date train stages in parallel and record each with DVC.
 
     TARGETS are stages as `dvc repro` takes them, `*` a wildcard (default: every run of
@@ -546,8 +677,12 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
         raise BadInput(f"run from the repository root (no dvc.yaml in {Path.cwd()})")
     if executor == "local" and address:
         raise BadInput("--address is for --executor ray")
+    if executor == "local" and ctx.get_parameter_source("retries") != ParameterSource.DEFAULT:
+        raise BadInput("--retries is for --executor ray (a local run that fails is reported, "
+                       "and the next sweep resumes it)")
     if executor == "ray":
-        check_ray_address(address or os.environ.get("RAY_ADDRESS"))
+        check_ray_address(address or os.environ.get("RAY_ADDRESS"),
+                          name="--address" if address else "RAY_ADDRESS")
     params = read_params(DEFAULT_PARAMS)  # bad params end here, before anything runs
     runs = train_runs(params)
     if problem := unwritable(logs, directory=True):
@@ -591,7 +726,9 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
         workers = jobs or (os.cpu_count() if executor == "local" else None)
         pending = group_jobs(pending, group_size or default_group_size(params, len(pending), workers))
         logs_of = {job.stage: Path(job.log) for job in pending}
-        runner = _executor(executor, jobs, address, cpus_per_run)
+        for job in pending:
+            attempts_file(job).unlink(missing_ok=True)  # an earlier sweep's
+        runner = _executor(executor, jobs, address, cpus_per_run, retries)
         by_name = {stage.addressing: stage for stage in stale}
         tally.track(pending, params.runs.budgets)
         with tally.watch():
@@ -624,7 +761,11 @@ def _report(outcome: Outcome, by_name: dict[str, Stage], log: Path, tally: Tally
             tally.echo(tally.line("FAILED", name, f"{problem}; log: {log}", outcome.stage))
         else:
             shared = f" (one process for {len(members)})" if len(members) > 1 else ""
-            tally.echo(tally.line("ok", name, f"{outcome.seconds:.1f}s{shared}", outcome.stage))
+            lost = outcome.attempts - 1
+            again = f" (attempt {outcome.attempts}: {lost} lost with a Ray worker or node)" \
+                if lost else ""
+            tally.echo(tally.line("ok", name, f"{outcome.seconds:.1f}s{shared}{again}",
+                                  outcome.stage))
     if _problem(outcome) and log.is_file():
         tally.echo(_tail(log.read_text()))
 
@@ -641,16 +782,17 @@ def _bring_upstream_up_to_date(repo: Repo, stages: list[Stage]) -> None:
                                    f"(exit {result.returncode}); nothing else was run")
 
 
-def _executor(kind: str, jobs: int | None, address: str | None,
-              cpus_per_run: float) -> LocalExecutor | RayExecutor:
+def _executor(kind: str, jobs: int | None, address: str | None, cpus_per_run: float,
+              retries: int) -> LocalExecutor | RayExecutor:
     if kind == "local":
         return LocalExecutor(jobs or os.cpu_count() or 1)
-    return RayExecutor(address, cpus_per_run, jobs)
+    return RayExecutor(address, cpus_per_run, jobs, retries)
 
 
 def _problem(outcome: Outcome) -> str:
     if outcome.returncode is None:
-        return f"lost after {outcome.seconds:.1f}s ({outcome.error})"
+        tries = f" in each of {outcome.attempts} attempts" if outcome.attempts > 1 else ""
+        return f"lost{tries} after {outcome.seconds:.1f}s ({outcome.error})"
     if outcome.returncode < 0:
         return f"killed by signal {-outcome.returncode} after {outcome.seconds:.1f}s"
     if outcome.returncode > 0:

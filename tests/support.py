@@ -67,3 +67,44 @@ def run(copy: Path, *argv: str | Path,
 def dvc(copy: Path, *args: str) -> subprocess.CompletedProcess[str]:
     """``dvc ARGS`` in ``copy``, this environment's ``dvc``."""
     return run(copy, BIN / "dvc", *args)
+
+
+WALL_TIMES = {"metrics.json", "eval.csv"}  # a run's files that hold wall times
+
+
+def train_record(copy: Path) -> dict[str, Any]:
+    """What two trainings of the same runs on one machine agree on to the bit, from ``copy``'s
+    ``dvc.lock``: each train stage's entry, the hashes of the files that hold wall times set
+    aside, and its ``eval.csv`` without the wall time (its last column)."""
+    lock = yaml.safe_load((copy / "dvc.lock").read_text())["stages"]
+    entries = {name: entry for name, entry in lock.items() if name.startswith("train@")}
+    returns = {}
+    for name, entry in entries.items():
+        for out in entry["outs"]:
+            if Path(out["path"]).name in WALL_TIMES:
+                out.pop("md5"), out.pop("size")
+            if Path(out["path"]).name == "eval.csv":
+                lines = (copy / out["path"]).read_text().splitlines()
+                returns[name] = [line.rsplit(",", 1)[0] for line in lines]
+    return {"lock": entries, "returns": returns}
+
+
+def ok(result: subprocess.CompletedProcess[str]) -> str:
+    """The output of a command that must have succeeded (stdout, then stderr); its end if not."""
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    return result.stdout + result.stderr
+
+
+def one_task_runs(shrink: Callable[[dict[str, Any]], None], task: str, steps: int,
+                  checkpoint_every: int) -> Callable[[dict[str, Any]], None]:
+    """An edit of params for :func:`scratch_copy`: ``shrink``'s (e.g. the tiny pipeline), then the
+    runs of ``task`` only, ``steps`` each with a checkpoint every ``checkpoint_every``: runs long
+    enough to be caught between their first checkpoint and their end."""
+
+    def edit(params: dict[str, Any]) -> None:
+        shrink(params)
+        params["td3"]["checkpoint_every"] = checkpoint_every
+        params["runs"]["tasks"] = {task: params["runs"]["tasks"][task]}
+        params["runs"]["budgets"] = {name: steps for name in params["runs"]["budgets"]}
+
+    return edit
