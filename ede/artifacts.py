@@ -1,13 +1,18 @@
 """Saving and loading embedding artifacts: safetensors weights beside JSON metadata. No pickle.
 
 An artifact is a directory holding ``weights.safetensors`` and ``meta.json``; the metadata is
-validated by a pydantic model and records the SHA-256 of the weights file, so a tampered or
-mismatched pair is refused with a clear error. :func:`params_mismatches` names every way an
-artifact contradicts the params in force (its ``k``, ``dim`` and the recorded training params).
+validated by a pydantic model and records two checksums, each verified on loading: ``weights_sha256``
+of the weights file and ``meta_sha256`` of the metadata's own result-relevant fields (every field
+but :data:`PROVENANCE` and the two checksums), so an edited, tampered or mismatched file is refused
+with a clear error. An artifact's :attr:`~ArtifactMeta.identity` is one SHA-256 over both: every
+byte that changes what it computes. A decoder records its encoder's identity, so the decoder's
+identity names the whole embedding; EDE-TD3 runs record it. :func:`params_mismatches` names every
+way an artifact contradicts the params in force (its ``k``, ``dim`` and the recorded training params).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 from typing import Any, Literal, TypeVar
@@ -27,6 +32,7 @@ from ede.rollouts import Whitening
 
 __all__ = [
     "ArtifactError",
+    "ArtifactMeta",
     "DecoderMeta",
     "EncoderMeta",
     "WhiteningMeta",
@@ -41,6 +47,9 @@ WEIGHTS = "weights.safetensors"
 META = "meta.json"
 # Params that decide where and how fast an artifact is made, not what it is.
 RESULT_NEUTRAL_PARAMS = frozenset({"device", "threads"})
+AGAIN = "make it again (`ede-pipeline pretrain`)"
+# Metadata fields that record how an artifact was made, not what it computes.
+PROVENANCE = frozenset({"software"})
 
 
 class ArtifactError(ValueError):
@@ -68,7 +77,26 @@ class ActionSpaceMeta(_Meta):
     high: list[float]
 
 
-class EncoderMeta(_Meta):
+class ArtifactMeta(_Meta):
+    """What every artifact's metadata records about itself: its provenance and its checksums."""
+
+    software: dict[str, str] = Field(description="the versions that made it (ede.provenance)")
+    weights_sha256: str = Field(description="the SHA-256 of the weights file")
+    meta_sha256: str = Field(description="the SHA-256 of this metadata's result-relevant fields")
+
+    def content_sha256(self) -> str:
+        """The SHA-256 of the result-relevant fields as they are: what ``meta_sha256`` must be."""
+        content = self.model_dump(mode="json", exclude=PROVENANCE | {"weights_sha256", "meta_sha256"})
+        return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()
+
+    @property
+    def identity(self) -> str:
+        """The artifact's identity: the SHA-256 of ``"<weights_sha256> <meta_sha256>"``, which
+        covers every byte of the weights and every result-relevant field of the metadata."""
+        return hashlib.sha256(f"{self.weights_sha256} {self.meta_sha256}".encode()).hexdigest()
+
+
+class EncoderMeta(ArtifactMeta):
     kind: Literal["ede-encoder"] = "ede-encoder"
     family: str
     env_id: str
@@ -83,12 +111,10 @@ class EncoderMeta(_Meta):
     train_episodes: list[int]
     holdout_episodes: list[int]
     params: dict[str, Any] = Field(description="the params sections that made it")
-    software: dict[str, str] = Field(description="the versions that made it (ede.provenance)")
     data_fingerprint: str
-    weights_sha256: str
 
 
-class DecoderMeta(_Meta):
+class DecoderMeta(ArtifactMeta):
     kind: Literal["ede-decoder"] = "ede-decoder"
     family: str
     k: int = Field(gt=0)
@@ -100,13 +126,12 @@ class DecoderMeta(_Meta):
         "bounds", description="the decoder's squashing (DecoderConfig.output_range)")
     code_whitening: WhiteningMeta
     params: dict[str, Any]
-    software: dict[str, str] = Field(description="the versions that made it (ede.provenance)")
     data_fingerprint: str
-    encoder_sha256: str = Field(description="the encoder weights this decoder inverts")
-    weights_sha256: str
+    encoder_sha256: str = Field(description="the identity of the encoder this decoder inverts")
 
 
-def _save(path: Path, modules: dict[str, nn.Module], meta: dict[str, Any], model: type[_Meta]) -> None:
+def _save(path: Path, modules: dict[str, nn.Module], meta: dict[str, Any],
+          model: type[ArtifactMeta]) -> None:
     def write(tmp: Path) -> None:
         tensors = {
             f"{name}.{key}": value.detach().cpu().contiguous()
@@ -114,15 +139,15 @@ def _save(path: Path, modules: dict[str, nn.Module], meta: dict[str, Any], model
             for key, value in module.state_dict().items()
         }
         save_file(tensors, tmp / WEIGHTS)
-        validated = model.model_validate(
-            {**meta, "software": software_versions(), "weights_sha256": sha256(tmp / WEIGHTS)}
-        )
-        (tmp / META).write_text(validated.model_dump_json(indent=2) + "\n")
+        validated = model.model_validate({**meta, "software": software_versions(),
+                                          "weights_sha256": sha256(tmp / WEIGHTS), "meta_sha256": ""})
+        sealed = validated.model_copy(update={"meta_sha256": validated.content_sha256()})
+        (tmp / META).write_text(sealed.model_dump_json(indent=2) + "\n")
 
     write_atomically(Path(path), write)
 
 
-M = TypeVar("M", bound=_Meta)
+M = TypeVar("M", bound=ArtifactMeta)
 
 
 def _load_meta(path: Path, model: type[M]) -> tuple[M, dict[str, torch.Tensor]]:
@@ -135,8 +160,14 @@ def _load_meta(path: Path, model: type[M]) -> tuple[M, dict[str, torch.Tensor]]:
     except ValidationError as error:
         first = error.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
+        if first["loc"] == ("meta_sha256",) and first["type"] == "missing":
+            raise ArtifactError(f"{meta_file}: records no meta_sha256 (made by an earlier version); "
+                                f"{AGAIN}") from None
         raise ArtifactError(f"{meta_file}: {where}: {first['msg']}") from None
-    if sha256(weights_file) != meta.weights_sha256:  # type: ignore[attr-defined]
+    if meta.content_sha256() != meta.meta_sha256:
+        raise ArtifactError(f"{meta_file}: does not match its checksum (meta_sha256): edited or "
+                            f"damaged since it was made; {AGAIN}")
+    if sha256(weights_file) != meta.weights_sha256:
         raise ArtifactError(f"{weights_file}: does not match the checksum in {META}")
     try:
         tensors = load_file(weights_file)
@@ -236,7 +267,7 @@ def save_decoder(
         "code_whitening": encoder_meta.code_whitening,
         "params": params,
         "data_fingerprint": encoder_meta.data_fingerprint,
-        "encoder_sha256": encoder_meta.weights_sha256,
+        "encoder_sha256": encoder_meta.identity,
     }
     _save(path, {"decoder": decoder}, meta, DecoderMeta)
 
@@ -252,7 +283,7 @@ def load_action_embedding(
     encoder_path, decoder_path = Path(encoder_path), Path(decoder_path)
     encoder_meta, encoded = load_encoder(encoder_path)
     meta, tensors = _load_meta(decoder_path, DecoderMeta)
-    if meta.encoder_sha256 != encoder_meta.weights_sha256:
+    if meta.encoder_sha256 != encoder_meta.identity:
         raise ArtifactError(f"{decoder_path}: was trained against another encoder than {encoder_path}")
     low, high = np.asarray(meta.action_space.low), np.asarray(meta.action_space.high)
     decoder = ActionDecoder(meta.dim, meta.k, low, high, meta.hidden, meta.output_range)

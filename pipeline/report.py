@@ -125,7 +125,7 @@ class Inputs:
     embeddings: dict[str, Path]  # per family, the folder of its encoder and decoder
     loaded: dict[str, ActionEmbedding]
     rollouts: dict[str, dict[str, Any]]  # per family, the store's attributes
-    embedding_ids: dict[str, str]  # per family, its decoder's checksum, which EDE-TD3 runs record
+    embedding_ids: dict[str, str]  # per family, its decoder's identity, which EDE-TD3 runs record
 
 
 def _by_family(
@@ -199,7 +199,7 @@ def read_inputs(
         if meta.family != family:
             raise BadInput(f"{given}: the embedding of family {meta.family}, not {family}")
         trained_on[family] = meta.data_fingerprint
-        embedding_ids[family] = meta.weights_sha256
+        embedding_ids[family] = meta.identity
     for key, family in figures.items():
         if family is not None and family not in folders:
             raise BadInput(f"report.{key}: {family}, but no --embedding {family}=DIR is given; "

@@ -62,4 +62,4 @@ def task_inputs(params: Params, task: str, embedding: Path | None, code: Path | 
 
     with holding(out):
         write_atomically(out, write)
-    click.echo(f"{task}: the {family} family's embedding ({meta.weights_sha256[:12]}) in {out}")
+    click.echo(f"{task}: the {family} family's embedding ({meta.identity[:12]}) in {out}")

@@ -76,7 +76,7 @@ def train(
                                        params.decoder)
         if mismatches:
             raise BadInput("\n".join(mismatches))
-        embedding_id = meta.weights_sha256
+        embedding_id = meta.identity
     torch.set_num_threads(config.threads)
     budget = params.runs.budgets[task]
     specs = [RunSpec(task, algo, seed, budget, config, params.ede_td3, embedding_id)
