@@ -21,10 +21,10 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file
 from torch import nn
 
-from ede.atomic import sha256, write_atomically
+from ede.atomic import save_tensors, sha256, write_atomically
 from ede.config import DecoderConfig, EmbeddingConfig
 from ede.embedding import ActionDecoder, ActionEmbedding, Encoder, EncoderResult, Predictor
 from ede.provenance import software_versions
@@ -130,6 +130,10 @@ class DecoderMeta(ArtifactMeta):
     encoder_sha256: str = Field(description="the identity of the encoder this decoder inverts")
 
 
+# What each artifact's folder is called where a stage refuses to replace another's.
+KIND: dict[type, str] = {EncoderMeta: "encoder", DecoderMeta: "decoder"}
+
+
 def _save(path: Path, modules: dict[str, nn.Module], meta: dict[str, Any],
           model: type[ArtifactMeta]) -> None:
     def write(tmp: Path) -> None:
@@ -138,13 +142,13 @@ def _save(path: Path, modules: dict[str, nn.Module], meta: dict[str, Any],
             for name, module in modules.items()
             for key, value in module.state_dict().items()
         }
-        save_file(tensors, tmp / WEIGHTS)
+        save_tensors(tensors, tmp / WEIGHTS)
         validated = model.model_validate({**meta, "software": software_versions(),
                                           "weights_sha256": sha256(tmp / WEIGHTS), "meta_sha256": ""})
         sealed = validated.model_copy(update={"meta_sha256": validated.content_sha256()})
         (tmp / META).write_text(sealed.model_dump_json(indent=2) + "\n")
 
-    write_atomically(Path(path), write)
+    write_atomically(Path(path), write, kind=KIND[model])
 
 
 M = TypeVar("M", bound=ArtifactMeta)

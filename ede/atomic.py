@@ -5,35 +5,150 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from fnmatch import fnmatchcase
 from pathlib import Path
 from typing import Any
 
-__all__ = ["remove_stale_temporaries", "sha256", "write_atomically", "write_json", "write_text"]
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import save_file
+
+__all__ = ["MARK", "NotOurs", "NotWritten", "claim", "ownership_problem",
+           "remove_stale_temporaries", "save_tensors", "sha256", "write_atomically", "write_json", "write_text"]
+
+# Every folder a stage writes holds this file: what wrote it (its ``kind``) and the names of the
+# entries it owns (fnmatch patterns). A stage replaces or writes into an existing folder only where
+# that folder is empty or is its own kind's, holding nothing but what the mark owns: a folder of a
+# user's files, another stage's output, or a folder with a user's file added is never deleted.
+MARK = ".ede-output.json"
 
 
-def write_atomically(path: str | Path, write: Callable[[Path], None]) -> None:
-    """Call ``write(tmp)`` on a fresh sibling directory and rename it onto ``path`` when it returns.
+class NotOurs(ValueError):
+    """A folder a writer would replace or write into that it did not recognisably write."""
+
+
+class NotWritten(OSError):
+    """An output that could not be written whole (a full disk, a quota, ...): its temporary is
+    removed and what was at its place before is left as it was. ``reason``: the system's word."""
+
+    def __init__(self, path: Path, error: OSError) -> None:
+        self.reason = str(error.strerror or error)
+        super().__init__(error.errno, f"{path}: not written ({self.reason}); nothing of it is "
+                         "left, and what was there before is as it was")
+
+
+def ownership_problem(path: str | Path, kind: str) -> str | None:
+    """Why a writer of ``kind`` may not replace or write into the folder ``path``; None where it
+    may (nothing there, an empty folder, or its own kind's folder holding only what it owns)."""
+    path = Path(path)
+    if not path.is_dir():
+        return None
+    entries = sorted(entry.name for entry in path.iterdir())
+    if not entries:
+        return None
+    mark = _read_mark(path)
+    if mark is None:
+        return (f"{path}: holds {_listed(entries)}, which no ede stage wrote there; expected a new "
+                f"or empty folder, or {_a(kind)} written before: move them, or choose another place")
+    if mark["kind"] != kind:
+        return (f"{path}: holds {_a(mark['kind'])}, not {_a(kind)}; choose another place (a stage "
+                "replaces only its own kind of output)")
+    foreign = [name for name in entries
+               if name != MARK and not any(fnmatchcase(name, own) for own in mark["owns"])]
+    if foreign:
+        return (f"{path}: holds {_listed(foreign)} beside the {kind} written there; move "
+                f"{'it' if len(foreign) == 1 else 'them'} out first")
+    return None
+
+
+def _read_mark(folder: Path) -> dict[str, Any] | None:
+    try:
+        mark = json.loads((folder / MARK).read_text())
+    except (OSError, ValueError):
+        return None
+    if not (isinstance(mark, dict) and isinstance(mark.get("kind"), str)
+            and isinstance(mark.get("owns"), list)
+            and all(isinstance(name, str) for name in mark["owns"])):
+        return None
+    return mark
+
+
+def _a(kind: str) -> str:
+    return f"{'an' if kind[0] in 'aeiou' else 'a'} {kind}"
+
+
+def _listed(names: list[str]) -> str:
+    shown = ", ".join(names[:3])
+    return shown + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+
+
+def _mark(folder: Path, kind: str, owns: Iterable[str]) -> None:
+    write_text(folder / MARK, json.dumps({"kind": kind, "owns": sorted(owns)}, indent=2) + "\n")
+
+
+def claim(path: str | Path, kind: str, owns: Iterable[str]) -> None:
+    """Make ``path`` a folder of ``kind`` that its writer fills over time (a training run),
+    owning the entries whose names match ``owns``; an existing one must be its own
+    (:func:`ownership_problem`).
+
+    Raises:
+        NotOurs: naming the folder and what is in it.
+    """
+    path = Path(path)
+    if problem := ownership_problem(path, kind):
+        raise NotOurs(problem)
+    path.mkdir(parents=True, exist_ok=True)
+    if _read_mark(path) is None:
+        _mark(path, kind, owns)
+
+
+def write_atomically(path: str | Path, write: Callable[[Path], None], kind: str) -> None:
+    """Call ``write(tmp)`` on a fresh sibling directory, mark it as ``kind``'s (:data:`MARK`,
+    owning what ``write`` put there) and rename it onto ``path`` when it returns.
 
     A writer killed midway leaves only ``<path>.tmp-<pid>``, which nothing reads and the next
     write to ``path`` removes once that process is gone (a live writer's temporary is left alone);
-    an old ``path`` is replaced only by a complete new one.
+    an old ``path`` is replaced only by a complete new one, and only where it is this kind's own
+    (:func:`ownership_problem`). A write that fails (a full disk) removes its temporary.
+
+    Raises:
+        NotOurs: ``path`` holds what this writer did not write; nothing is touched.
+        NotWritten: the write failed with an OSError; the old ``path`` is left as it was.
     """
     path = Path(path)
+    if problem := ownership_problem(path, kind):
+        raise NotOurs(problem)
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(path)
     tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
-    tmp.mkdir()
     try:
+        tmp.mkdir()
         write(tmp)
-    except BaseException:
+        _mark(tmp, kind, (entry.name for entry in tmp.iterdir()))
+    except BaseException as error:
         shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(error, OSError) and not isinstance(error, NotWritten):
+            raise NotWritten(path, error) from None
         raise
     if path.exists():
         shutil.rmtree(path)
     os.replace(tmp, path)
+
+
+def save_tensors(tensors: dict[str, torch.Tensor], path: Path) -> None:
+    """safetensors' ``save_file``, whose failures to write (a full disk) are OSErrors, as every
+    other write's: safetensors reports them as ``SafetensorError: ... (os error N)``."""
+    try:
+        save_file(tensors, path)
+    except SafetensorError as error:
+        code = re.search(r"os error (\d+)", str(error))
+        if code is None:
+            raise
+        raise OSError(int(code[1]), os.strerror(int(code[1])), str(path)) from None
 
 
 def _alive(pid: int) -> bool:
@@ -75,7 +190,11 @@ def write_text(path: str | Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(path)
     tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(text)
+    try:
+        tmp.write_text(text)
+    except OSError as error:
+        tmp.unlink(missing_ok=True)
+        raise NotWritten(path, error) from None
     os.replace(tmp, path)
 
 

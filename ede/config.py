@@ -40,6 +40,7 @@ __all__ = [
     "SEED_MAX",
     "SEED_RANGE",
     "TD3Config",
+    "episode_length",
     "is_seed",
     "load_params",
     "validate_params",
@@ -433,7 +434,7 @@ class Params(_Section):
         collect, k = self.collect, self.embedding.k
         envs = collect.num_envs or 1  # null: one per core, which only the stage knows
         lengths = {name: length for name, family in self.families.items()
-                   if (length := _episode_length(family.source)) is not None}
+                   if (length := episode_length(family.source)) is not None}
         problems = []
         if collect.steps < k:
             problems.append(f"collect.steps: got {collect.steps}; expected at least embedding.k "
@@ -501,7 +502,7 @@ class Params(_Section):
 
 
 @functools.cache
-def _episode_length(task: str) -> int | None:
+def episode_length(task: str) -> int | None:
     """The most steps an episode of a registered ``task`` lasts (its time limit), if it has one."""
     import gymnasium
 

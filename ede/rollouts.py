@@ -53,6 +53,8 @@ import ede_envs
 from ede.atomic import write_atomically
 from ede.tasks import unusable
 
+KIND = "rollouts store"  # what its folder is called where a stage refuses to replace another's
+
 __all__ = [
     "ARRAYS",
     "CHUNK_STEPS",
@@ -316,7 +318,7 @@ def write_store(path: str | Path, arrays: dict[str, np.ndarray], attrs: dict[str
         content = {**attrs, "collector": COLLECTOR_VERSION}
         group.attrs.update({**content, "fingerprint": fingerprint(arrays, content)})
 
-    write_atomically(path, write)
+    write_atomically(path, write, kind=KIND)
 
 
 # --------------------------------------------------------------------------------------------

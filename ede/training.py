@@ -40,9 +40,18 @@ from typing import Any
 import gymnasium
 import numpy as np
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file
 
-from ede.atomic import remove_stale_temporaries, sha256, write_atomically, write_json, write_text
+from ede.atomic import (
+    NotWritten,
+    claim,
+    remove_stale_temporaries,
+    save_tensors,
+    sha256,
+    write_atomically,
+    write_json,
+    write_text,
+)
 from ede.config import EdeTD3Config, TD3Config
 from ede.embedding import ActionEmbedding
 from ede.nets import flush_denormals
@@ -82,6 +91,10 @@ CHECKPOINT_VERSION = 4  # 2: diagnostics; 3: checksums, identity; 4: a member's 
 EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes are seeded apart from training ones
 EVAL_COLUMNS = ("step", "episode", "mean_return", "std_return", "wall_seconds")
 DIAGNOSTIC_COLUMNS = ("step", "updates", "critic_loss", "actor_loss", "mean_q")
+# A run's folder, filled as it trains: what it may hold (a stage refuses any other folder).
+RUN_KIND = "training run"
+RUN_OWNS = ("eval.csv", "diagnostics.csv", "run.json", "metrics.json", "policy", "checkpoint",
+            "checkpoint.bad-*", "*.tmp-*")
 # td3 settings that leave results alone (compile: within rounding)
 RESOURCES = {"threads", "device", "checkpoint_every", "compile"}
 
@@ -294,13 +307,13 @@ class _Run:
         }
 
         def write(tmp: Path) -> None:
-            save_file({k: v.detach().cpu().clone() for k, v in tensors.items()},
+            save_tensors({k: v.detach().cpu().clone() for k, v in tensors.items()},
                       tmp / "state.safetensors")
             (tmp / "state.json").write_text(json.dumps(state, allow_nan=False))
             sums = {name: sha256(tmp / name) for name in ("state.safetensors", "state.json")}
             (tmp / CHECKSUMS).write_text(json.dumps(sums, allow_nan=False))
 
-        write_atomically(path, write)
+        write_atomically(path, write, kind="checkpoint")
 
     def load(self, path: Path) -> bool:
         """Continue from the checkpoint at ``path``; False where there is none.
@@ -537,7 +550,7 @@ class _Session:
     @classmethod
     def start(cls, group: _Group, index: int, out: Path, bad_checkpoint: str,
               notice: Callable[[str], None]) -> _Session:
-        out.mkdir(parents=True, exist_ok=True)
+        claim(out, RUN_KIND, RUN_OWNS)
         checkpoint = out / "checkpoint"
         run = group.runs[index]
         try:
@@ -572,7 +585,8 @@ class _Session:
             try:
                 run.save(checkpoint)
             except OSError as error:
-                raise CheckpointWriteError(f"{checkpoint}: not written ({error.strerror or error}); "
+                reason = error.reason if isinstance(error, NotWritten) else error.strerror or error
+                raise CheckpointWriteError(f"{checkpoint}: not written ({reason}); "
                                            "the previous checkpoint is kept") from None
 
     def stopped(self) -> str:
@@ -630,7 +644,7 @@ def save_policy(path: Path, agent: Agent, member: int, spec: RunSpec,
 
     def write(tmp: Path) -> None:
         state = {k: v.detach().cpu().contiguous() for k, v in agent.actor.state_of(member).items()}
-        save_file(state, tmp / "policy.safetensors")
+        save_tensors(state, tmp / "policy.safetensors")
         meta = {
             **spec.identity(),
             "k": adapter.k,
@@ -641,4 +655,4 @@ def save_policy(path: Path, agent: Agent, member: int, spec: RunSpec,
         }
         write_json(tmp / "policy.json", meta)
 
-    write_atomically(path, write)
+    write_atomically(path, write, kind="policy")

@@ -9,16 +9,15 @@ from typing import Any
 import click
 import numpy as np
 
-from ede.config import Params
+from ede.config import Params, episode_length
 from ede.provenance import software_versions
+from ede.rollouts import KIND as ROLLOUTS
 from ede.rollouts import Rollouts, RolloutsError, state_source, write_store
 from ede.rollouts import collect as collect_steps
 from ede.tasks import make
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, check_family, family_option, holding, params_option
 from ede_pipeline.progress import progress
-
-
 
 @click.command()
 @family_option
@@ -35,11 +34,18 @@ def collect(params: Params, family: str, out: Path | None, workers: int | None) 
     out = out or layout.rollouts(family)
     env_id = params.families[family].source
     config = params.collect
-    num_envs = config.num_envs or os.cpu_count() or 1
-    with holding(out), progress(config.steps, f"collect {family}") as advance:
+    num_envs = config.num_envs or default_num_envs(config.steps, episode_length(env_id))
+    with holding((out, ROLLOUTS)), progress(config.steps, f"collect {family}") as advance:
         arrays = collect_steps(env_id, config.steps, num_envs, config.seed, workers, advance)
         write_store(out, arrays, store_attrs(params, family, num_envs, arrays))
     click.echo(f"{out}: {len(arrays['reward'])} steps, {int(arrays['episode'][-1]) + 1} episodes")
+
+
+def default_num_envs(steps: int, length: int | None) -> int:
+    """``collect.num_envs: null``: one sub-environment per core, but no more than the steps hold
+    whole episodes of (each records one at least: more would record more steps than asked)."""
+    cores = os.cpu_count() or 1
+    return max(1, min(cores, steps // length if length else steps))
 
 
 def store_attrs(

@@ -13,7 +13,7 @@ from typing import Any
 
 import click
 
-from ede.atomic import unwritable
+from ede.atomic import NotOurs, NotWritten, ownership_problem, unwritable
 from ede.config import Params, ParamsError, load_params
 from ede.locks import OutputBusy, exclusive
 from ede_pipeline.progress import PROGRESS_ENV
@@ -74,38 +74,77 @@ def check_family(params: Params, family: str) -> None:
         )
 
 
-def check_outputs(output: Path, files: tuple[Path | None, ...] = (),
-                  dirs: tuple[Path | None, ...] = ()) -> None:
+Folder = tuple[Path | None, str]  # an output folder and the kind of output it is
+
+
+def check_outputs(output: Folder, files: tuple[Path | None, ...] = (),
+                  dirs: tuple[Folder, ...] = (), inputs: tuple[Path | None, ...] = ()) -> None:
     """Before any work: every place a stage will write can be written
-    (:func:`ede.atomic.unwritable`) — ``output`` (a directory) with its lock and temporaries, the
-    other outputs ``files`` and ``dirs``, and the progress file ``EDE_PROGRESS`` names.
+    (:func:`ede.atomic.unwritable`) — ``output`` (a folder, with its kind) with its lock and
+    temporaries, the other outputs ``files`` and ``dirs``, and the progress file ``EDE_PROGRESS``
+    names — and no output folder would delete what the stage did not write: each is new, empty
+    or its own kind's earlier output (:func:`ede.atomic.ownership_problem`), and none is the
+    working directory or a folder above it. No output is, holds or lies inside one of ``inputs``.
 
     Raises:
         BadInput: one line naming the place and what is in the way.
     """
     progress_file = os.environ.get(PROGRESS_ENV)
-    places = [(output, True), *((d, True) for d in dirs if d), *((f, False) for f in files if f)]
-    for place, directory in places:
-        if problem := unwritable(place, directory):
+    places = [output, *dirs, *((f, None) for f in files)]
+    for place, kind in places:
+        if place is None:
+            continue
+        folder = kind is not None
+        problem = (unwritable(place, folder) or (folder and _above_working_directory(place))
+                   or _overlap(place, inputs) or (folder and ownership_problem(place, kind)))
+        if problem:
             raise BadInput(problem)
     if progress_file and (problem := unwritable(Path(progress_file), directory=False)):
         raise BadInput(f"{PROGRESS_ENV}={problem}")
 
 
+def _above_working_directory(folder: Path) -> str | None:
+    here, there = Path.cwd().resolve(), folder.resolve()
+    if there == here or there in here.parents:
+        return (f"{folder}: the working directory{' or a folder above it' if there != here else ''}"
+                "; expected a folder of the output's own, e.g. one inside it")
+    return None
+
+
+def _overlap(output: Path, inputs: tuple[Path | None, ...]) -> str | None:
+    there = output.resolve()
+    for given in filter(None, inputs):
+        source = given.resolve()
+        if there == source or source.is_relative_to(there) or there.is_relative_to(source):
+            how = ("is" if there == source else "holds" if source.is_relative_to(there)
+                   else "lies inside")
+            return f"{output}: {how} the stage's input {given}; expected a place apart from it"
+    return None
+
+
 @contextmanager
-def holding(output: Path, files: tuple[Path | None, ...] = (),
-            dirs: tuple[Path | None, ...] = ()) -> Iterator[None]:
+def holding(output: Folder, files: tuple[Path | None, ...] = (),
+            dirs: tuple[Folder, ...] = (), inputs: tuple[Path | None, ...] = ()) -> Iterator[None]:
     """The stage's exclusive lock on its output (:func:`ede.locks.exclusive`) for the block,
-    after :func:`check_outputs`. A place that cannot be written, and a second process on the
-    same output, are refused as bad input: one line, exit 2, nothing written."""
-    check_outputs(output, files, dirs)
+    after :func:`check_outputs`. A place that cannot be written or that holds what the stage did
+    not write, and a second process on the same output, are refused as bad input: one line,
+    exit 2, nothing written. A write that fails in the block (a full disk) is one line, exit 1,
+    its temporaries removed (:class:`ede.atomic.NotWritten`)."""
+    check_outputs(output, files, dirs, inputs)
+    folder = output[0]
+    assert folder is not None
     lock = ExitStack()
     try:
-        lock.enter_context(exclusive(output))
+        lock.enter_context(exclusive(folder))
     except OutputBusy as error:
         raise BadInput(str(error)) from None
     with lock:
-        yield
+        try:
+            yield
+        except NotOurs as error:  # what the checks above could not see (a nested folder)
+            raise BadInput(str(error)) from None
+        except NotWritten as error:
+            raise Failed(error.strerror or str(error)) from None
 
 
 # The values of MUJOCO_GL that MuJoCo accepts on Linux, and "disable", which needs no OpenGL.

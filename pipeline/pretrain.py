@@ -101,7 +101,7 @@ def encoder(
     out = out or folder / "encoder"
     metrics = metrics or folder / "encoder_metrics.json"
     plots = plots or folder / "encoder_history.csv"
-    with holding(out, files=(metrics, plots)):
+    with holding((out, "encoder"), files=(metrics, plots), inputs=(data.path,)):
         with progress(config.epochs, f"encoder {family}", unit="epoch") as advance:
             result = train_encoder(data, config, device, on_epoch=lambda row: advance(1))
         low, high = (np.asarray(data.attrs["spaces"][key]) for key in ("action_low", "action_high"))
@@ -115,7 +115,7 @@ def encoder(
             params={"embedding": config.model_dump(mode="json")},
             data_fingerprint=data.attrs["fingerprint"],
         )
-    m = _write_reports(result, metrics, plots)
+        m = _write_reports(result, metrics, plots)
     click.echo(
         f"encoder {family}: held-out prediction MSE {m['prediction_mse']:.4f} "
         f"({m['prediction_ratio']:.3f}x the mean-change baseline, raw actions "
@@ -160,7 +160,7 @@ def decoder(
     out = out or folder / "decoder"
     metrics = metrics or folder / "decoder_metrics.json"
     plots = plots or folder / "decoder_history.csv"
-    with holding(out, files=(metrics, plots)):
+    with holding((out, "decoder"), files=(metrics, plots), inputs=(data.path, encoder_path)):
         with progress(config.epochs, f"decoder {family}", unit="epoch") as advance:
             result = train_decoder(
                 data, encoded, config, meta.k, low, high, device, on_epoch=lambda row: advance(1)
@@ -172,7 +172,7 @@ def decoder(
             encoder_path=encoder_path,
             params={"decoder": config.model_dump(mode="json"), **meta.params},
         )
-    m = _write_reports(result, metrics, plots)
+        m = _write_reports(result, metrics, plots)
     click.echo(
         f"decoder {family}: held-out inverse error {m['inverse_error']:.4f} of the code variance, "
         f"{100 * m['at_bounds']:.1f}% of actions at a bound, |z| bound {m['bound']:.2f}"

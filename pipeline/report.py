@@ -489,7 +489,9 @@ def report(
 ) -> None:
     """Stage 5: learning curves, tables, the EDE pictures and provenance in one HTML page."""
     torch.set_num_threads(params.embedding.threads)  # it only encodes and decodes small batches
-    with holding(out, files=(metrics,), dirs=(curves,)):
+    given = (Path(pair.partition("=")[2]) for pair in (*embeddings, *rollouts))
+    with holding((out, "report"), files=(metrics,), dirs=((curves, "report curves"),),
+                 inputs=(runs, families, *given)):
         _report(params, read_inputs(params, runs, embeddings, rollouts, families), out, metrics,
                 curves)
 
@@ -510,8 +512,8 @@ def _report(params: Params, inputs: Inputs, out: Path, metrics: Path, curves: Pa
         for task, text in curve_files.items():
             (tmp / f"{task.replace('/', '_')}.csv").write_text(text)
 
-    write_atomically(curves, write_curves)
+    write_atomically(out, write_page, kind="report")  # the largest first: a full disk stops it
+    write_atomically(curves, write_curves, kind="report curves")
     write_json(metrics, summary)
-    write_atomically(out, write_page)
     click.echo(f"{out / 'index.html'}: {summary['missing_runs']} of {params.runs.count} runs "
                f"missing, {summary['excluded_runs']} left out")

@@ -17,7 +17,9 @@ from ede.atomic import write_atomically
 from ede.config import Params
 from ede_pipeline import layout
 from ede_pipeline.closure import task_code as describe
-from ede_pipeline.common import check_family, family_option, params_option
+from ede_pipeline.common import check_family, family_option, holding, params_option
+
+KIND = "folder of task records"
 
 
 @click.command("task-code")
@@ -37,5 +39,6 @@ def task_code(params: Params, family: str, out: Path | None) -> None:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(json.dumps(record, indent=2, allow_nan=False) + "\n")
 
-    write_atomically(out, write)
+    with holding((out, KIND)):
+        write_atomically(out, write, KIND)
     click.echo(f"{family}: {len(records)} task records in {out}")

@@ -21,6 +21,7 @@ from ede.config import Params
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, holding, params_option
 
+KIND = "task's inputs"
 CODE = "code.json"  # the task's record in its folder (``ede-pipeline task-code``)
 
 
@@ -60,6 +61,6 @@ def task_inputs(params: Params, task: str, embedding: Path | None, code: Path | 
             shutil.copytree(embedding / name, folder / name)
         shutil.copyfile(record, folder / CODE)
 
-    with holding(out):
-        write_atomically(out, write)
+    with holding((out, KIND), inputs=(embedding, record.parent)):
+        write_atomically(out, write, KIND)
     click.echo(f"{task}: the {family} family's embedding ({meta.identity[:12]}) in {out}")

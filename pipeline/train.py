@@ -12,7 +12,14 @@ import torch
 from ede.artifacts import ArtifactError, load_action_embedding, params_mismatches
 from ede.config import ALGOS, SEED_RANGE, Params, is_seed
 from ede.nets import pick_device
-from ede.training import CheckpointError, CheckpointWriteError, Diverged, RunSpec, train_group
+from ede.training import (
+    RUN_KIND,
+    CheckpointError,
+    CheckpointWriteError,
+    Diverged,
+    RunSpec,
+    train_group,
+)
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, Failed, check_outputs, holding, params_option
 from ede_pipeline.progress import progress
@@ -22,7 +29,7 @@ from ede_pipeline.progress import progress
 @click.option("--task", required=True, help="A task of params.yaml's runs.tasks.")
 @click.option("--algo", required=True, help="td3 or ede-td3.")
 @click.option("--seed", "--seeds", "seeds", required=True,
-              help="The run's seed (>= 0), or several (0,1,2,3 or 0-3): the runs of one task and "
+              help="The run's seed (0 to 2**32 - 1), or several (0,1,2,3 or 0-3): the runs of one task and "
                    "algorithm trained in one process, their updates batched, each with the "
                    "outputs it gets alone.")
 @click.option("--out", type=click.Path(path_type=Path),
@@ -83,12 +90,13 @@ def train(
              for seed in seed_list]
     notice = functools.partial(click.echo, err=True)
     label = f"{algo} {task} seed{'s' if len(seed_list) > 1 else ''} {seeds}"
+    inputs = (encoder or folder / "encoder", decoder or folder / "decoder") if embedding else ()
     for run_dir in outs:  # every run's, before the first lock is taken
-        check_outputs(run_dir)
+        check_outputs((run_dir, RUN_KIND), inputs=inputs)
     try:
         with ExitStack() as locks:
             for run_dir in outs:
-                locks.enter_context(holding(run_dir))
+                locks.enter_context(holding((run_dir, RUN_KIND), inputs=inputs))
             with progress(budget * len(specs), label) as advance:
                 results = train_group(specs, outs, embedding, device, advance, keep_checkpoint,
                                       bad_checkpoint, notice)
@@ -103,18 +111,29 @@ def train(
                    f"{metrics['best_return']:.2f}, {metrics['steps_per_second'] or 0:.0f} steps/s")
 
 
+MAX_GROUP = 4096  # seeds in one process: far more than a machine trains at once
+
+
 def parse_seeds(text: str) -> list[int]:
-    """``3``, ``0,1,2,3`` or ``0-3`` as a list of distinct seeds >= 0."""
+    """``3``, ``0,1,2,3`` or ``0-3`` as a list of distinct seeds (:data:`ede.config.SEED_RANGE`),
+    at most :data:`MAX_GROUP` of them."""
     try:
         if "-" in text.strip("-") and "," not in text:
             first, last = (int(part) for part in text.split("-"))
-            seeds = list(range(first, last + 1))
+            ends = [first, last]
         else:
-            seeds = [int(part) for part in text.split(",")]
+            ends = [int(part) for part in text.split(",")]
     except ValueError:
         raise BadInput(f"--seed {text!r}: expected a seed, a list (0,1,2) or a range (0-3)") from None
-    if not seeds or not all(map(is_seed, seeds)) or len(set(seeds)) != len(seeds):
+    if not all(map(is_seed, ends)):  # before a range is built: its ends may be anything
         raise BadInput(f"--seed {text}: expected distinct seeds {SEED_RANGE}")
+    seeds = list(range(ends[0], ends[1] + 1)) if "-" in text else ends
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise BadInput(f"--seed {text}: expected distinct seeds {SEED_RANGE}, a range's first "
+                       "no greater than its last")
+    if len(seeds) > MAX_GROUP:
+        raise BadInput(f"--seed {text}: {len(seeds)} seeds; expected at most {MAX_GROUP} in one "
+                       "process")
     return seeds
 
 

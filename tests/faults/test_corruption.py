@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from ede.atomic import write_atomically
+from ede.atomic import MARK, write_atomically
 from ede.locks import lock_path
 from ede_pipeline.cli import main
 from tests.faults.conftest import TASK, Workdir, command
@@ -59,9 +59,16 @@ DAMAGE = {
 }
 
 
+def run_with(checkpoint: Path, out: Path) -> None:
+    """A run folder ``out`` holding a copy of ``checkpoint``, as its run left it (with the mark
+    that says a run wrote the folder)."""
+    shutil.copytree(checkpoint, out / "checkpoint")
+    shutil.copy(checkpoint.parent / MARK, out / MARK)
+
+
 def damaged_run(good: Path, tmp_path: Path, damage: str) -> Path:
     out = tmp_path / "run"
-    shutil.copytree(good, out / "checkpoint")
+    run_with(good, out)
     DAMAGE[damage][0](out / "checkpoint")
     return out
 
@@ -99,7 +106,7 @@ def test_another_seeds_checkpoint_is_named_moved_aside_and_not_resumed(
     workdir: Workdir, good_checkpoint: Path, tmp_path: Path
 ) -> None:
     out = tmp_path / "run"
-    shutil.copytree(good_checkpoint, out / "checkpoint")
+    run_with(good_checkpoint, out)
     result = workdir.run(*train_args(out, "td3", 1))
     assert result.returncode == 0, result.stderr
     assert "another run's: seed 0, not 1; moved aside to checkpoint.bad-" in result.stderr
@@ -166,7 +173,7 @@ def test_a_writer_removes_only_temporaries_whose_writer_is_dead(tmp_path: Path) 
         target = tmp_path / "out"
         for pid in (live.pid, dead.pid):
             (tmp_path / f"out.tmp-{pid}").mkdir()
-        write_atomically(target, lambda tmp: (tmp / "file").write_text("whole"))
+        write_atomically(target, lambda tmp: (tmp / "file").write_text("whole"), "test output")
         assert (target / "file").read_text() == "whole"
         assert (tmp_path / f"out.tmp-{live.pid}").exists()
         assert not (tmp_path / f"out.tmp-{dead.pid}").exists()

@@ -176,3 +176,20 @@ def test_a_truncated_or_foreign_store_is_one_line_exit_2(tmp_path: Path, write_p
     truncated = run("inspect", "--family", "point", "--rollouts", str(out), "--params", str(params))
     assert truncated.exit_code == 2 and truncated.stderr.count("\n") == 1, truncated.stderr
     assert str(out) in truncated.stderr and "Traceback" not in truncated.output
+
+
+def test_one_sub_environment_per_core_stops_where_the_steps_run_out(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``collect.num_envs: null`` on a machine of many cores: each sub-environment records one
+    episode at least, so no more of them than the steps hold episodes (64 cores, 2,000 steps of
+    100-step episodes: 20, not 64 recording 6,400 steps)."""
+    from ede_pipeline.collect import default_num_envs
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 64)
+    assert default_num_envs(2_000, 100) == 20
+    assert default_num_envs(100_000, 100) == 64
+    assert default_num_envs(50, 100) == 1
+    assert default_num_envs(10, None) == 10
+    monkeypatch.setattr(os, "cpu_count", lambda: None)
+    assert default_num_envs(2_000, 100) == 1

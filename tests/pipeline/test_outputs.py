@@ -35,7 +35,8 @@ def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
     os.chdir(root)
     try:
         for command in (["collect", "--family", "point"], ["pretrain", "encoder", "--family", "point"],
-                        ["pretrain", "decoder", "--family", "point"]):
+                        ["pretrain", "decoder", "--family", "point"],
+                        ["task-code", "--family", "point"]):
             result = CliRunner().invoke(main, command)
             assert result.exit_code == 0, result.output
     finally:
@@ -62,6 +63,13 @@ STAGES = {
     "train": ["train", "--task", "ede/Point-v0", "--algo", "td3", "--seed", "0", "--out", "{out}"],
     "report": ["report", "--out", "{out}"],
 }
+# Every stage that writes a folder, by the option that names it.
+FOLDER_STAGES = {
+    **STAGES,
+    "report curves": ["report", "--out", "r", "--curves", "{out}"],
+    "task-code": ["task-code", "--family", "point", "--out", "{out}"],
+    "task-inputs": ["task-inputs", "--task", "ede/Point-v0", "--out", "{out}"],
+}
 PLACES = {
     "a file in the way": ("afile", "afile: a file is in the way; expected a directory there"),
     "a file among its parents": ("afile/out", "afile/out: cannot be created: afile is a file, "
@@ -72,12 +80,12 @@ PLACES = {
 
 
 @pytest.mark.parametrize("place", PLACES)
-@pytest.mark.parametrize("stage", STAGES)
+@pytest.mark.parametrize("stage", FOLDER_STAGES)
 def test_an_output_that_cannot_be_written_is_refused_before_work(workdir: Path, stage: str,
                                                                  place: str) -> None:
     out, message = PLACES[place]
     before = listing(workdir)
-    result = CliRunner().invoke(main, [a.replace("{out}", out) for a in STAGES[stage]])
+    result = CliRunner().invoke(main, [a.replace("{out}", out) for a in FOLDER_STAGES[stage]])
     assert result.exit_code == 2, result.output
     lines = result.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"Error: {message}"), result.stderr
@@ -157,3 +165,148 @@ def test_a_sweeps_log_folder_is_checked_before_anything_runs(tmp_path: Path,
     assert result.exit_code == 2
     assert result.stderr == "Error: --logs afile/logs: cannot be created: afile is a file, not a directory\n"
     assert listing(tmp_path) == before
+
+
+# ---------------------------------------------------------------------------------------------
+# Nothing lost: a stage replaces or writes into a folder only where it wrote it itself.
+
+ROLLOUTS = "data/families/point/rollouts.zarr"
+ENCODER = "data/families/point/embedding/encoder"
+
+
+def contents(root: Path) -> dict[str, bytes]:
+    """Every file under ``root`` with its bytes: what a stage must leave as it was."""
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def refused(args: list[str], workdir: Path, *message: str) -> None:
+    before = contents(workdir)
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 2, result.output
+    assert len(result.stderr.splitlines()) == 1 and result.exception is not None, result.stderr
+    assert all(part in result.stderr for part in message), result.stderr
+    assert contents(workdir) == before
+
+
+def run(stage: str, out: str) -> list[str]:
+    return [a.replace("{out}", out) for a in FOLDER_STAGES[stage]]
+
+
+@pytest.mark.parametrize("stage", FOLDER_STAGES)
+def test_no_stage_deletes_a_folder_of_a_users_files(workdir: Path, stage: str) -> None:
+    """The issue's example for every stage: --out names a folder holding a copy of the family's
+    rollouts and a user's notes; both stay, byte for byte."""
+    shutil.copytree(ROLLOUTS, "mine/rollouts.zarr")
+    (workdir / "mine" / "NOTES.txt").write_text("a week of thoughts\n")
+    refused(run(stage, "mine"), workdir, "mine: holds NOTES.txt, rollouts.zarr, which no ede stage "
+            "wrote there")
+
+
+@pytest.mark.parametrize("stage", FOLDER_STAGES)
+@pytest.mark.parametrize("place", [".", "..", "../.."])
+def test_no_stage_writes_over_the_working_directory_or_above(workdir: Path, stage: str,
+                                                              place: str) -> None:
+    refused(run(stage, place), workdir, "the working directory")
+
+
+@pytest.mark.parametrize("stage", ["collect", "encoder", "decoder", "task-code", "task-inputs"])
+def test_a_stage_replaces_its_own_output_and_nothing_beside_it(workdir: Path, stage: str) -> None:
+    first = CliRunner().invoke(main, run(stage, "out"))
+    assert first.exit_code == 0, first.output
+    again = CliRunner().invoke(main, run(stage, "out"))  # its own: replaced
+    assert again.exit_code == 0, again.output
+    (workdir / "out" / "NOTES.txt").write_text("mine\n")
+    refused(run(stage, "out"), workdir, "out: holds NOTES.txt beside the")
+
+
+def test_a_training_run_resumes_in_its_own_folder_but_keeps_off_a_users_file(workdir: Path) -> None:
+    args = run("train", "run")
+    assert CliRunner().invoke(main, args).exit_code == 0
+    assert CliRunner().invoke(main, args).exit_code == 0
+    (workdir / "run" / "NOTES.txt").write_text("mine\n")
+    refused(args, workdir, "run: holds NOTES.txt beside the training run")
+
+
+@pytest.mark.parametrize(("stage", "other", "kinds"), [
+    ("encoder", "data/families/point/embedding/decoder", "holds a decoder, not an encoder"),
+    ("decoder", "records", "holds a folder of task records, not a decoder"),
+    ("collect", ENCODER, "holds an encoder, not a rollouts store"),
+    ("report", "records", "holds a folder of task records, not a report"),
+    ("train", ROLLOUTS, "holds a rollouts store, not a training run"),
+])
+def test_a_stage_never_replaces_another_stages_output(workdir: Path, stage: str, other: str,
+                                                       kinds: str) -> None:
+    assert CliRunner().invoke(main, run("task-code", "records")).exit_code == 0
+    refused(run(stage, other), workdir, kinds)
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["pretrain", "encoder", "--family", "point", "--out", "data/families/point"],
+     f"data/families/point: holds the stage's input {ROLLOUTS}"),
+    (["pretrain", "encoder", "--family", "point", "--out", "e", "--metrics",
+      f"{ROLLOUTS}/zarr.json"], f"{ROLLOUTS}/zarr.json: lies inside the stage's input {ROLLOUTS}"),
+    (["pretrain", "decoder", "--family", "point", "--out", "d", "--plots", f"{ENCODER}/meta.json"],
+     f"lies inside the stage's input {ENCODER}"),
+    (["report", "--out", "r", "--curves", "data"], "data: holds the stage's input data/runs"),
+    (["report", "--out", "r", "--metrics", "data/runs/m.json"],
+     "data/runs/m.json: lies inside the stage's input data/runs"),
+    (["task-inputs", "--task", "ede/Point-v0", "--out", "data/families/point/embedding"],
+     "data/families/point/embedding: is the stage's input data/families/point/embedding"),
+])
+def test_no_output_is_holds_or_lies_inside_an_input(workdir: Path, args: list[str],
+                                                     message: str) -> None:
+    (workdir / "data" / "runs").mkdir(exist_ok=True)
+    (workdir / "data" / "families" / "point" / "code").mkdir(exist_ok=True)
+    refused(args, workdir, message)
+
+
+def test_ede_td3_refuses_a_run_folder_inside_its_embedding(workdir: Path) -> None:
+    refused(["train", "--task", "ede/Point-v0", "--algo", "ede-td3", "--seed", "0", "--out",
+             f"{ENCODER}/run"], workdir, f"{ENCODER}/run: lies inside the stage's input {ENCODER}")
+
+
+def test_the_library_refuses_too(tmp_path: Path) -> None:
+    """``write_atomically`` itself keeps off what it did not write, for code that calls it."""
+    from ede.atomic import NotOurs, write_atomically
+
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "NOTES.txt").write_text("mine\n")
+    with pytest.raises(NotOurs, match="holds NOTES.txt, which no ede stage wrote there"):
+        write_atomically(tmp_path / "mine", lambda t: (t / "x").write_text("x"), "thing")
+    assert listing(tmp_path) == ["mine", "mine/NOTES.txt"]
+
+
+# A write that fails midway: each process limits the size of a file it writes (RLIMIT_FSIZE), so
+# a write past the limit fails with EFBIG, as one on a full disk fails with ENOSPC.
+LIMITED = """
+import resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, ({limit}, {limit}))
+from ede_pipeline.cli import main
+sys.argv = ["ede-pipeline", *sys.argv[1:]]
+main()
+"""
+
+
+@pytest.mark.parametrize(("args", "limit", "out"), [
+    (["collect", "--family", "point", "--out", "r.zarr"], 2_000, "r.zarr"),
+    (["pretrain", "encoder", "--family", "point", "--out", "e"], 2_000, "e"),
+    (["report", "--runs", "empty", "--out", "r"], 2_000, "r"),
+])
+def test_a_write_that_fails_midway_is_one_line_and_leaves_nothing(
+    workdir: Path, args: list[str], limit: int, out: str,
+) -> None:
+    import subprocess
+    import sys
+
+    (workdir / "empty").mkdir()
+    before = listing(workdir)
+    result = subprocess.run([sys.executable, "-c", LIMITED.format(limit=limit), *args],
+                            capture_output=True, text=True, timeout=600)
+    assert result.returncode == 1, result.stderr
+    errors = [line for line in result.stderr.splitlines() if line.startswith("Error:")]
+    assert errors == [line for line in result.stderr.splitlines() if "Traceback" in line or
+                      line.startswith("Error:")], result.stderr  # no traceback
+    assert len(errors) == 1 and f"{out}" in errors[0] and "not written (File too large)" in errors[0]
+    left = sorted(set(listing(workdir)) - set(before))
+    assert left == [], left  # no temporary, no lock, no half an output
