@@ -99,7 +99,7 @@ def test_with_refuse_a_damaged_checkpoint_is_one_line_exit_2_and_left_alone(
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and DAMAGE[damage][1] in lines[0] and "refuse" in lines[0], lines
     assert {p.name: p.read_bytes() for p in (out / "checkpoint").iterdir()} == before
-    assert sorted(p.name for p in out.iterdir()) == ["checkpoint"]
+    assert sorted(p.name for p in out.iterdir()) == [MARK, "checkpoint"]
 
 
 def test_another_seeds_checkpoint_is_named_moved_aside_and_not_resumed(
@@ -119,7 +119,7 @@ def test_a_full_disk_keeps_the_previous_checkpoint_and_the_rerun_resumes_from_it
 ) -> None:
     import ede.training
 
-    real, calls = ede.training.save_file, []
+    real, calls = ede.training.save_tensors, []
 
     def fills_up(tensors, path, *args, **kwargs):
         calls.append(path)
@@ -129,7 +129,7 @@ def test_a_full_disk_keeps_the_previous_checkpoint_and_the_rerun_resumes_from_it
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.chdir(workdir.path)
-    monkeypatch.setattr(ede.training, "save_file", fills_up)
+    monkeypatch.setattr(ede.training, "save_tensors", fills_up)
     out = tmp_path / "run"
     result = CliRunner().invoke(main, train_args(out))
     assert result.exit_code == 1, result.output

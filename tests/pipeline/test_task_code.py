@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
+from ede.atomic import MARK
 from ede_envs import TASKS
 from ede_pipeline.cli import main
 from ede_pipeline.closure import package_dirs, task_code, task_record
@@ -82,8 +83,9 @@ def test_the_command_writes_one_record_per_task_of_the_family(tmp_path: Path, wr
     result = CliRunner().invoke(main, ["task-code", "--family", "reacher", "--params", str(params),
                                        "--out", str(out)])
     assert result.exit_code == 0, result.output
-    written = sorted(str(p.relative_to(out)) for p in out.rglob("*.json"))
+    written = sorted(str(p.relative_to(out)) for p in out.rglob("*.json") if p.name != MARK)
     assert written == sorted(f"{task}.json" for task in REACHER)
+    assert json.loads((out / MARK).read_text())["kind"] == "folder of task records"
     assert json.loads((out / "ede/ReacherTurn-v0.json").read_text()) == task_code("ede/ReacherTurn-v0")
     assert not list(tmp_path.glob("code.tmp-*"))
 
