@@ -489,7 +489,7 @@ def report(
 ) -> None:
     """Stage 5: learning curves, tables, the EDE pictures and provenance in one HTML page."""
     torch.set_num_threads(params.embedding.threads)  # it only encodes and decodes small batches
-    given = (Path(pair.partition("=")[2]) for pair in (*embeddings, *rollouts))
+    given = (Path(path) for pair in (*embeddings, *rollouts) if (path := pair.partition("=")[2]))
     with holding((out, "report"), files=(metrics,), dirs=((curves, "report curves"),),
                  inputs=(runs, families, *given)):
         _report(params, read_inputs(params, runs, embeddings, rollouts, families), out, metrics,

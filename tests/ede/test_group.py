@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from ede.atomic import MARK
 from ede.config import EdeTD3Config, TD3Config
 from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
 from ede.training import RunSpec, train_group, train_run
@@ -58,6 +59,7 @@ def test_a_group_resumes_exactly_even_when_its_members_stopped_at_different_step
     for seed, out in zip(SEEDS, outs):
         if seed != 0:  # seed 0 lost its checkpoint: it starts over and catches up alone
             shutil.copytree(group / f"seed{seed}" / "checkpoint", out / "checkpoint")
+            shutil.copy(group / f"seed{seed}" / MARK, out / MARK)  # the run folder's own
     metrics = train_group([spec(s) for s in SEEDS], outs, device=CPU)
     assert [m["resumed_from_step"] for m in metrics] == [None, 400, 400, 400]
     for seed, out in zip(SEEDS, outs):
@@ -70,10 +72,12 @@ def test_a_run_alone_resumes_in_a_group_and_a_member_resumes_alone(group: Path,
     train_run(spec(2), alone, device=CPU, keep_checkpoint=True)  # its checkpoint: step 400
     outs = [tmp_path / "seed2", tmp_path / "seed3"]
     shutil.copytree(alone / "checkpoint", outs[0] / "checkpoint")
+    shutil.copy(alone / MARK, outs[0] / MARK)  # the run folder's own
     metrics = train_group([spec(2), spec(3)], outs, device=CPU)  # seed 3 from its start
     assert [m["resumed_from_step"] for m in metrics] == [400, None]
     assert outputs(outs[0]) == outputs(alone) == outputs(group / "seed2")
     shutil.copytree(group / "seed1" / "checkpoint", tmp_path / "seed1" / "checkpoint")
+    shutil.copy(group / "seed1" / MARK, tmp_path / "seed1" / MARK)  # the run folder's own
     assert train_run(spec(1), tmp_path / "seed1", device=CPU)["resumed_from_step"] == 400
     assert outputs(tmp_path / "seed1") == outputs(group / "seed1")
 
