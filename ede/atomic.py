@@ -11,11 +11,10 @@ import tempfile
 from collections.abc import Callable, Iterable
 from fnmatch import fnmatchcase
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
-from safetensors import SafetensorError
-from safetensors.torch import save_file
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["MARK", "NotOurs", "NotWritten", "claim", "ownership_problem",
            "remove_stale_temporaries", "save_tensors", "sha256", "write_atomically", "write_json", "write_text"]
@@ -142,6 +141,10 @@ def write_atomically(path: str | Path, write: Callable[[Path], None], kind: str)
 def save_tensors(tensors: dict[str, torch.Tensor], path: Path) -> None:
     """safetensors' ``save_file``, whose failures to write (a full disk) are OSErrors, as every
     other write's: safetensors reports them as ``SafetensorError: ... (os error N)``."""
+    # Imported here: the stages that write no tensors (task-code) need not import torch.
+    from safetensors import SafetensorError
+    from safetensors.torch import save_file
+
     try:
         save_file(tensors, path)
     except SafetensorError as error:

@@ -95,6 +95,14 @@ def ok(result: subprocess.CompletedProcess[str]) -> str:
     return result.stdout + result.stderr
 
 
+def one_task_upstream(dest: Path, shrink: Callable[[dict[str, Any]], None], task: str) -> Path:
+    """A scratch copy at ``dest`` whose ``task``'s runs (1,000 steps, a checkpoint every 200:
+    :func:`one_task_runs`) have their embedding made (``dvc repro task_inputs``) and no run yet."""
+    copy = scratch_copy(dest, one_task_runs(shrink, task, steps=1_000, checkpoint_every=200))
+    ok(dvc(copy, "repro", "task_inputs"))
+    return copy
+
+
 def one_task_runs(shrink: Callable[[dict[str, Any]], None], task: str, steps: int,
                   checkpoint_every: int) -> Callable[[dict[str, Any]], None]:
     """An edit of params for :func:`scratch_copy`: ``shrink``'s (e.g. the tiny pipeline), then the

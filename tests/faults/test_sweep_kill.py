@@ -15,7 +15,7 @@ from typing import Any
 
 import pytest
 
-from tests.support import BIN, dvc, ok, one_task_runs, scratch_copy, tool_env, train_record
+from tests.support import BIN, dvc, ok, one_task_upstream, tool_env, train_record
 
 pytestmark = pytest.mark.slow
 
@@ -25,10 +25,7 @@ TASK = "ede/ReacherVertical-v0"
 @pytest.fixture(scope="module")
 def upstream(tmp_path_factory: pytest.TempPathFactory,
              tiny_pipeline: Callable[[dict[str, Any]], None]) -> Path:
-    copy = scratch_copy(tmp_path_factory.mktemp("sweep-kill") / "upstream",
-                        one_task_runs(tiny_pipeline, TASK, steps=1_000, checkpoint_every=200))
-    ok(dvc(copy, "repro", "task_inputs"))
-    return copy
+    return one_task_upstream(tmp_path_factory.mktemp("sweep-kill") / "upstream", tiny_pipeline, TASK)
 
 
 def test_a_killed_sweep_resumes_to_what_dvc_repro_records(

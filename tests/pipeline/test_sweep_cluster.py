@@ -41,8 +41,7 @@ from typing import Any
 import psutil
 import pytest
 
-from tests.support import (BIN, dvc, ok, one_task_runs, run, scratch_copy, tool_env,
-                           train_record)
+from tests.support import BIN, dvc, ok, one_task_upstream, run, tool_env, train_record
 from ede_pipeline import layout
 from ede_pipeline.sweep import Job, RayExecutor, check_ray_address
 
@@ -59,10 +58,7 @@ WAIT = 120.0  # seconds any one awaited event may take before the test fails
 def upstream(tmp_path_factory: pytest.TempPathFactory,
              tiny_pipeline: Callable[[dict[str, Any]], None]) -> Path:
     """A copy whose embedding is made (collect, pretrain) and no run yet."""
-    copy = scratch_copy(tmp_path_factory.mktemp("cluster") / "upstream",
-                        one_task_runs(tiny_pipeline, TASK, steps=1_000, checkpoint_every=200))
-    ok(dvc(copy, "repro", "task_inputs"))
-    return copy
+    return one_task_upstream(tmp_path_factory.mktemp("cluster") / "upstream", tiny_pipeline, TASK)
 
 
 @pytest.fixture(scope="module")
