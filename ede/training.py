@@ -150,20 +150,25 @@ def _adapter(spec: RunSpec, space: gymnasium.spaces.Box, embedding: ActionEmbedd
 
 class _Run:
     """One run of a group: its environments, the episode under way, its counters and history.
-    Its learner state is member ``index`` of the group's agent and replay buffer."""
+    Its learner state is member ``index`` of the group's agent and replay buffer, whose count is
+    the run's environment steps (:attr:`step`)."""
 
     def __init__(self, index: int, spec: RunSpec, group: _Group) -> None:
         self.index, self.spec, self.group = index, spec, group
         self.env = make(spec.task)
         self.eval_env = make(spec.task)
         self.executor = CodeExecutor(self.env, group.adapter)
-        self.step = 0
         self.episodes = 0
         self.history: list[dict[str, float]] = []
         self.diagnostics: list[dict[str, float]] = []  # training's means between evaluations
         self.wall = 0.0  # seconds spent, over every session of this run
         self.failed: str | None = None  # why it stopped, once it diverged
         self.obs, self.episode = Episode.begin(self.env, spec.seed)
+
+    @property
+    def step(self) -> int:
+        """Environment steps taken: the steps this run's member wrote to the replay buffer."""
+        return int(self.group.buffer.count[self.index])
 
     # The loop ------------------------------------------------------------------------------
 
@@ -205,7 +210,6 @@ class _Run:
                    step.terminated, step.truncated)
         self.episode.actions.append(step.action)
         self.episode.ret += step.reward
-        self.step += 1
         updates = 1 if config.update_schedule == "step" else 0
         if step.ended:
             if config.update_schedule == "episode":
@@ -265,7 +269,7 @@ class _Run:
         saved = checkpoint.read(path, self.spec, group.layout)
         self.obs, self.episode = checkpoint.apply(saved, group.agent, group.buffer, self.index,
                                                   self.executor, self.env)
-        self.step, self.episodes, self.wall = saved.step, saved.episodes, saved.wall_seconds
+        self.episodes, self.wall = saved.episodes, saved.wall_seconds
         self.history, self.diagnostics = list(saved.history), list(saved.diagnostics)
         return True
 
