@@ -11,17 +11,17 @@ writes, into its directory:
 * ``metrics.json``: final and best return, area under the curve, steps per second, episodes;
   written last, so a run with ``metrics.json`` is complete;
 * ``policy/``: the final actor as safetensors beside its JSON metadata;
-* ``checkpoint/`` while it runs: everything needed to continue exactly — its member's slice of
-  the agent (``agent.*``: networks, optimiser moments and step, counters, diagnostics sums,
-  generator states; :meth:`ede.td3.Agent.state_dict`) and of the replay buffer (``buffer.*``),
-  the code under way, the evaluation history, and the current episode as its start plus the
-  actions taken since, replayed on resume. The format is the same for a run trained alone and
-  for a member of a group, so either resumes the other. A run started where a checkpoint of the
-  same configuration exists continues from it; on CPU a run killed at any point and resumed
-  ends with the same ``eval.csv`` returns as an uninterrupted one.
+* ``checkpoint/`` while it runs: everything needed to continue exactly, in the format of
+  :mod:`ede.checkpoint` — the same for a run trained alone and for a member of a group, so either
+  resumes the other. A run started where a checkpoint of the same configuration exists continues
+  from it; on CPU a run killed at any point and resumed ends with the same ``eval.csv`` returns
+  as an uninterrupted one.
 
 A group of runs (several seeds of one task and algorithm) is one :class:`ede.td3.Agent` with a
 member per run; a run alone is a group of one. Each run's outputs are what it gets alone.
+
+This module orchestrates: :class:`_Run` steps one run's environment, :class:`_Group` schedules
+the runs' steps and batched updates, and :class:`_Session` writes one run's outputs.
 """
 
 from __future__ import annotations
@@ -40,18 +40,16 @@ from typing import Any
 import gymnasium
 import numpy as np
 import torch
-from safetensors.torch import load_file
-
+from ede import checkpoint
 from ede.atomic import (
-    NotWritten,
     claim,
     remove_stale_temporaries,
     save_tensors,
-    sha256,
     write_atomically,
     write_json,
     write_text,
 )
+from ede.checkpoint import CheckpointError, Episode, Layout
 from ede.config import EdeTD3Config, TD3Config
 from ede.embedding import ActionEmbedding
 from ede.nets import flush_denormals
@@ -67,14 +65,7 @@ from ede.td3 import (
     ReplayBuffer,
 )
 
-__all__ = ["CheckpointError", "CheckpointWriteError", "Diverged", "RunSpec", "evaluate",
-           "train_group", "train_run"]
-
-CHECKSUMS = "checksums.json"
-
-
-class CheckpointError(Exception):
-    """A checkpoint that cannot be used: unreadable, damaged, or another run's."""
+__all__ = ["Diverged", "RunSpec", "evaluate", "train_group", "train_run"]
 
 
 class Diverged(Exception):
@@ -83,11 +74,6 @@ class Diverged(Exception):
     the group's other runs finished."""
 
 
-class CheckpointWriteError(Exception):
-    """A checkpoint could not be written (a full disk, ...); the previous one is intact."""
-
-
-CHECKPOINT_VERSION = 4  # 2: diagnostics; 3: checksums, identity; 4: a member's slice
 EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes are seeded apart from training ones
 EVAL_COLUMNS = ("step", "episode", "mean_return", "std_return", "wall_seconds")
 DIAGNOSTIC_COLUMNS = ("step", "updates", "critic_loss", "actor_loss", "mean_q")
@@ -144,37 +130,6 @@ def evaluate(
     return returns
 
 
-@dataclass
-class _Episode:
-    """The training episode under way, and how to rebuild it: its start and its actions."""
-
-    start: dict[str, Any]  # {"seed": s} for the first episode, else {"rng": bit generator state}
-    actions: list[np.ndarray] = field(default_factory=list)
-    ret: float = 0.0
-
-
-def _reset(env: gymnasium.Env, seed: int | None) -> tuple[np.ndarray, _Episode]:
-    if seed is not None:
-        start: dict[str, Any] = {"seed": seed}
-        obs, _ = env.reset(seed=seed)
-    else:
-        start = {"rng": env.unwrapped.np_random.bit_generator.state}
-        obs, _ = env.reset()
-    return obs, _Episode(start)
-
-
-def _replay(env: gymnasium.Env, episode: _Episode) -> np.ndarray:
-    """Rebuild the environment's state: the same reset, then the same actions."""
-    if "seed" in episode.start:
-        obs, _ = env.reset(seed=episode.start["seed"])
-    else:
-        env.unwrapped.np_random.bit_generator.state = episode.start["rng"]
-        obs, _ = env.reset()
-    for action in episode.actions:
-        obs, *_ = env.step(action)
-    return obs
-
-
 def _csv(rows: list[dict[str, float]], columns: tuple[str, ...] = EVAL_COLUMNS) -> str:
     out = io.StringIO()
     writer = csv.DictWriter(out, fieldnames=columns, lineterminator="\n")
@@ -195,20 +150,25 @@ def _adapter(spec: RunSpec, space: gymnasium.spaces.Box, embedding: ActionEmbedd
 
 class _Run:
     """One run of a group: its environments, the episode under way, its counters and history.
-    Its learner state is member ``index`` of the group's agent and replay buffer."""
+    Its learner state is member ``index`` of the group's agent and replay buffer, whose count is
+    the run's environment steps (:attr:`step`)."""
 
     def __init__(self, index: int, spec: RunSpec, group: _Group) -> None:
         self.index, self.spec, self.group = index, spec, group
         self.env = make(spec.task)
         self.eval_env = make(spec.task)
         self.executor = CodeExecutor(self.env, group.adapter)
-        self.step = 0
         self.episodes = 0
         self.history: list[dict[str, float]] = []
         self.diagnostics: list[dict[str, float]] = []  # training's means between evaluations
         self.wall = 0.0  # seconds spent, over every session of this run
         self.failed: str | None = None  # why it stopped, once it diverged
-        self.obs, self.episode = _reset(self.env, spec.seed)
+        self.obs, self.episode = Episode.begin(self.env, spec.seed)
+
+    @property
+    def step(self) -> int:
+        """Environment steps taken: the steps this run's member wrote to the replay buffer."""
+        return int(self.group.buffer.count[self.index])
 
     # The loop ------------------------------------------------------------------------------
 
@@ -250,13 +210,12 @@ class _Run:
                    step.terminated, step.truncated)
         self.episode.actions.append(step.action)
         self.episode.ret += step.reward
-        self.step += 1
         updates = 1 if config.update_schedule == "step" else 0
         if step.ended:
             if config.update_schedule == "episode":
                 updates = len(self.episode.actions)  # one per step of the episode just ended
             self.episodes += 1
-            self.obs, self.episode = _reset(self.env, None)
+            self.obs, self.episode = Episode.begin(self.env, None)
         else:
             self.obs = step.next_obs
         if self.step < config.start_steps or buffer.sampleable(self.index) < config.batch_size:
@@ -279,89 +238,40 @@ class _Run:
     # Checkpoints ---------------------------------------------------------------------------
 
     def save(self, path: Path) -> None:
-        """This run's checkpoint: its member's slice of the agent and the replay buffer
-        (``Agent.state_dict``, ``ReplayBuffer.state_dict``), its episode and its history — the
-        same whether it trained alone or in a group, so either can resume the other."""
-        group = self.group
-        tensors = {f"agent.{k}": v for k, v in group.agent.state_dict(self.index).items()}
-        tensors |= {f"buffer.{k}": v for k, v in group.buffer.state_dict(self.index).items()}
-        plan = self.executor.plan
-        tensors["code"] = self.executor.code
-        tensors["plan"] = torch.as_tensor(plan)
-        tensors["episode_actions"] = torch.as_tensor(
-            np.array(self.episode.actions, dtype=plan.dtype).reshape(-1, plan.shape[1])
-        )
-        tensors["obs"] = torch.as_tensor(np.asarray(self.obs))
-        state = {
-            "version": CHECKPOINT_VERSION,
-            "fingerprint": self.spec.fingerprint(),
-            "identity": self.spec.identity(),
-            "step": self.step,
-            "episodes": self.episodes,
-            "i": self.executor.i,
-            "wall_seconds": self.wall,
-            "episode_start": self.episode.start,
-            "episode_return": self.episode.ret,
-            "history": self.history,
-            "diagnostics": self.diagnostics,
-        }
-
-        def write(tmp: Path) -> None:
-            save_tensors({k: v.detach().cpu().clone() for k, v in tensors.items()},
-                      tmp / "state.safetensors")
-            (tmp / "state.json").write_text(json.dumps(state, allow_nan=False))
-            sums = {name: sha256(tmp / name) for name in ("state.safetensors", "state.json")}
-            (tmp / CHECKSUMS).write_text(json.dumps(sums, allow_nan=False))
-
-        write_atomically(path, write, kind="checkpoint")
-
-    def load(self, path: Path) -> bool:
-        """Continue from the checkpoint at ``path``; False where there is none.
+        """Write this run's checkpoint (:func:`ede.checkpoint.write`): its member's slice of the
+        agent and the replay buffer, its code, episode and history.
 
         Raises:
-            CheckpointError: it cannot be used — a file missing, damaged or changed (its checksum),
-                an older format, another run's (another seed, task, params or embedding), or a
-                state its episode's replay does not reach. This run's member may then be partly
-                overwritten: the caller resets it (:meth:`_Group.reset`).
+            CheckpointWriteError: it could not be written; the previous one is intact.
+        """
+        group, executor = self.group, self.executor
+        state = checkpoint.Checkpoint(
+            agent=group.agent.state_dict(self.index),
+            buffer=group.buffer.state_dict(self.index),
+            code=executor.code, plan=executor.plan, i=executor.i,
+            episode=self.episode, obs=self.obs, episodes=self.episodes,
+            history=self.history, diagnostics=self.diagnostics, wall_seconds=self.wall,
+        )
+        checkpoint.write(path, self.spec, state)
+
+    def load(self, path: Path) -> bool:
+        """Continue from the checkpoint at ``path``: :func:`ede.checkpoint.read` verifies it,
+        :func:`ede.checkpoint.apply` restores it. False where there is none.
+
+        Raises:
+            CheckpointError: it cannot be used. The agent and the replay buffer are untouched;
+                this run's environment may be mid-replay: the caller restarts the run
+                (:meth:`_Group.restart`).
         """
         if not path.exists():
             return False
-        state = _verified_state(path)
-        if state.get("version") != CHECKPOINT_VERSION:
-            raise CheckpointError(f"format version {state.get('version')}, this version reads "
-                                  f"{CHECKPOINT_VERSION}")
-        if state.get("fingerprint") != self.spec.fingerprint():
-            raise CheckpointError(f"another run's: {_difference(state.get('identity'), self.spec)}")
-        try:
-            self._restore(path, state)
-        except Exception as error:  # noqa: BLE001 — whatever is wrong, the run must restart
-            raise CheckpointError(f"not restorable ({_first_line(error)})") from None
-        return True
-
-    def _restore(self, path: Path, state: dict[str, Any]) -> None:
-        tensors = load_file(path / "state.safetensors")
         group = self.group
-        group.agent.load_state_dict(self.index, {k.removeprefix("agent."): v
-                                                 for k, v in tensors.items()
-                                                 if k.startswith("agent.")})
-        group.buffer.load_state_dict(self.index, {k.removeprefix("buffer."): v
-                                                  for k, v in tensors.items()
-                                                  if k.startswith("buffer.")})
-        if int(group.buffer.count[self.index]) != state["step"]:
-            raise RuntimeError("the replay buffer does not hold the run's steps")
-        self.executor.code = tensors["code"].to(group.device)
-        self.executor.plan = tensors["plan"].numpy()
-        self.executor.i = state["i"]
-        self.step, self.episodes = state["step"], state["episodes"]
-        self.wall, self.history = state["wall_seconds"], state["history"]
-        self.diagnostics = state["diagnostics"]
-        self.episode = _Episode(
-            state["episode_start"], list(tensors["episode_actions"].numpy()),
-            state["episode_return"],
-        )
-        self.obs = _replay(self.env, self.episode)
-        if not np.array_equal(self.obs, tensors["obs"].numpy()):
-            raise RuntimeError("replaying the episode did not reach the saved state")
+        saved = checkpoint.read(path, self.spec, group.layout)
+        self.obs, self.episode = checkpoint.apply(saved, group.agent, group.buffer, self.index,
+                                                  self.executor, self.env)
+        self.episodes, self.wall = saved.episodes, saved.wall_seconds
+        self.history, self.diagnostics = list(saved.history), list(saved.diagnostics)
+        return True
 
 
 class _Group:
@@ -372,22 +282,22 @@ class _Group:
                  device: torch.device) -> None:
         spec, self.device = specs[0], device
         probe = make(spec.task)
-        space = probe.action_space
-        assert isinstance(space, gymnasium.spaces.Box)
-        obs_size = int(np.prod(probe.observation_space.shape))
+        space, obs_shape = probe.action_space, probe.observation_space.shape
+        assert isinstance(space, gymnasium.spaces.Box) and obs_shape is not None
+        obs_size = int(np.prod(obs_shape))
         probe.close()
         self.adapter = _adapter(spec, space, embedding, device)
         self.agent = Agent(obs_size, self.adapter, spec.td3, device, [s.seed for s in specs])
         capacity = min(spec.td3.buffer_size, spec.budget)
         self.buffer = ReplayBuffer(capacity, obs_size, self.adapter.code_size, self.adapter.k,
                                    device, len(specs))
+        self.layout = Layout.of(self.agent, self.buffer, obs_shape,
+                                (self.adapter.k, *space.shape))
         self.runs = [_Run(j, s, self) for j, s in enumerate(specs)]
-        self._fresh = [self.agent.state_dict(j) for j in range(len(specs))]
 
-    def reset(self, index: int) -> _Run:
-        """Run ``index`` from its start again (after a checkpoint that could not be used)."""
-        self.agent.load_state_dict(index, self._fresh[index])
-        self.buffer.count[index] = 0
+    def restart(self, index: int) -> _Run:
+        """Run ``index`` from its start again, with fresh environments (after a checkpoint that
+        could not be used, which left its member of the agent and buffer as they were)."""
         self.runs[index] = _Run(index, self.runs[index].spec, self)
         return self.runs[index]
 
@@ -418,40 +328,6 @@ class _Group:
             if run.failed is None:  # a member that stopped earlier keeps its first reason
                 run.failed = str(run.diverged(run.step, quantity))
         return [run for run in stepping if run.failed is None]
-
-
-def _first_line(error: BaseException) -> str:
-    return (str(error).strip().splitlines() or [type(error).__name__])[0]
-
-
-def _verified_state(path: Path) -> dict[str, Any]:
-    """``state.json`` of a checkpoint whose files all match their checksums."""
-    try:
-        sums = json.loads((path / CHECKSUMS).read_text())
-        for name in ("state.safetensors", "state.json"):
-            if sha256(path / name) != sums[name]:
-                raise CheckpointError(f"{name} does not match its checksum (damaged or changed)")
-        return json.loads((path / "state.json").read_text())
-    except CheckpointError:
-        raise
-    except FileNotFoundError as error:
-        raise CheckpointError(f"{Path(error.filename).name} is missing") from None
-    except (OSError, ValueError, KeyError, TypeError) as error:
-        raise CheckpointError(f"not readable ({_first_line(error)})") from None
-
-
-def _difference(identity: Any, spec: RunSpec) -> str:
-    """What tells another run's checkpoint from this run: the first identity key that differs."""
-    if not isinstance(identity, dict):
-        return "its identity is not recorded"
-    for key, value in spec.identity().items():
-        if identity.get(key) != value:
-            if key == "params":
-                return "made with other params"
-            if key == "embedding":
-                return "made with another embedding"
-            return f"{key} {identity.get(key)}, not {value}"
-    return "made by another configuration"
 
 
 def _write_curves(out: Path, run: _Run) -> None:
@@ -503,7 +379,8 @@ def train_group(
 
     Raises:
         CheckpointError: a bad checkpoint under "refuse".
-        CheckpointWriteError: a checkpoint could not be written; the previous one is kept.
+        CheckpointWriteError: a checkpoint could not be written; the previous one is kept
+            (:func:`ede.checkpoint.write`).
     """
     spec = specs[0]
     if spec.algo not in ("td3", "ede-td3"):
@@ -551,16 +428,16 @@ class _Session:
     def start(cls, group: _Group, index: int, out: Path, bad_checkpoint: str,
               notice: Callable[[str], None]) -> _Session:
         claim(out, RUN_KIND, RUN_OWNS)
-        checkpoint = out / "checkpoint"
+        path = out / "checkpoint"
         run = group.runs[index]
         try:
-            resumed = run.load(checkpoint)
+            resumed = run.load(path)
         except CheckpointError as error:
             if bad_checkpoint == "refuse":
-                raise CheckpointError(f"{checkpoint}: {error}") from None
-            aside = _move_aside(checkpoint)
-            notice(f"{checkpoint}: {error}; moved aside to {aside.name}, starting over")
-            run, resumed = group.reset(index), False
+                raise CheckpointError(f"{path}: {error}") from None
+            aside = _move_aside(path)
+            notice(f"{path}: {error}; moved aside to {aside.name}, starting over")
+            run, resumed = group.restart(index), False
         session = cls(group, index, out, resumed, steps_at_start=run.step, wall_at_start=run.wall)
         if not run.history:
             run.evaluate()
@@ -581,20 +458,15 @@ class _Session:
             _write_curves(self.out, run)
         if run.step % config.checkpoint_every == 0 and run.step < run.spec.budget:
             self.clock()
-            checkpoint = self.out / "checkpoint"
-            try:
-                run.save(checkpoint)
-            except OSError as error:
-                reason = error.reason if isinstance(error, NotWritten) else error.strerror or error
-                raise CheckpointWriteError(f"{checkpoint}: not written ({reason}); "
-                                           "the previous checkpoint is kept") from None
+            run.save(self.out / "checkpoint")
 
     def stopped(self) -> str:
         """A diverged run's line, with where it would resume: its last checkpoint."""
-        checkpoint = self.out / "checkpoint"
+        path = self.out / "checkpoint"
         try:
-            last = f"its last checkpoint, {checkpoint}, is at step {_verified_state(checkpoint)['step']}"
-        except (CheckpointError, KeyError):
+            step = checkpoint.read(path, self.run.spec, self.group.layout).step
+            last = f"its last checkpoint, {path}, is at step {step}"
+        except CheckpointError:
             last = "it has no checkpoint"
         return f"{self.run.failed}; stopped there, no metrics.json written; {last}"
 
@@ -618,21 +490,21 @@ class _Session:
         save_policy(out / "policy", self.group.agent, self.index, spec, self.group.adapter)
         write_json(out / "run.json", {**spec.identity(), "software": software_versions()})
         write_json(out / "metrics.json", metrics)  # last: a run with metrics.json is complete
-        checkpoint = out / "checkpoint"
+        path = out / "checkpoint"
         if not keep_checkpoint:
-            shutil.rmtree(checkpoint, ignore_errors=True)
-        remove_stale_temporaries(checkpoint)  # a killed session's half-written checkpoint
+            shutil.rmtree(path, ignore_errors=True)
+        remove_stale_temporaries(path)  # a killed session's half-written checkpoint
         return metrics
 
 
-def _move_aside(checkpoint: Path) -> Path:
+def _move_aside(path: Path) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    aside = checkpoint.with_name(f"{checkpoint.name}.bad-{stamp}")
+    aside = path.with_name(f"{path.name}.bad-{stamp}")
     n = 1
     while aside.exists():
         n += 1
-        aside = checkpoint.with_name(f"{checkpoint.name}.bad-{stamp}-{n}")
-    checkpoint.rename(aside)
+        aside = path.with_name(f"{path.name}.bad-{stamp}-{n}")
+    path.rename(aside)
     return aside
 
 
