@@ -25,13 +25,14 @@ from ede.config import EdeTD3Config, TD3Config
 from ede.nets import flush_denormals
 import numpy as np
 
-from ede.td3 import Agent, MemberAdam, ReplayBatch
+from ede.ensemble import Adam
+from ede.td3 import Agent, ReplayBatch
 from ede.training import RunSpec, _Group
 
 SMALLEST_NORMAL = torch.finfo(torch.float32).tiny
 
 
-def subnormal_share(optimizer: MemberAdam, moment: str) -> float:
+def subnormal_share(optimizer: Adam, moment: str) -> float:
     values = getattr(optimizer, moment).abs()
     return ((values > 0) & (values < SMALLEST_NORMAL)).float().mean().item()
 
@@ -64,7 +65,7 @@ def main() -> None:
     print(f"{args.task}: {args.steps} steps of TD3 (400-300, batch 100) without flushing in "
           f"{time.perf_counter() - start:.0f} s")
     agent = group.agent
-    for name, optimizer in (("critic", agent.critic_optimizer), ("actor", agent.actor_optimizer)):
+    for name, optimizer in (("critic", agent.critic_adam), ("actor", agent.actor_adam)):
         print(f"  {name} Adam moments subnormal: first {subnormal_share(optimizer, 'exp_avg'):.1%}, "
               f"second {subnormal_share(optimizer, 'exp_avg_sq'):.1%}")
     everyone = np.ones(1, dtype=bool)

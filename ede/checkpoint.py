@@ -3,9 +3,9 @@
 A checkpoint is a folder of three files, the same for a run trained alone and for a member of a
 group, so either resumes the other:
 
-* ``state.safetensors``: the member's slice of the agent (``agent.*``: networks, optimiser
-  moments and step, counters, diagnostics sums, generator states; :meth:`ede.td3.Agent.state_dict`,
-  opaque here) and of the replay buffer (``buffer.*``: its filled rows and ``buffer.count``, the
+* ``state.safetensors``: the member's slice of the agent (``agent.*``: networks' parameters by
+  name, optimiser moments, update count, diagnostics sums, generator states;
+  :meth:`ede.td3.Agent.state_dict`, opaque here) and of the replay buffer (``buffer.*``: its filled rows and ``buffer.count``, the
   run's environment steps; :meth:`ede.td3.ReplayBuffer.state_dict`), the code under way
   (``code``, ``plan``), the current episode's actions (``episode_actions``) and the observation
   their replay must reach (``obs``);
@@ -42,7 +42,7 @@ if TYPE_CHECKING:
 __all__ = ["VERSION", "Checkpoint", "CheckpointError", "CheckpointWriteError", "Episode",
            "Layout", "apply", "read", "write"]
 
-VERSION = 4  # 2: diagnostics; 3: checksums, identity; 4: a member's slice
+VERSION = 5  # 2: diagnostics; 3: checksums, identity; 4: a member's slice; 5: named parameters
 CHECKSUMS = "checksums.json"
 FILES = ("state.safetensors", "state.json")  # what CHECKSUMS signs
 STATE = {  # state.json's values beside its version and identity, and their JSON types

@@ -7,9 +7,10 @@ its bounds, and k.
 
 Shapes: M members (the runs an agent trains at once; 1 for a run alone), B batch, K actions per
 code (1 for TD3), A action size, C code size (A for TD3, D for EDE-TD3), O observation size.
-Everything the update touches has the member axis first; each member computes what it computes
-alone, bit for bit on CPU (:class:`ede.nets.StackedMLP`, :class:`MemberAdam`), from its own
-random streams (:class:`Streams`).
+:class:`TD3` is the update of one member; :class:`Agent` holds M members stacked
+(:mod:`ede.ensemble`, the one module that knows their layout) and runs that update on all of
+them at once, each computing what it computes alone, from its own random streams
+(:class:`Streams`).
 
 The critic is Q(s, c, i) with i the number of steps of code c already executed, fed as a one-hot
 of size K or as a scalar (absent when K = 1). Its target is Equation 1, batched over B and K::
@@ -25,7 +26,6 @@ one place a code becomes K environment steps, for training, evaluation and the r
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple, Protocol
@@ -34,11 +34,12 @@ import gymnasium
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch import nn
 
+from ede import ensemble
 from ede.config import TD3Config
 from ede.embedding import ActionEmbedding
-from ede.nets import Layers, StackedMLP, flatten, gradients, matmul_precision
+from ede.ensemble import Params
+from ede.nets import initial_mlp, matmul_precision
 
 __all__ = [
     "ActionAdapter",
@@ -47,12 +48,12 @@ __all__ = [
     "CodeExecutor",
     "CodeStep",
     "Critic",
-    "MemberAdam",
     "EmbeddingAdapter",
     "IdentityAdapter",
     "ReplayBatch",
     "ReplayBuffer",
     "Streams",
+    "TD3",
     "k_step_targets",
 ]
 
@@ -219,32 +220,32 @@ class Streams:
     SAVED = ("exploration", "target_noise", "replay", "start_codes")  # what a checkpoint keeps
 
 
-# Networks -------------------------------------------------------------------------------------
+# Networks: functions of one member's parameters ----------------------------------------------
 
 
-class Actor(nn.Module):
-    """μ(s) of every member: a code inside [low, high] through a tanh."""
+class Actor:
+    """μ(s): a code inside [low, high] through a tanh, ``(..., O) -> (..., C)``.
 
-    def __init__(self, obs_size: int, low: torch.Tensor, high: torch.Tensor, hidden: list[int],
-                 generators: Sequence[torch.Generator]) -> None:
-        super().__init__()
-        self.net = StackedMLP(obs_size, hidden, len(low), generators)
-        self.register_buffer("centre", (high + low) / 2)
-        self.register_buffer("half_range", (high - low) / 2)
+    Its parameters are an ``ede.nets.mlp``'s (``0.weight``, ``0.bias``, ...): one member's, or
+    a stack of members' (:mod:`ede.ensemble`).
+    """
 
-    def forward(self, obs: torch.Tensor, layers: Layers | None = None) -> torch.Tensor:
-        """``(M, B, O) -> (M, B, C)``, member m on its own batch."""
-        return self.centre + self.half_range * torch.tanh(self.net(obs, layers, halves=True))
+    def __init__(self, obs_size: int, low: torch.Tensor, high: torch.Tensor,
+                 hidden: list[int]) -> None:
+        self.sizes = [obs_size, *hidden, len(low)]
+        self.centre, self.half_range = (high + low) / 2, (high - low) / 2
 
-    def one(self, member: int, obs: torch.Tensor) -> torch.Tensor:
-        """Member ``member`` alone: ``(B, O) -> (B, C)``."""
-        return self.centre + self.half_range * torch.tanh(self.net.one(member, obs))
+    def initial(self, generator: torch.Generator) -> Params:
+        return initial_mlp(self.sizes, generator)
 
-    def state_of(self, member: int) -> dict[str, torch.Tensor]:
-        """One member's actor as the single-network ``Actor`` of ``policy.safetensors`` names it:
-        ``net.0.weight``, ..., ``centre``, ``half_range``."""
-        state = {f"net.{k}": v for k, v in self.net.state_of(self.net.flat[member]).items()}
-        return state | {"centre": self.centre, "half_range": self.half_range}
+    def __call__(self, params: Params, obs: torch.Tensor) -> torch.Tensor:
+        return self.centre + self.half_range * torch.tanh(ensemble.mlp(params, obs))
+
+    def export(self, params: Params) -> dict[str, torch.Tensor]:
+        """One member's actor as ``policy.safetensors`` names it: ``net.0.weight``, ...,
+        ``centre``, ``half_range``."""
+        return {f"net.{k}": v for k, v in params.items()} | {
+            "centre": self.centre, "half_range": self.half_range}
 
 
 def critic_repeat(setting: int | str, obs_size: int, pair_size: int) -> int:
@@ -255,31 +256,24 @@ def critic_repeat(setting: int | str, obs_size: int, pair_size: int) -> int:
     return int(setting)
 
 
-class Critic(nn.Module):
-    """Twin Q(s, c, i) of every member: one stacked network of 2M rows, Q1 of every member
-    then Q2, over (observation, then ``repeat`` copies of (code, i)).
+class Critic:
+    """Twin Q(s, c, i) over (observation, then ``repeat`` copies of (code, i)), ``(..., B)`` each.
 
     i is a one-hot of size K (``plan_step="onehot"``) or the raw count as one input ("scalar", the
-    authors' code); it is absent when K = 1.
+    authors' code); it is absent when K = 1. The twins are one ``ede.nets.mlp``'s parameters
+    with a twin axis first (``0.weight`` ``(2, out, in)``: Q1's, then Q2's), evaluated together.
     """
 
-    def __init__(
-        self,
-        obs_size: int,
-        code_size: int,
-        k: int,
-        hidden: list[int],
-        plan_step: str = "onehot",
-        repeat: int | str = 1,
-        generators: Sequence[torch.Generator] = (),
-    ) -> None:
-        super().__init__()
-        self.k, self.plan_step, self.members = k, plan_step, len(generators)
+    def __init__(self, obs_size: int, code_size: int, k: int, hidden: list[int],
+                 plan_step: str = "onehot", repeat: int | str = 1) -> None:
+        self.k, self.plan_step = k, plan_step
         step_size = 0 if k == 1 else (k if plan_step == "onehot" else 1)
         self.repeat = critic_repeat(repeat, obs_size, code_size + step_size)
-        in_size = obs_size + self.repeat * (code_size + step_size)
-        # Each member draws Q1's weights, then Q2's, from its own generator.
-        self.net = StackedMLP(in_size, hidden, 1, [*generators, *generators])
+        self.sizes = [obs_size + self.repeat * (code_size + step_size), *hidden, 1]
+
+    def initial(self, generator: torch.Generator) -> Params:
+        q1, q2 = (initial_mlp(self.sizes, generator) for _ in range(2))  # Q1 drawn first
+        return {name: torch.stack([q1[name], q2[name]]) for name in q1}
 
     def inputs(self, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor) -> torch.Tensor:
         pair = [code]
@@ -289,24 +283,19 @@ class Critic(nn.Module):
             pair.append(i.to(obs.dtype)[..., None])  # (..., B) -> (..., B, 1)
         return torch.cat([obs, *pair * self.repeat], dim=-1)
 
-    def forward(self, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor,
-                layers: Layers | None = None) -> torch.Tensor:
-        """``(M, B, ·) -> (2, M, B)``: Q1 and Q2 of every member."""
+    def __call__(self, params: Params, obs: torch.Tensor, code: torch.Tensor,
+                 i: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Q1 and Q2."""
         x = self.inputs(obs, code, i)
-        q = self.net(torch.cat([x, x]), layers)  # (2M, B, 1): one product per layer for both
-        return q.view(2, self.members, -1)
+        q = ensemble.mlp(params, torch.stack([x, x], dim=-3))  # (..., B, in) -> (..., 2, B, 1)
+        return q[..., 0, :, 0], q[..., 1, :, 0]
 
-    def first(self, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor,
-              flat: torch.Tensor) -> torch.Tensor:
-        """Q1 alone, ``(M, B)``, with the weights ``flat`` (every row of the critic)."""
-        q1 = self.net.layers(flat[:self.members])
-        return self.net(self.inputs(obs, code, i), q1, halves=True).squeeze(-1)
-
-    def state_of(self, member: int) -> dict[str, torch.Tensor]:
-        """One member's twins as the single-run ``Critic`` named them (``q1.0.weight``, ...)."""
-        rows = (member, self.members + member)
-        return {f"q{j + 1}.{k}": v for j, row in enumerate(rows)
-                for k, v in self.net.state_of(self.net.flat[row]).items()}
+    def q1(self, params: Params, obs: torch.Tensor, code: torch.Tensor,
+           i: torch.Tensor) -> torch.Tensor:
+        """Q1 alone."""
+        # The twin axis is a weight's third dimension from the end, a bias's second.
+        first = {k: v.select(-3 if k.endswith("weight") else -2, 0) for k, v in params.items()}
+        return ensemble.mlp(first, self.inputs(obs, code, i)).squeeze(-1)  # (..., B, 1) -> (..., B)
 
 
 # Replay ---------------------------------------------------------------------------------------
@@ -462,145 +451,64 @@ def k_step_targets(batch: ReplayBatch, gamma: float) -> TargetParts:
     return TargetParts(returns, discount, bootstrap_obs, cut_short, next_i)
 
 
-def _rows(tensors: list[torch.Tensor]) -> list[torch.Tensor]:
-    """Every row of every stacked tensor, as a tensor of its own."""
-    return [t[r] for t in tensors for r in range(t.shape[0])]
+class TD3:
+    """TD3's update (Fujimoto et al., 2018) for one member, over an :class:`ActionAdapter`: the
+    target, the critic's loss and the actor's, as functions of the member's parameters and batch.
 
-
-def _step_rows(params: list[torch.Tensor], steps: torch.Tensor) -> list[torch.Tensor]:
-    """The step count of each row of :func:`_rows` ``(params)``: its member's."""
-    return [steps[r % steps.shape[0]] for t in params for r in range(t.shape[0])]
-
-
-def _adam_rows(params: list[torch.Tensor], grads: list[torch.Tensor],
-               exp_avgs: list[torch.Tensor], exp_avg_sqs: list[torch.Tensor],
-               steps: torch.Tensor, mask: torch.Tensor | None, lr: float, beta1: float,
-               beta2: float, eps: float,
-               rows: tuple[list[torch.Tensor], ...] | None = None) -> None:
-    """torch's fused Adam kernel on each row of each stacked tensor in ``params`` as a tensor of
-    its own, with the step count of the row's member (row r of a tensor belongs to member
-    r mod M); members where ``mask`` is false keep everything bit for bit. ``rows``: the rows of
-    ``params``, ``exp_avgs`` and ``exp_avg_sqs`` and their step counts, if already listed."""
-    members = steps.shape[0]
-    if mask is not None:
-        kept = [t.clone() for t in (*params, *exp_avgs, *exp_avg_sqs)]
-        steps.add_(mask.to(steps.dtype))
-    else:
-        steps.add_(1)
-    if rows is None:
-        rows = (_rows(params), _rows(exp_avgs), _rows(exp_avg_sqs), _step_rows(params, steps))
-    param_rows, avg_rows, sq_rows, step_rows = rows
-    torch._fused_adam_(
-        param_rows, _rows(grads), avg_rows, sq_rows, [], step_rows,
-        lr=lr, beta1=beta1, beta2=beta2, weight_decay=0.0, eps=eps, amsgrad=False,
-        maximize=False,
-    )
-    if mask is not None:
-        for tensor, old in zip((*params, *exp_avgs, *exp_avg_sqs), kept):
-            keep = ~mask.repeat(tensor.shape[0] // members).view(-1, *[1] * (tensor.dim() - 1))
-            torch.where(keep, old, tensor, out=tensor)
-
-
-@torch.library.custom_op("ede::member_adam_", mutates_args=("param", "exp_avg", "exp_avg_sq",
-                                                            "steps"))
-def _member_adam(param: torch.Tensor, grad: torch.Tensor, exp_avg: torch.Tensor,
-                 exp_avg_sq: torch.Tensor, steps: torch.Tensor, mask: torch.Tensor | None,
-                 lr: float, beta1: float, beta2: float, eps: float) -> None:
-    """:func:`_adam_rows` on whole flat tensors, as an operator of its own: what a compiled
-    update calls (``torch.compile`` cannot trace the fused kernel on views of a parameter, and
-    keeps an operator whole)."""
-    _adam_rows([param], [grad], [exp_avg], [exp_avg_sq], steps, mask, lr, beta1, beta2, eps)
-
-
-@_member_adam.register_fake
-def _(param, grad, exp_avg, exp_avg_sq, steps, mask, lr, beta1, beta2, eps) -> None:  # noqa: ANN001
-    return None
-
-
-class MemberAdam:
-    """Adam with a step count per member, on a :class:`ede.nets.StackedMLP`'s parameter, whose
-    rows belong to members.
-
-    The parameter is ``(R·M, N)``: row r belongs to member r mod M (R = 2 for the twin critics).
-    Each layer of each row is stepped by torch's fused Adam kernel as a tensor of its own, so a
-    member gets the same bits whatever M is (the kernel splits a tensor into vector and scalar
-    parts by its size), in eager mode; compiled, each row is one tensor. torch's optimisers keep
-    one step count per tensor and step every tensor they hold; here a member masked out of a
-    step keeps its weights, moments and step count bit for bit.
+    Nothing here knows about members: every operation acts on trailing dimensions, so
+    :mod:`ede.ensemble` runs the same functions on M members stacked on a leading axis.
     """
 
-    def __init__(self, net: StackedMLP, members: int, lr: float,
-                 betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8) -> None:
-        self.net, self.param, self.members = net, net.flat, members
-        self.lr, self.betas, self.eps = lr, betas, eps
-        self.exp_avg = torch.zeros_like(self.param, memory_format=torch.contiguous_format)
-        self.exp_avg_sq = torch.zeros_like(self.exp_avg)
-        self.steps = torch.zeros(members, device=self.param.device)  # per member
-        # Each layer's views of the weights and moments, and their rows with their step counts,
-        # listed once (they stay valid: every change is in place).
-        self._views = [_tensors(net.layers(t)) for t in
-                       (self.param.detach(), self.exp_avg, self.exp_avg_sq)]
-        self._rows = (*map(_rows, self._views), _step_rows(self._views[0], self.steps))
+    def __init__(self, actor: Actor, critic: Critic, adapter: ActionAdapter,
+                 config: TD3Config) -> None:
+        self.actor, self.critic, self.adapter, self.config = actor, critic, adapter, config
+        self.autocast = config.precision == "bf16"
 
-    def rows(self, per_member: torch.Tensor) -> torch.Tensor:
-        """``(M,)`` -> ``(R·M, 1)``, each row its member's value."""
-        return per_member.repeat(self.param.shape[0] // self.members)[:, None]
+    def clip(self, codes: torch.Tensor) -> torch.Tensor:
+        return codes.clamp(self.adapter.code_low, self.adapter.code_high)
 
-    def step(self, grads: list[torch.Tensor], mask: torch.Tensor | None = None) -> None:
-        """One Adam step for every member, or for those where ``mask`` (``(M,)`` bool) is true;
-        ``grads``: the gradient of each layer's weight and bias (``StackedMLP.layers``)."""
-        hyper = (self.lr, *self.betas, self.eps)
-        if torch.compiler.is_compiling():
-            _member_adam(self.param.detach(), flatten(grads, self.param.shape[1]), self.exp_avg,
-                         self.exp_avg_sq, self.steps, mask, *hyper)
-            return
-        params, exp_avgs, exp_avg_sqs = self._views
-        # The fused kernel reads a tensor's memory in order: a weight's gradient from a batched
-        # product comes transposed in memory.
-        grads = [g.contiguous() for g in grads]
-        _adam_rows(params, grads, exp_avgs, exp_avg_sqs, self.steps, mask, *hyper,
-                   rows=self._rows)
+    def _autocast(self, device: torch.device) -> torch.autocast:
+        return torch.autocast(device.type, dtype=torch.bfloat16, enabled=self.autocast)
 
-    def state_of(self, member: int) -> dict[str, torch.Tensor]:
-        rows = list(range(member, self.param.shape[0], self.members))
-        return {"exp_avg": self.exp_avg[rows], "exp_avg_sq": self.exp_avg_sq[rows],
-                "step": self.steps[member]}
+    @torch.no_grad()
+    def target(self, actor_target: Params, critic_target: Params, batch: ReplayBatch,
+               noise: torch.Tensor) -> torch.Tensor:
+        """Equation 1 with clipped double-Q and target policy smoothing, ``(B,)``; ``noise``: a
+        unit normal draw ``(B, C)``."""
+        c, adapter = self.config, self.adapter
+        parts = k_step_targets(batch, c.discount)
+        with self._autocast(batch.obs.device):
+            clip = c.noise_clip * adapter.clip_scale
+            noise = (noise * c.policy_noise * adapter.noise_scale * adapter.target_noise_scale)
+            noise = torch.maximum(torch.minimum(noise, clip), -clip)
+            chosen = self.clip(self.actor(actor_target, parts.bootstrap_obs) + noise)
+            # Where a time limit cut the code short, the code goes on (c' = c).
+            next_code = torch.where(parts.keep_code[..., None], batch.code, chosen)
+            q1, q2 = self.critic(critic_target, parts.bootstrap_obs, next_code, parts.next_i)
+            return parts.returns + parts.discount * torch.minimum(q1, q2).float()
 
-    def load_state_of(self, member: int, state: dict[str, torch.Tensor]) -> None:
-        rows = list(range(member, self.param.shape[0], self.members))
-        self.exp_avg[rows] = state["exp_avg"].to(self.exp_avg.device)
-        self.exp_avg_sq[rows] = state["exp_avg_sq"].to(self.exp_avg.device)
-        self.steps[member] = state["step"].to(self.steps.device)
+    def critic_loss(self, critic: Params, batch: ReplayBatch, y: torch.Tensor) -> torch.Tensor:
+        """Both twins' mean squared error to the target ``y``, summed."""
+        with self._autocast(batch.obs.device):
+            q1, q2 = self.critic(critic, batch.obs, batch.code, batch.i)
+        return ((q1.float() - y) ** 2).mean(-1) + ((q2.float() - y) ** 2).mean(-1)
 
-
-def polyak(target: torch.Tensor, source: torch.Tensor, tau: float,
-           mask: torch.Tensor | None = None) -> None:
-    """target ← (1 − τ) target + τ source, in place, for every row or the rows where ``mask``
-    (``(rows, 1)`` bool) is true."""
-    with torch.no_grad():
-        if mask is None:
-            target.lerp_(source, tau)
-        else:
-            target.copy_(torch.where(mask, target.lerp(source, tau), target))
-
-
-def _tensors(layers: Layers) -> list[torch.Tensor]:
-    return [t.detach() for layer in layers for t in layer]
-
-
-def _layers(tensors: list[torch.Tensor]) -> Layers:
-    return list(zip(tensors[::2], tensors[1::2]))
+    def actor_loss(self, actor: Params, critic: Params, obs: torch.Tensor) -> torch.Tensor:
+        """−Q_1(s, μ(s), 0): the actor follows ∇_c Q_1(s, c, 0) (Equation 2), Q fixed."""
+        with self._autocast(obs.device):
+            start = torch.zeros(obs.shape[:-1], dtype=torch.int64, device=obs.device)
+            q1 = self.critic.q1(critic, obs, self.actor(actor, obs), start)
+        return -q1.float().mean(-1)
 
 
 class Agent:
     """The TD3 learner of M members over any :class:`ActionAdapter` (TD3: identity, EDE-TD3: the
     decoder). A single run is M = 1; member m is the run of seed ``seeds[m]``.
 
-    Every network holds its members on a leading axis (:class:`ede.nets.StackedMLP`); an update
-    is one function of tensors (:meth:`step`) for every member at once, each on its own batch
-    and target noise, drawn from its own generators (:meth:`draw`), each with the gradient it
-    would get alone (losses are means over B, summed over members). Members not due an update
-    are masked: they keep their weights and optimiser states.
+    Its networks and optimiser states hold the members stacked (:mod:`ede.ensemble`); an update
+    runs :class:`TD3`'s functions on every member at once, each on its own batch and target
+    noise drawn from its own generators (:meth:`draw`). Members not due an update keep their
+    weights and optimiser states.
     """
 
     def __init__(
@@ -614,29 +522,26 @@ class Agent:
         self.adapter, self.config, self.device = adapter, config, device
         self.members = len(seeds)
         self.streams = [Streams(seed, device) for seed in seeds]
-        low, high = adapter.code_low.cpu(), adapter.code_high.cpu()
-        self.scale = adapter.noise_scale  # (C,) the unit of the noise stds
-        self.target_scale = self.scale * adapter.target_noise_scale
-        weights = [s.weights for s in self.streams]
-        self.actor = Actor(obs_size, low, high, config.hidden, weights).to(device)
-        self.critic = Critic(obs_size, adapter.code_size, adapter.k, config.hidden,
-                             adapter.plan_step, config.critic_action_repeat, weights).to(device)
-        self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
-        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.actor_optimizer = MemberAdam(self.actor.net, self.members, config.lr)
-        self.critic_optimizer = MemberAdam(self.critic.net, self.members, config.lr)
-        self.updates = np.zeros(self.members, dtype=np.int64)  # critic steps, per member
-        self.autocast = config.precision == "bf16"
+        actor = Actor(obs_size, adapter.code_low, adapter.code_high, config.hidden)
+        critic = Critic(obs_size, adapter.code_size, adapter.k, config.hidden, adapter.plan_step,
+                        config.critic_action_repeat)
+        self.td3 = TD3(actor, critic, adapter, config)
+        # Each member draws its actor's initial weights, then its critic's, from its own stream.
+        initial = [(actor.initial(s.weights), critic.initial(s.weights)) for s in self.streams]
+        self.actor = ensemble.Stack([a for a, _ in initial], device)
+        self.critic = ensemble.Stack([c for _, c in initial], device)
+        self.actor_target, self.critic_target = self.actor.clone(), self.critic.clone()
+        self.actor_adam = ensemble.Adam(self.actor, config.lr)
+        self.critic_adam = ensemble.Adam(self.critic, config.lr)
+        # Each member's critic steps: the one count of its updates (its actor steps follow).
+        self.updates = np.zeros(self.members, dtype=np.int64)
         # Sums per member since the last take_diagnostics(), kept on the device so that no
         # update waits for the host: critic loss, critic steps, actor loss (−mean Q(s, μ(s), 0)),
         # actor steps.
         self.loss_sums = torch.zeros(4, self.members, device=device)
-        self._step = self._step_eager if config.compile == "none" else torch.compile(
-            self._step_eager, fullgraph=True,
+        self._update = self._update_eager if config.compile == "none" else torch.compile(
+            self._update_eager, fullgraph=True,
             mode=None if config.compile == "default" else config.compile)
-
-    def clip(self, codes: torch.Tensor) -> torch.Tensor:
-        return codes.clamp(self.adapter.code_low, self.adapter.code_high)
 
     # Acting, one member at a time ----------------------------------------------------------
 
@@ -645,11 +550,12 @@ class Agent:
         """Member ``member``'s code for one observation: μ(s), plus exploration noise from its
         own stream when ``explore``."""
         x = torch.as_tensor(obs, dtype=torch.float32, device=self.device)[None]
-        code = self.actor.one(member, x)[0]
+        code = self.td3.actor(self.actor.member(member), x)[0]
         if explore:
             noise = torch.randn(code.shape, generator=self.streams[member].exploration,
                                 device=self.device)
-            code = self.clip(code + noise * self.config.exploration_noise * self.scale)
+            code = self.td3.clip(code + noise * self.config.exploration_noise
+                                 * self.adapter.noise_scale)
         return code
 
     def random_code(self, member: int) -> torch.Tensor:
@@ -657,6 +563,10 @@ class Agent:
         low, high = self.adapter.code_low, self.adapter.code_high
         u = torch.rand(low.shape, generator=self.streams[member].start_codes, device=self.device)
         return low + u * (high - low)
+
+    def policy(self, member: int) -> dict[str, torch.Tensor]:
+        """Member ``member``'s actor as ``policy.safetensors`` holds it."""
+        return self.td3.actor.export(self.actor.member(member))
 
     # Updating, every member at once ----------------------------------------------------------
 
@@ -684,74 +594,39 @@ class Agent:
 
     def step(self, batch: ReplayBatch, noise: torch.Tensor, due: np.ndarray) -> None:
         """:meth:`update` on a drawn batch and raw (unit) target noise ``(M, B, C)``."""
-        actor_due = due & ((self.updates + 1) % self.config.policy_delay == 0)
+        delay = self.config.policy_delay
+        actor_due = due & ((self.updates + 1) % delay == 0)
         self.updates += due
+        corrections = torch.stack([self.critic_adam.corrections(self.updates, self.device),
+                                   self.actor_adam.corrections(self.updates // delay, self.device)])
         masks = torch.as_tensor(np.stack([due, actor_due]), device=self.device)
         with matmul_precision(self.config.precision):
-            self._step(batch, noise, masks, bool(actor_due.any()), not due.all(),
-                       not actor_due.all())
+            self._update(batch, noise, masks, corrections, bool(actor_due.any()),
+                         not due.all(), not actor_due.all())
 
-    def _autocast(self) -> torch.autocast:
-        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.autocast)
-
-    def target(self, batch: ReplayBatch, noise: torch.Tensor) -> torch.Tensor:
-        """Equation 1 with TD3's clipped double-Q and target policy smoothing, ``(M, B)``;
-        ``noise`` is unit normal ``(M, B, C)``."""
-        c = self.config
-        parts = k_step_targets(batch, c.discount)
-        with torch.no_grad(), self._autocast():
-            noise = noise * c.policy_noise * self.target_scale
-            clip = c.noise_clip * self.adapter.clip_scale
-            noise = torch.maximum(torch.minimum(noise, clip), -clip)
-            chosen = self.clip(self.actor_target(parts.bootstrap_obs) + noise)
-            next_code = torch.where(parts.keep_code[..., None], batch.code, chosen)
-            q = self.critic_target(parts.bootstrap_obs, next_code, parts.next_i)
-            return parts.returns + parts.discount * q.amin(0).float()
-
-    def _critic_losses(self, params: list[torch.Tensor], batch: ReplayBatch,
-                       target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        with self._autocast():
-            q = self.critic(batch.obs, batch.code, batch.i, _layers(params)).float()  # (2, M, B)
-        losses = ((q - target) ** 2).mean(-1).sum(0)  # (M,): each member's two MSEs
-        return losses.sum(), losses
-
-    def _actor_losses(self, params: list[torch.Tensor], obs: torch.Tensor,
-                      critic: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        # The actor follows ∇_c Q_1(s, c, 0) (Equation 2); Q's weights are constants here.
-        with self._autocast():
-            codes = self.actor(obs, _layers(params))
-            start = torch.zeros(obs.shape[:2], dtype=torch.int64, device=obs.device)
-            losses = -self.critic.first(obs, codes, start, critic).float().mean(-1)  # (M,)
-        return losses.sum(), losses
-
-    def _step_eager(self, batch: ReplayBatch, noise: torch.Tensor, masks: torch.Tensor,
-                    actor: bool, critic_masked: bool, actor_masked: bool) -> None:
+    def _update_eager(self, batch: ReplayBatch, noise: torch.Tensor, masks: torch.Tensor,
+                      corrections: torch.Tensor, actor: bool, critic_masked: bool,
+                      actor_masked: bool) -> None:
         """The update as one function of tensors (no host synchronisation): what
-        ``td3.compile`` compiles. ``masks``: ``(2, M)`` bool, the members due a critic step
-        and an actor step; the flags say, from the host, whether any actor step is due and
-        whether either mask leaves a member out."""
-        c, due, actor_due = self.config, masks[0], masks[1]
-        target = self.target(batch, noise)
-        # Gradients by layer: of views of the flat rows (a gradient of the flat parameter itself
-        # would be scattered layer by layer into zeros).
-        critic, policy = self.critic.net, self.actor.net
-        grads, losses = gradients(self._critic_losses, _tensors(critic.layers(critic.flat)),
-                                  batch, target)
-        self.critic_optimizer.step(grads, due if critic_masked else None)
+        ``td3.compile`` compiles. ``masks``: ``(2, M)`` bool, the members due a critic step and
+        an actor step; ``corrections``: ``(2, 2, M)``, each optimiser's :meth:`Adam.corrections`;
+        the flags say, from the host, whether any actor step is due and whether either mask
+        leaves a member out."""
+        td3, due, actor_due = self.td3, masks[0], masks[1]
+        y = td3.target(self.actor_target.params, self.critic_target.params, batch, noise)
+        grad, losses = ensemble.grad(td3.critic_loss, self.critic, batch, y)
+        self.critic_adam.step(grad, corrections[0], due if critic_masked else None)
         self.loss_sums[0] += torch.where(due, losses, 0.0)
         self.loss_sums[1] += due
         if not actor:
             return
-        grads, losses = gradients(self._actor_losses, _tensors(policy.layers(policy.flat)),
-                                  batch.obs, critic.flat.detach())
-        self.actor_optimizer.step(grads, actor_due if actor_masked else None)
+        grad, losses = ensemble.grad(td3.actor_loss, self.actor, self.critic.params, batch.obs)
+        mask = actor_due if actor_masked else None
+        self.actor_adam.step(grad, corrections[1], mask)
         self.loss_sums[2] += torch.where(actor_due, losses, 0.0)
         self.loss_sums[3] += actor_due
-        mask = None if not actor_masked else actor_due
-        polyak(self.critic_target.net.flat, self.critic.net.flat, c.tau,
-               None if mask is None else self.critic_optimizer.rows(mask))
-        polyak(self.actor_target.net.flat, self.actor.net.flat, c.tau,
-               None if mask is None else self.actor_optimizer.rows(mask))
+        self.critic_target.polyak(self.critic, self.config.tau, mask)
+        self.actor_target.polyak(self.actor, self.config.tau, mask)
 
     def take_diagnostics(self, member: int) -> dict[str, float]:
         """Member ``member``'s means over its updates since its last call (one host
@@ -782,22 +657,25 @@ class Agent:
 
     # State, one member at a time ---------------------------------------------------------------
 
+    def _member(self, member: int) -> dict[str, Params]:
+        """Member ``member``'s networks and optimiser moments (views), by checkpoint prefix."""
+        state = {"actor": self.actor.member(member),
+                 "actor_target": self.actor_target.member(member),
+                 "critic": self.critic.member(member),
+                 "critic_target": self.critic_target.member(member)}
+        for name, adam in (("actor_adam", self.actor_adam), ("critic_adam", self.critic_adam)):
+            state |= {f"{name}.{moment}": views for moment, views in adam.member(member).items()}
+        return state
+
     def state_dict(self, member: int) -> dict[str, torch.Tensor]:
-        """Member ``member``'s learner state, as a run alone holds it (``docs/``: checkpoint
-        format): each network's row(s) of flat weights, each optimiser's moments and step,
-        its counters, diagnostics sums and generator states."""
-        rows = [member, self.members + member]
-        state = {
-            "actor": self.actor.net.flat[member],
-            "actor_target": self.actor_target.net.flat[member],
-            "critic": self.critic.net.flat[rows],
-            "critic_target": self.critic_target.net.flat[rows],
-            "updates": torch.tensor(int(self.updates[member])),
-            "loss_sums": self.loss_sums[:, member],
-        }
-        for name, optimizer in (("actor_optimizer", self.actor_optimizer),
-                                ("critic_optimizer", self.critic_optimizer)):
-            state |= {f"{name}.{k}": v for k, v in optimizer.state_of(member).items()}
+        """Member ``member``'s learner state, as a run alone holds it (``ede/checkpoint.py``):
+        each network's parameters (``actor.0.weight``, ``critic.0.weight`` (Q1's and Q2's), ...),
+        each optimiser's moments (``actor_adam.exp_avg.0.weight``, ...), its update count,
+        diagnostics sums and generator states."""
+        state = {f"{prefix}.{k}": v for prefix, params in self._member(member).items()
+                 for k, v in params.items()}
+        state["updates"] = torch.tensor(int(self.updates[member]))
+        state["loss_sums"] = self.loss_sums[:, member]
         for purpose in Streams.SAVED:
             state[f"generator.{purpose}"] = getattr(self.streams[member], purpose).get_state()
         return {k: v.detach().cpu().clone() for k, v in state.items()}
@@ -805,16 +683,10 @@ class Agent:
     @torch.no_grad()
     def load_state_dict(self, member: int, state: dict[str, torch.Tensor]) -> None:
         """Member ``member`` continues from ``state`` (:meth:`state_dict`'s, from any M)."""
-        rows = [member, self.members + member]
-        for name, module in (("actor", self.actor), ("actor_target", self.actor_target)):
-            module.net.flat[member] = state[name].to(self.device)
-        for name, module in (("critic", self.critic), ("critic_target", self.critic_target)):
-            module.net.flat[rows] = state[name].to(self.device)
+        for prefix, params in self._member(member).items():
+            for k, v in params.items():
+                v.copy_(state[f"{prefix}.{k}"])
         self.updates[member] = int(state["updates"])
         self.loss_sums[:, member] = state["loss_sums"].to(self.device)
-        for name, optimizer in (("actor_optimizer", self.actor_optimizer),
-                                ("critic_optimizer", self.critic_optimizer)):
-            optimizer.load_state_of(member, {k: state[f"{name}.{k}"]
-                                             for k in ("exp_avg", "exp_avg_sq", "step")})
         for purpose in Streams.SAVED:
             getattr(self.streams[member], purpose).set_state(state[f"generator.{purpose}"])

@@ -515,7 +515,7 @@ def save_policy(path: Path, agent: Agent, member: int, spec: RunSpec,
     ``ede.nets.mlp`` of ``hidden`` loads ``net.*``) beside ``policy.json``."""
 
     def write(tmp: Path) -> None:
-        state = {k: v.detach().cpu().contiguous() for k, v in agent.actor.state_of(member).items()}
+        state = {k: v.detach().cpu().contiguous() for k, v in agent.policy(member).items()}
         save_tensors(state, tmp / "policy.safetensors")
         meta = {
             **spec.identity(),

@@ -135,11 +135,13 @@ def test_another_format_version_is_refused(copy: Path) -> None:
 
 def test_a_tensor_of_other_hidden_sizes_is_refused_by_name_and_shape(copy: Path) -> None:
     narrower = trained(0, CONFIG.model_copy(update={"hidden": [8, 8]})).agent.state_dict(0)
-    expected = _Group([spec()], None, CPU).agent.state_dict(0)["actor"].shape
-    edit_tensors(copy, lambda tensors: tensors.update({"agent.actor": narrower["actor"]}))
+    name = "actor.0.weight"
+    expected = _Group([spec()], None, CPU).agent.state_dict(0)[name].shape
+    edit_tensors(copy, lambda tensors: tensors.update({f"agent.{name}": narrower[name]}))
+    shape = ", ".join(map(str, narrower[name].shape))
     with pytest.raises(CheckpointError, match=(
-            rf"^agent.actor is \[{narrower['actor'].shape[0]}\] torch.float32, "
-            rf"expected \[{expected[0]}\] torch.float32$")):
+            rf"^agent.{name} is \[{shape}\] torch.float32, "
+            rf"expected \[{', '.join(map(str, expected))}\] torch.float32$")):
         read(copy)
 
 

@@ -67,7 +67,7 @@ def test_a_run_trains_with_flushing_and_leaves_it_off(tmp_path: Path) -> None:
 
 
 def subnormal_first_moments(agent: Agent) -> int:
-    moments = [optimizer.exp_avg for optimizer in (agent.actor_optimizer, agent.critic_optimizer)]
+    moments = [adam.exp_avg for adam in (agent.actor_adam, agent.critic_adam)]
     values = torch.cat([m.flatten() for m in moments]).abs()
     return int(((values > 0) & (values < torch.finfo(torch.float32).tiny)).sum())
 
@@ -88,5 +88,5 @@ def test_flushing_changes_no_weight_where_moments_sink_below_normal() -> None:
     assert subnormal_first_moments(kept) > 0
     assert (subnormal_first_moments(flushed) == 0) == cpu_can_flush()
     for network in ("actor", "critic", "actor_target", "critic_target"):
-        for name, weight in getattr(kept, network).state_dict().items():
-            assert torch.equal(weight, getattr(flushed, network).state_dict()[name]), f"{network}.{name}"
+        for name, weight in getattr(kept, network).params.items():
+            assert torch.equal(weight, getattr(flushed, network).params[name]), f"{network}.{name}"

@@ -1,6 +1,6 @@
 """Runs trained as a group: every member ends with the outputs it gets alone, and resumes exactly.
 
-Alone and in a group a run computes with the same kernels (``ede.nets.StackedMLP``), so these
+Alone and in a group a run computes with the same kernels (``ede.ensemble``), so these
 compare bits: same code path, different numbers of members."""
 
 from __future__ import annotations
@@ -120,8 +120,8 @@ def test_a_member_masked_out_of_an_update_keeps_its_learner_state_bit_for_bit() 
     agent.update(buffer, np.array([True, False, True]))
     after = agent.state_dict(1)
     assert all(torch.equal(before[k], after[k]) for k in before), "member 1 was touched"
-    assert not torch.equal(agent.state_dict(0)["critic"], before["critic"])
-    steps = [int(state["actor_optimizer.step"]) for state in (after, agent.state_dict(0))]
+    assert not torch.equal(agent.state_dict(0)["critic.0.weight"], before["critic.0.weight"])
+    steps = [int(state["updates"]) for state in (after, agent.state_dict(0))]
     assert steps[0] == steps[1] - 1
 
 

@@ -87,7 +87,7 @@ def trained_agent(precision: str, updates: int = 6) -> Agent:
 
 
 def actor_weights(agent: Agent) -> list[torch.Tensor]:
-    return [p.detach().clone() for p in agent.actor.parameters()]
+    return [p.detach().clone() for p in agent.actor.params.values()]
 
 
 @pytest.mark.parametrize("precision", PRECISIONS)

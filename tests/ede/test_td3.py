@@ -68,16 +68,18 @@ def batch_at(buffer: ReplayBuffer, index: int):
 
 def target(agent: Agent, batch) -> torch.Tensor:
     """Equation 1 without target noise (the agents here have policy_noise 0)."""
-    return agent.target(batch, torch.zeros_like(batch.code))
+    return agent.td3.target(agent.actor_target.params, agent.critic_target.params, batch,
+                            torch.zeros_like(batch.code))
 
 
 def q_min(agent: Agent, obs: torch.Tensor, code: torch.Tensor, i: int) -> float:
-    q = agent.critic_target(obs[None, None], code[None, None], torch.tensor([[i]]))
-    return q.amin(0).item()
+    q1, q2 = agent.td3.critic(agent.critic_target.params, obs[None, None], code[None, None],
+                              torch.tensor([[i]]))
+    return torch.minimum(q1, q2).item()
 
 
 def next_code(agent: Agent, obs: torch.Tensor) -> torch.Tensor:
-    return agent.clip(agent.actor_target(obs[None, None]))[0, 0]
+    return agent.td3.clip(agent.td3.actor(agent.actor_target.params, obs[None, None]))[0, 0]
 
 
 REWARDS = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0]
@@ -161,42 +163,40 @@ def test_the_actor_learns_only_through_the_critic_at_i_0(monkeypatch: pytest.Mon
     agent = agent_for(FixedAdapter(), policy_delay=1)
     buffer = filled_buffer(REWARDS)
     seen_i = []
-    original = type(agent.critic).first
+    original = type(agent.td3.critic).q1
 
-    def spy(self, obs, code, i, flat):
+    def spy(self, params, obs, code, i):
         seen_i.append(i.clone())
-        return original(self, obs, code, i, flat)
+        return original(self, params, obs, code, i)
 
-    monkeypatch.setattr(type(agent.critic), "first", spy)
+    monkeypatch.setattr(type(agent.td3.critic), "q1", spy)
     critic_after_its_step = {}
 
     def snapshot(*args, **kwargs):
         out = step(*args, **kwargs)
-        critic_after_its_step.update({k: v.clone() for k, v in agent.critic.state_dict().items()})
+        critic_after_its_step["flat"] = agent.critic.flat.clone()
         return out
 
-    step = agent.critic_optimizer.step
-    agent.critic_optimizer.step = snapshot
-    actor_before = [p.clone() for p in agent.actor.parameters()]
+    step = agent.critic_adam.step
+    agent.critic_adam.step = snapshot
+    actor_before = agent.actor.flat.clone()
     agent.update(buffer)
     assert len(seen_i) == 1 and torch.all(seen_i[0] == 0)
-    assert any(not torch.equal(a, b) for a, b in zip(actor_before, agent.actor.parameters()))
-    for key, value in agent.critic.state_dict().items():  # the actor step left Q alone
-        assert torch.equal(value, critic_after_its_step[key]), key
+    assert not torch.equal(actor_before, agent.actor.flat)
+    assert torch.equal(agent.critic.flat, critic_after_its_step["flat"])  # the actor step left Q alone
 
 
 def test_actor_updates_wait_for_the_policy_delay_and_targets_move_by_tau() -> None:
     agent = agent_for(FixedAdapter(), policy_delay=2, tau=0.25)
     buffer = filled_buffer(REWARDS)
-    actor_before = [p.clone() for p in agent.actor.parameters()]
-    target_before = [p.clone() for p in agent.critic_target.parameters()]
+    actor_before, target_before = agent.actor.flat.clone(), agent.critic_target.flat.clone()
     agent.update(buffer)  # update 1: critic only
-    assert all(torch.equal(a, b) for a, b in zip(actor_before, agent.actor.parameters()))
-    assert all(torch.equal(a, b) for a, b in zip(target_before, agent.critic_target.parameters()))
+    assert torch.equal(actor_before, agent.actor.flat)
+    assert torch.equal(target_before, agent.critic_target.flat)
     agent.update(buffer)  # update 2: actor, targets
-    for old, new, online in zip(target_before, agent.critic_target.parameters(),
-                                agent.critic.parameters()):
-        torch.testing.assert_close(new, 0.75 * old + 0.25 * online)
+    torch.testing.assert_close(agent.critic_target.flat,
+                               0.75 * target_before + 0.25 * agent.critic.flat)
+    assert not torch.equal(agent.critic_target.flat, target_before)
 
 
 class BoxEmbedding:
@@ -214,14 +214,14 @@ def largest_target_noise(adapter, noise_clip: float = 0.5, **overrides) -> float
     agent = Agent(OBS, adapter, config, torch.device("cpu"), seeds=[0])
     buffer = filled_buffer(REWARDS) if adapter.k == K else filled_buffer_k1()
     seen = []
-    forward = agent.critic_target.forward
-    agent.critic_target.forward = (
-        lambda obs, code, i: seen.append((obs, code)) or forward(obs, code, i)
-    )
+    critic = agent.td3.critic
+    agent.td3.critic = lambda params, obs, code, i: seen.append((obs, code)) or critic(
+        params, obs, code, i)
     batch = buffer.sample(64, [torch.Generator().manual_seed(0)])
-    agent.target(batch, torch.randn(batch.code.shape, generator=torch.Generator().manual_seed(1)))
+    noise = torch.randn(batch.code.shape, generator=torch.Generator().manual_seed(1))
+    agent.td3.target(agent.actor_target.params, agent.critic_target.params, batch, noise)
     obs, code = seen[0]
-    return (code - agent.clip(agent.actor_target(obs))).abs().max().item()
+    return (code - agent.td3.clip(agent.td3.actor(agent.actor_target.params, obs))).abs().max().item()
 
 
 def filled_buffer_k1() -> ReplayBuffer:
@@ -276,7 +276,7 @@ def test_critic_repeats_its_action_input_as_asked(obs_size, code_size, k, plan_s
                                                   copies) -> None:
     critic = Critic(obs_size, code_size, k, [8], plan_step, repeat)
     step_size = 0 if k == 1 else (k if plan_step == "onehot" else 1)
-    assert critic.net.shapes[0][1] == obs_size + copies * (code_size + step_size)
+    assert critic.sizes[0] == obs_size + copies * (code_size + step_size)
     obs, code = torch.randn(2, obs_size), torch.randn(2, code_size)
     x = critic.inputs(obs, code, torch.tensor([0, k - 1]))
     pair = x[:, obs_size:].reshape(2, copies, -1)
