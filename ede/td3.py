@@ -529,7 +529,7 @@ class Agent:
         # Each member draws its actor's initial weights, then its critic's, from its own stream.
         initial = [(actor.initial(s.weights), critic.initial(s.weights)) for s in self.streams]
         self.actor = ensemble.Stack([a for a, _ in initial], device)
-        self.critic = ensemble.Stack([c for _, c in initial], device)
+        self.critic = ensemble.Stack([c for _, c in initial], device, networks=2)  # the twins
         self.actor_target, self.critic_target = self.actor.clone(), self.critic.clone()
         self.actor_adam = ensemble.Adam(self.actor, config.lr)
         self.critic_adam = ensemble.Adam(self.critic, config.lr)
