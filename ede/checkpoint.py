@@ -22,6 +22,7 @@ object; :func:`apply` then restores the run; :func:`write` writes one atomically
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -173,7 +174,7 @@ def read(path: Path, spec: RunSpec, layout: Layout) -> Checkpoint:
         obs=tensors["obs"].numpy(),
         episodes=state["episodes"],
         history=state["history"],
-        diagnostics=state["diagnostics"],
+        diagnostics=[_from_json(row) for row in state["diagnostics"]],
         wall_seconds=state["wall_seconds"],
     )
 
@@ -233,7 +234,7 @@ def write(path: Path, spec: RunSpec, checkpoint: Checkpoint) -> None:
         "episode_start": checkpoint.episode.start,
         "episode_return": checkpoint.episode.ret,
         "history": checkpoint.history,
-        "diagnostics": checkpoint.diagnostics,
+        "diagnostics": [_to_json(row) for row in checkpoint.diagnostics],
     }
 
     def fill(tmp: Path) -> None:
@@ -249,6 +250,16 @@ def write(path: Path, spec: RunSpec, checkpoint: Checkpoint) -> None:
         reason = error.reason if isinstance(error, NotWritten) else error.strerror or error
         raise CheckpointWriteError(f"{path}: not written ({reason}); "
                                    "the previous checkpoint is kept") from None
+
+
+def _to_json(row: dict[str, float]) -> dict[str, float | None]:
+    """A diagnostics row for JSON, which has no NaN: an interval with critic steps but no actor
+    step has no actor loss (NaN), kept as null."""
+    return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in row.items()}
+
+
+def _from_json(row: dict[str, float | None]) -> dict[str, float]:
+    return {k: math.nan if v is None else v for k, v in row.items()}
 
 
 def _shapes(tensors: Mapping[str, torch.Tensor]) -> Shapes:

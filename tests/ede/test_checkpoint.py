@@ -101,6 +101,18 @@ def test_a_resumed_run_steps_on_as_the_run_it_was_saved_from(saved: Path) -> Non
     assert np.array_equal(ahead.runs[0].obs, resumed.runs[0].obs)
 
 
+def test_an_interval_without_an_actor_step_is_saved_and_read_back(tmp_path: Path) -> None:
+    # The first update comes at step 8 (a batch of 8), a critic step alone (policy delay 2): an
+    # evaluation right after it records no actor loss, NaN, which JSON cannot hold.
+    group = trained(8)
+    row = group.runs[0].diagnostics[0]
+    assert row["updates"] == 1 and np.isnan(row["actor_loss"]) and np.isnan(row["mean_q"])
+    group.runs[0].save(tmp_path / "checkpoint")
+    held = read(tmp_path / "checkpoint").diagnostics[0]
+    assert held.keys() == row.keys() and np.isnan(held["actor_loss"]) and np.isnan(held["mean_q"])
+    assert held["critic_loss"] == row["critic_loss"]
+
+
 def test_a_damaged_file_is_refused_by_its_checksum(copy: Path) -> None:
     data = bytearray((copy / "state.safetensors").read_bytes())
     data[-1] ^= 0xFF
