@@ -60,6 +60,7 @@ class Stack:
         self.width = -(-used // ROW_ALIGN) * ROW_ALIGN
         self.flat = torch.zeros(len(members), networks * self.width, device=device)
         self.params = self.views(self.flat)
+        self._members = [self.views(row) for row in self.flat]  # acting reads them every step
         for m, params in enumerate(members):
             self.load(m, params)
 
@@ -84,8 +85,9 @@ class Stack:
         return torch.cat(parts, dim=2).flatten(1)
 
     def member(self, m: int) -> Params:
-        """Member ``m``'s parameters, views of its row."""
-        return self.views(self.flat[m])
+        """Member ``m``'s parameters, views of its row (valid for good: every change is in
+        place)."""
+        return self._members[m]
 
     @torch.no_grad()
     def load(self, m: int, params: Params) -> None:
@@ -97,6 +99,7 @@ class Stack:
         other.networks, other.width, other.shapes = self.networks, self.width, self.shapes
         other.flat = self.flat.clone()
         other.params = other.views(other.flat)
+        other._members = [other.views(row) for row in other.flat]
         return other
 
     @torch.no_grad()

@@ -1,0 +1,86 @@
+"""The member axis (``ede.ensemble``): a member computes the same bits alone and stacked with others,
+and the stack's layout round-trips."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from ede import ensemble
+from ede.nets import initial_mlp
+
+CPU = torch.device("cpu")
+SIZES = [5, 32, 24, 3]
+
+
+def members(count: int, networks: int = 1) -> list[ensemble.Params]:
+    """``count`` members' parameters, member m's drawn from seed m (``networks`` stacked each)."""
+    out = []
+    for m in range(count):
+        generator = torch.Generator().manual_seed(m)
+        drawn = [initial_mlp(SIZES, generator) for _ in range(networks)]
+        out.append(drawn[0] if networks == 1 else
+                   {name: torch.stack([d[name] for d in drawn]) for name in drawn[0]})
+    return out
+
+
+@pytest.mark.parametrize("networks", [1, 2])
+@pytest.mark.parametrize("rows", [9, 10])  # an odd batch is padded to halves
+def test_a_member_computes_the_same_bits_alone_and_in_a_stack(networks: int, rows: int) -> None:
+    torch.set_num_threads(1)
+    generator = torch.Generator().manual_seed(100)
+    shape = (rows, SIZES[0]) if networks == 1 else (networks, rows, SIZES[0])
+    x = [torch.randn(shape, generator=generator) for _ in range(3)]
+    together = ensemble.Stack(members(3, networks), CPU, networks)
+    alone = ensemble.Stack(members(3, networks)[2:], CPU, networks)
+    y = ensemble.mlp(together.params, torch.stack(x))  # (3, ..., B, out)
+    assert y.shape == (3, *shape[:-1], SIZES[-1])
+    assert torch.equal(ensemble.mlp(alone.params, x[2][None])[0], y[2])
+    # and what nn.Linear computes for that network, within rounding (other kernels)
+    one = together.member(2)
+    if networks == 1:
+        torch.testing.assert_close(ensemble.mlp(one, x[2]), y[2], rtol=1e-5, atol=1e-6)
+
+
+def test_views_and_flatten_round_trip_and_rows_are_whole_vectors() -> None:
+    stack = ensemble.Stack(members(2, 2), CPU, networks=2)
+    assert stack.flat.shape[1] % ensemble.ROW_ALIGN == 0
+    assert stack.params["0.weight"].shape == (2, 2, SIZES[1], SIZES[0])
+    assert torch.equal(stack.flatten(stack.params), stack.flat)
+    for m, params in enumerate(members(2, 2)):
+        assert all(torch.equal(stack.member(m)[k], v) for k, v in params.items())
+    # The members' networks stack as (M·L, out, in) views of the one tensor, uncopied.
+    weight = stack.params["2.weight"]
+    assert weight.flatten(0, 1).data_ptr() == weight.data_ptr()
+    assert weight.flatten(0, 1)._base is not None
+
+
+def test_a_member_not_due_keeps_its_weights_and_moments_bit_for_bit() -> None:
+    stack = ensemble.Stack(members(3), CPU)
+    adam = ensemble.Adam(stack, lr=1e-2)
+    grad = torch.randn(stack.flat.shape, generator=torch.Generator().manual_seed(0))
+    adam.step(grad, adam.corrections([1, 1, 1], CPU))
+    before = [t[1].clone() for t in (stack.flat, adam.exp_avg, adam.exp_avg_sq)]
+    adam.step(grad, adam.corrections([2, 1, 2], CPU), torch.tensor([True, False, True]))
+    assert all(torch.equal(b, t[1]) for b, t in zip(before, (stack.flat, adam.exp_avg,
+                                                            adam.exp_avg_sq)))
+    assert not torch.equal(stack.flat[0], stack.flat[1])  # the others did step
+
+
+def test_adam_is_torchs_adam_for_one_member() -> None:
+    torch.set_num_threads(1)
+    params = members(1)[0]
+    stack = ensemble.Stack([params], CPU)
+    theirs = {k: v.clone().requires_grad_(True) for k, v in params.items()}
+    optimizer = torch.optim.Adam(theirs.values(), lr=1e-3, foreach=False)
+    adam = ensemble.Adam(stack, lr=1e-3)
+    generator = torch.Generator().manual_seed(1)
+    for t in range(1, 4):
+        grads = {k: torch.randn(v.shape, generator=generator) for k, v in params.items()}
+        for k, v in theirs.items():
+            v.grad = grads[k].clone()
+        optimizer.step()
+        adam.step(stack.flatten({k: g[None] for k, g in grads.items()}),
+                  adam.corrections([t], CPU))
+    # The same arithmetic in the same order: the same bits.
+    assert all(torch.equal(stack.member(0)[k], v.detach()) for k, v in theirs.items())
