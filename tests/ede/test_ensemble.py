@@ -82,5 +82,8 @@ def test_adam_is_torchs_adam_for_one_member() -> None:
         optimizer.step()
         adam.step(stack.flatten({k: g[None] for k, g in grads.items()}),
                   adam.corrections([t], CPU))
-    # The same arithmetic in the same order: the same bits.
-    assert all(torch.equal(stack.member(0)[k], v.detach()) for k, v in theirs.items())
+    # The same arithmetic in the same order, but other kernels (a per-member tensor against
+    # torch's Python scalars, addcdiv against a product then a quotient): equal bit for bit on
+    # AMD EPYC (AVX2 kernels); a tolerance, since other CPUs' vector kernels may round apart.
+    for k, v in theirs.items():
+        torch.testing.assert_close(stack.member(0)[k], v.detach(), rtol=1e-6, atol=1e-9)
