@@ -64,6 +64,11 @@ RUN pip install --no-deps --no-build-isolation /tmp/ede \
     && install -m 755 /tmp/ede/scripts/batch-job.sh /usr/local/bin/batch-job \
     && rm -rf /tmp/ede
 
+# The commit the code came from, which every run's run.json records (an installed copy has no git
+# of its own): `docker build --build-arg EDE_COMMIT=$(git rev-parse HEAD) ...`.
+ARG EDE_COMMIT=
+ENV EDE_COMMIT=$EDE_COMMIT
+
 # A non-root user. Run with `--user "$(id -u):$(id -g)"` so files written to the mounted checkout
 # belong to you; HOME is writable by any user for the tools' caches.
 RUN useradd --create-home --uid 1000 --shell /bin/bash ede && chmod 1777 /home/ede

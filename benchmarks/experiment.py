@@ -35,7 +35,8 @@ import numpy as np
 import yaml
 
 from ede.config import load_params
-from ede.report import RunRejected, curve_band, read_run, summarise_task
+from ede.report import curve_band, summarise_task
+from ede.runs import RunRejected, read_run
 from ede_pipeline import layout
 
 REPO = Path(__file__).resolve().parents[1]

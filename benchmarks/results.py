@@ -71,17 +71,15 @@ from ede.report import (
     RANDOM_EPISODES,
     SCORES,
     AcrossTasks,
-    Curve,
-    RunRejected,
     across_tasks_section,
     curve_band,
     improvement_on_task,
     learning_curve_figure,
     random_policy_return,
-    read_run,
     summarise_task,
     zero_action_return,
 )
+from ede.runs import Curve, RunRejected, read_run
 from ede.stats import bootstrap_mean, divergence, separation, steps_to_threshold
 from ede_pipeline import layout
 

@@ -19,15 +19,15 @@ import copy
 import time
 from contextlib import nullcontext
 
+import numpy as np
 import torch
 
 from ede.config import EdeTD3Config, TD3Config
-from ede.nets import flush_denormals
-import numpy as np
-
 from ede.ensemble import Adam
+from ede.nets import flush_denormals
+from ede.runs import RunSpec
 from ede.td3 import Agent, ReplayBatch
-from ede.training import RunSpec, _Group
+from ede.training import _Group
 
 SMALLEST_NORMAL = torch.finfo(torch.float32).tiny
 

@@ -29,8 +29,9 @@ import numpy as np
 import torch
 
 from ede.config import EdeTD3Config, TD3Config
+from ede.runs import RunSpec
 from ede.stats import area_under_curve, bootstrap_mean
-from ede.training import EVAL_SEED_OFFSET, RunSpec, train_run
+from ede.training import EVAL_SEED_OFFSET, train_run
 
 TASK = "Reacher-v5"
 START = 1_000

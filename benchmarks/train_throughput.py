@@ -79,7 +79,8 @@ from ede.config import EdeTD3Config, Precision, TD3Config
 from ede.embedding import ActionDecoder, ActionEmbedding, Encoder
 from ede.nets import product_error
 from ede.rollouts import Whitening
-from ede.training import RunSpec, train_group
+from ede.runs import RunSpec
+from ede.training import train_group
 
 TASK = "Reacher-v5"
 PRECISIONS = list(get_args(Precision))

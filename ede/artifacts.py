@@ -25,7 +25,7 @@ from safetensors.torch import load_file
 from torch import nn
 
 from ede.atomic import save_tensors, sha256, write_atomically
-from ede.config import DecoderConfig, EmbeddingConfig
+from ede.config import DecoderConfig, EmbeddingConfig, result_neutral
 from ede.embedding import ActionDecoder, ActionEmbedding, Encoder, EncoderResult, Predictor
 from ede.provenance import software_versions
 from ede.rollouts import Whitening
@@ -45,8 +45,6 @@ __all__ = [
 
 WEIGHTS = "weights.safetensors"
 META = "meta.json"
-# Params that decide where and how fast an artifact is made, not what it is.
-RESULT_NEUTRAL_PARAMS = frozenset({"device", "threads"})
 AGAIN = "make it again (`ede-pipeline pretrain`)"
 # Metadata fields that record how an artifact was made, not what it computes.
 PROVENANCE = frozenset({"software"})
@@ -306,8 +304,8 @@ def params_mismatches(
     """Every way an artifact contradicts the params in force, one line each.
 
     ``k`` and ``dim`` are compared as the artifact has them; every other param recorded in
-    ``meta.params`` (all but :data:`RESULT_NEUTRAL_PARAMS`) is compared key by key, and a key
-    recorded on one side only is a contradiction too.
+    ``meta.params`` (all but the result-neutral ones, :func:`ede.config.result_neutral`) is
+    compared key by key, and a key recorded on one side only is a contradiction too.
 
     Args:
         path: the artifact's directory, which each line names.
@@ -342,7 +340,7 @@ def params_mismatches(
                          "params.yaml; make it again (`ede-pipeline pretrain`)")
             continue
         given = config.model_dump(mode="json")
-        done = RESULT_NEUTRAL_PARAMS | ({"k", "dim"} if section == "embedding" else set())
+        done = result_neutral(type(config)) | ({"k", "dim"} if section == "embedding" else set())
         for key in [*given, *(key for key in recorded if key not in given)]:
             name = f"{section}.{key}"
             if key in done:

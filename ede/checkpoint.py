@@ -10,7 +10,7 @@ group, so either resumes the other:
   (``code``, ``plan``), the current episode's actions (``episode_actions``) and the observation
   their replay must reach (``obs``);
 * ``state.json``: the format version, the run's identity and fingerprint
-  (:meth:`ede.training.RunSpec.identity`), ``step`` (equal to ``buffer.count``), ``episodes``,
+  (:meth:`ede.runs.RunSpec.identity`), ``step`` (equal to ``buffer.count``), ``episodes``,
   ``i`` (steps of the code executed), ``wall_seconds``, ``episode_start``, ``episode_return``,
   the evaluation ``history`` and the training ``diagnostics``;
 * ``checksums.json``: the SHA-256 of the other two.
@@ -35,10 +35,12 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file
 
 from ede.atomic import NotWritten, save_tensors, sha256, write_atomically
+from ede.errors import first_line
+from ede.runs import identity_difference
 
 if TYPE_CHECKING:
     from ede.td3 import Agent, CodeExecutor, ReplayBuffer
-    from ede.training import RunSpec
+    from ede.runs import RunSpec
 
 __all__ = ["VERSION", "Checkpoint", "CheckpointError", "CheckpointWriteError", "Episode",
            "Layout", "apply", "read", "write"]
@@ -153,7 +155,8 @@ def read(path: Path, spec: RunSpec, layout: Layout) -> Checkpoint:
         raise CheckpointError(f"format version {state.get('version')}, this version reads "
                               f"{VERSION}")
     if state.get("fingerprint") != spec.fingerprint():
-        raise CheckpointError(f"another run's: {_difference(state.get('identity'), spec)}")
+        raise CheckpointError("another run's: " + (identity_difference(
+            state.get("identity"), spec.identity()) or "made by another configuration"))
     for key, kind in STATE.items():
         if not isinstance(state.get(key), kind):
             raise CheckpointError(f"state.json: {key} is missing or not a "
@@ -161,7 +164,7 @@ def read(path: Path, spec: RunSpec, layout: Layout) -> Checkpoint:
     try:
         tensors = load_file(path / "state.safetensors")
     except (SafetensorError, OSError) as error:
-        raise CheckpointError(f"state.safetensors not readable ({_first_line(error)})") from None
+        raise CheckpointError(f"state.safetensors not readable ({first_line(error)})") from None
     _check_tensors(tensors, state, layout)
     return Checkpoint(
         agent=_part(tensors, "agent"),
@@ -196,7 +199,7 @@ def apply(checkpoint: Checkpoint, agent: Agent, buffer: ReplayBuffer, member: in
     try:
         obs = episode.replay(env)
     except (ValueError, TypeError, KeyError) as error:  # a start the environment rejects
-        raise CheckpointError(f"not restorable ({_first_line(error)})") from None
+        raise CheckpointError(f"not restorable ({first_line(error)})") from None
     if not np.array_equal(obs, checkpoint.obs):
         raise CheckpointError("not restorable (replaying the episode did not reach the saved "
                               "state)")
@@ -315,10 +318,6 @@ def _expect(tensors: Mapping[str, torch.Tensor], name: str, shape: tuple[int | N
                               + ("" if dtype is None else f" {dtype}"))
 
 
-def _first_line(error: BaseException) -> str:
-    return (str(error).strip().splitlines() or [type(error).__name__])[0]
-
-
 def _verified_state(path: Path) -> dict[str, Any]:
     """``state.json`` of a checkpoint whose files all match their checksums."""
     try:
@@ -332,21 +331,8 @@ def _verified_state(path: Path) -> dict[str, Any]:
     except FileNotFoundError as error:
         raise CheckpointError(f"{Path(error.filename).name} is missing") from None
     except (OSError, ValueError, KeyError, TypeError) as error:
-        raise CheckpointError(f"not readable ({_first_line(error)})") from None
+        raise CheckpointError(f"not readable ({first_line(error)})") from None
     if not isinstance(state, dict):
         raise CheckpointError("state.json is not an object")
     return state
 
-
-def _difference(identity: Any, spec: RunSpec) -> str:
-    """What tells another run's checkpoint from this run: the first identity key that differs."""
-    if not isinstance(identity, dict):
-        return "its identity is not recorded"
-    for key, value in spec.identity().items():
-        if identity.get(key) != value:
-            if key == "params":
-                return "made with other params"
-            if key == "embedding":
-                return "made with another embedding"
-            return f"{key} {identity.get(key)}, not {value}"
-    return "made by another configuration"

@@ -12,6 +12,7 @@ import functools
 import itertools
 import json
 import re
+import typing
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -26,8 +27,12 @@ from pydantic import (
     model_validator,
 )
 
+from ede.errors import first_line
+
 __all__ = [
     "ALGOS",
+    "ALGO_LABELS",
+    "Algo",
     "CollectConfig",
     "DecoderConfig",
     "EdeTD3Config",
@@ -43,10 +48,19 @@ __all__ = [
     "episode_length",
     "is_seed",
     "load_params",
+    "result_neutral",
     "validate_params",
 ]
 
-ALGOS = ("td3", "ede-td3")
+Algo = Literal["td3", "ede-td3"]
+ALGOS: tuple[Algo, ...] = typing.get_args(Algo)
+ALGO_LABELS: dict[Algo, str] = {"td3": "TD3", "ede-td3": "EDE-TD3"}  # as the paper writes them
+
+# The mark of a setting that decides where or how fast a stage runs, never what it computes (a
+# field's ``json_schema_extra``). :func:`result_neutral` reads it: run identities and the embedding
+# artifacts' params check leave these keys out, and ``dvc.yaml`` tracks every key but these
+# (``tests/pipeline/test_dvc.py`` holds it to them).
+RESULT_NEUTRAL = {"result_neutral": True}
 
 PositiveInt = Annotated[int, Field(gt=0)]
 
@@ -89,12 +103,14 @@ def _registered(task: str) -> str:
 
 TaskId = Annotated[str, AfterValidator(_registered)]
 Device = Annotated[
-    Literal["cpu", "cuda", "auto"], Field(description="where torch runs; auto: CUDA if present")
+    Literal["cpu", "cuda", "auto"],
+    Field(description="where torch runs; auto: CUDA if present", json_schema_extra=RESULT_NEUTRAL),
 ]
 Threads = Annotated[
     int,
     Field(gt=0, description="torch threads on CPU: 1 is fastest for networks this small and "
-          "lets stages and runs share the cores (more threads than cores slows everything)"),
+          "lets stages and runs share the cores (more threads than cores slows everything)",
+          json_schema_extra=RESULT_NEUTRAL),
 ]
 Precision = Literal["fp32", "bf16-matmul", "bf16"]
 
@@ -116,6 +132,13 @@ class _Section(BaseModel):
     # Strict: a value is what it says — true is no 1, "1" no number, 1 no string (an int is a
     # float, as YAML writes 1 for 1.0).
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
+
+
+def result_neutral(section: type[BaseModel]) -> frozenset[str]:
+    """The keys of ``section`` marked :data:`RESULT_NEUTRAL`: where or how fast it runs."""
+    return frozenset(name for name, field in section.model_fields.items()
+                     if isinstance(field.json_schema_extra, dict)
+                     and field.json_schema_extra.get("result_neutral"))
 
 
 class FamilyConfig(_Section):
@@ -232,7 +255,8 @@ class TD3Config(_Section):
     buffer_size: PositiveInt = 1_000_000
     eval_every: PositiveInt = Field(1_000, description="steps between evaluations (the authors' code)")
     eval_episodes: PositiveInt = 10
-    checkpoint_every: PositiveInt = 50_000
+    checkpoint_every: PositiveInt = Field(
+        50_000, description="steps between a run's checkpoints", json_schema_extra=RESULT_NEUTRAL)
     precision: Precision = Field(
         "fp32",
         description="fp32; bf16-matmul: fp32 tensors, matrix products from bf16 inputs with fp32 "
@@ -243,7 +267,8 @@ class TD3Config(_Section):
     compile: Literal["none", "default", "reduce-overhead"] = Field(
         "none", description="how the update runs: eager (none), compiled whole with "
         "torch.compile (default), or compiled and captured as a CUDA graph on a GPU "
-        "(reduce-overhead); leaves results alone beyond rounding (README, \"Stage 4: train\")"
+        "(reduce-overhead); leaves results alone beyond rounding (README, \"Stage 4: train\")",
+        json_schema_extra=RESULT_NEUTRAL,
     )
 
 
@@ -277,7 +302,7 @@ class RunsConfig(_Section):
         min_length=1, description="the tasks to train on, each with its family: the family whose "
         "embedding EDE-TD3 acts in there (its source, or a target it transfers to)"
     )
-    algos: list[Literal["td3", "ede-td3"]] = Field(
+    algos: list[Algo] = Field(
         default_factory=lambda: list(ALGOS), min_length=1
     )
     seeds: list[Seed] = Field(min_length=1)
@@ -576,7 +601,7 @@ def read_yaml(path: Path) -> Any:
     except FileNotFoundError:
         raise ParamsError(path, ["no such file"]) from None
     except (OSError, UnicodeDecodeError) as error:
-        raise ParamsError(path, [f"not readable YAML ({_first_line(error)})"]) from None
+        raise ParamsError(path, [f"not readable YAML ({first_line(error)})"]) from None
     try:
         return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a safe loader)
     except _DuplicateKey as error:
@@ -643,10 +668,6 @@ def _short(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def _first_line(error: BaseException) -> str:
-    return str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-
-
 def _describe_yaml_error(error: yaml.YAMLError, text: str) -> str:
     """One line: where (1-based, as editors count), what PyYAML says, and the line's text.
 
@@ -654,7 +675,7 @@ def _describe_yaml_error(error: yaml.YAMLError, text: str) -> str:
     context began, the line to fix, rather than past the last line.
     """
     if not (isinstance(error, yaml.MarkedYAMLError) and error.problem_mark and error.problem):
-        return f"not readable YAML ({_first_line(error)})"
+        return f"not readable YAML ({first_line(error)})"
     mark, problem = error.problem_mark, error.problem
     context, context_mark = error.context, error.context_mark
     if context_mark is not None and not text[mark.index:].strip():  # at the end of the stream

@@ -6,12 +6,8 @@ writing HTML is the pipeline's business.
 
 from __future__ import annotations
 
-import csv
-import json
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
 
 import matplotlib
 
@@ -23,7 +19,9 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
+from ede.config import ALGO_LABELS  # noqa: E402
 from ede.embedding import ActionEmbedding  # noqa: E402
+from ede.runs import Curve  # noqa: E402
 from ede.stats import (  # noqa: E402
     Interval,
     across_tasks,
@@ -37,6 +35,7 @@ from ede.stats import (  # noqa: E402
     steps_to_threshold,
 )
 from ede.tasks import make  # noqa: E402
+from ede.training import evaluate
 from ede.td3 import CodeExecutor, EmbeddingAdapter, IdentityAdapter  # noqa: E402
 
 __all__ = [
@@ -44,7 +43,6 @@ __all__ = [
     "AcrossTasks",
     "SCORES",
     "SCORE_OF",
-    "Curve",
     "across_tasks_section",
     "TaskRow",
     "curve_band",
@@ -55,129 +53,11 @@ __all__ = [
     "learning_curve_figure",
     "random_policy_return",
     "zero_action_return",
-    "Run",
-    "RunRejected",
-    "read_run",
     "summarise_task",
 ]
 
-ALGO_STYLE = {"td3": ("TD3", "tab:blue"), "ede-td3": ("EDE-TD3", "tab:red")}
-
-
-@dataclass(frozen=True)
-class Curve:
-    """One run's evaluation curve."""
-
-    seed: int
-    steps: np.ndarray
-    returns: np.ndarray
-
-
-class RunRejected(ValueError):
-    """A finished run's folder that must not be averaged: one line saying which file and why."""
-
-
-@dataclass(frozen=True)
-class Run:
-    """A finished run as the report averages it: its curve and its training diagnostics."""
-
-    curve: Curve
-    diagnostics: dict[str, np.ndarray] | None  # None: the run has no diagnostics.csv
-    software: dict[str, Any] | None  # the versions that made it, from run.json
-
-
-def read_run(run_dir: Path, expected: dict[str, Any]) -> Run | None:
-    """A finished run, checked against ``expected``; None when it is not finished.
-
-    A run is finished when its ``metrics.json`` exists: ``train`` writes it (atomically) last.
-    ``expected`` holds what the run must be, any of :meth:`ede.training.RunSpec.identity`'s keys
-    (task, algo, seed, budget, params, embedding): each must equal its value in ``run.json``.
-    ``eval.csv`` must hold its columns, finite numbers, and steps that start at 0, rise, and end
-    at the run's budget; ``diagnostics.csv``, where there is one, its columns and numbers.
-
-    Raises:
-        RunRejected: the first problem found, naming the file.
-    """
-    if not (run_dir / "metrics.json").is_file():
-        return None
-    made = _run_json(run_dir / "run.json")
-    for key, value in expected.items():
-        if made.get(key) != value:
-            raise RunRejected(f"{run_dir / 'run.json'}: {_identity_difference(key, made.get(key), value)}")
-    table = _numbers(run_dir / "eval.csv", ("step", "mean_return"), finite=True)
-    steps, returns = table["step"], table["mean_return"]
-    where = run_dir / "eval.csv"
-    if steps[0] != 0 or np.any(np.diff(steps) <= 0):
-        raise RunRejected(f"{where}: steps must start at 0 and rise; found {_short(steps)}")
-    budget = made.get("budget")
-    if steps[-1] != budget:
-        raise RunRejected(f"{where}: the last evaluation is at step {steps[-1]:g}, not at the "
-                          f"run's budget {budget}")
-    diagnostics = None
-    if (run_dir / "diagnostics.csv").is_file():
-        diagnostics = _numbers(run_dir / "diagnostics.csv", ("step", "updates", "critic_loss"),
-                               finite=False, allow_empty=True)
-    return Run(Curve(int(made["seed"]), steps, returns), diagnostics, made.get("software"))
-
-
-def _run_json(path: Path) -> dict[str, Any]:
-    try:
-        made = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise RunRejected(f"{path}: missing; a finished run records what made it there") from None
-    except (OSError, UnicodeDecodeError, ValueError) as error:
-        raise RunRejected(f"{path}: not readable JSON ({str(error).splitlines()[0]})") from None
-    if not isinstance(made, dict):
-        raise RunRejected(f"{path}: expected a JSON object, found {type(made).__name__}")
-    return made
-
-
-def _identity_difference(key: str, found: Any, expected: Any) -> str:
-    """``made with td3.lr = 0.01, but the params say 0.001``: the first nested key that differs."""
-    if key == "embedding":
-        return "made with another embedding than the family's (its decoder's checksum differs)"
-    if key == "params" and isinstance(found, dict) and isinstance(expected, dict):
-        for section in sorted(set(found) | set(expected)):
-            ours, theirs = found.get(section) or {}, expected.get(section) or {}
-            for name in sorted(set(ours) | set(theirs)) if isinstance(ours, dict) else []:
-                if ours.get(name) != theirs.get(name):
-                    return (f"made with {section}.{name} = {json.dumps(ours.get(name))}, but the "
-                            f"params say {json.dumps(theirs.get(name))}")
-    return f"{key} is {json.dumps(found)}, expected {json.dumps(expected)}"
-
-
-def _short(values: np.ndarray) -> str:
-    shown = ", ".join(f"{v:g}" for v in values[:6])
-    return f"[{shown}{', ...' if len(values) > 6 else ''}]"
-
-
-def _numbers(path: Path, columns: tuple[str, ...], finite: bool,
-             allow_empty: bool = False) -> dict[str, np.ndarray]:
-    """A CSV of numbers as columns: ``columns`` must be there, every cell a number (finite ones
-    when ``finite``), at least one row unless ``allow_empty``."""
-    try:
-        with open(path, newline="") as handle:
-            reader = csv.DictReader(handle)
-            header, rows = reader.fieldnames or [], list(reader)
-    except FileNotFoundError:
-        raise RunRejected(f"{path}: missing") from None
-    except (OSError, UnicodeDecodeError, csv.Error) as error:
-        raise RunRejected(f"{path}: not readable CSV ({str(error).splitlines()[0]})") from None
-    absent = [c for c in columns if c not in header]
-    if absent:
-        raise RunRejected(f"{path}: no column {', '.join(absent)}; found {', '.join(header) or 'none'}")
-    if not rows and not allow_empty:
-        raise RunRejected(f"{path}: no rows")
-    table = {name: np.zeros(len(rows)) for name in header}
-    for line, row in enumerate(rows, start=2):
-        for name in header:
-            try:
-                table[name][line - 2] = value = float(row[name])
-            except (TypeError, ValueError):
-                raise RunRejected(f"{path}: line {line}, {name}: {row[name]!r} is not a number") from None
-            if finite and not np.isfinite(value):
-                raise RunRejected(f"{path}: line {line}, {name}: {row[name]}, not a finite number")
-    return table
+ALGO_STYLE = {algo: (ALGO_LABELS[algo], colour)
+              for algo, colour in (("td3", "tab:blue"), ("ede-td3", "tab:red"))}
 
 
 @dataclass
@@ -487,21 +367,17 @@ def zero_action_return(task: str, episodes: int, seed: int) -> tuple[float, floa
 
 def _episode_returns(task: str, episodes: int, seed: int,
                      act: Callable[[gymnasium.spaces.Box], np.ndarray]) -> np.ndarray:
-    """Each episode's return on ``task`` with ``act(action_space)`` as the policy."""
+    """Each episode's return on ``task`` with ``act(action_space)`` as the policy, by the
+    evaluation's own loop (:func:`ede.training.evaluate`)."""
     env = make(task)
-    returns = np.zeros(episodes)
     try:
-        for e in range(episodes):
-            env.reset(seed=seed + e)
-            done = False
-            while not done:
-                action = np.asarray(act(env.action_space)).astype(env.action_space.dtype)
-                _, reward, terminated, truncated, _ = env.step(action)
-                returns[e] += float(reward)
-                done = terminated or truncated
+        space = env.action_space
+        assert isinstance(space, gymnasium.spaces.Box)
+        adapter = IdentityAdapter(space.low, space.high, torch.device("cpu"))
+        return evaluate(env, lambda obs: torch.as_tensor(np.asarray(act(space), space.dtype)),
+                        adapter, episodes, seed)
     finally:
         env.close()
-    return returns
 
 
 # The scores the aggregates are over: each one's key in ``AcrossTasks.aggregates`` and its name,

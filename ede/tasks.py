@@ -12,6 +12,7 @@ import gymnasium
 import numpy as np
 
 import ede_envs
+from ede.errors import first_line
 
 __all__ = ["TaskInfo", "action_box", "describe_tasks", "make", "unusable"]
 
@@ -44,8 +45,7 @@ def unusable(task_id: str) -> str | None:
     try:
         env = make(task_id)
     except gymnasium.error.Error as error:  # e.g. DependencyNotInstalled
-        first_line = str(error).splitlines()[0] if str(error) else ""
-        return f"it cannot be made ({type(error).__name__}: {first_line})"
+        return f"it cannot be made ({type(error).__name__}: {first_line(error)})"
     try:
         action, observation = env.action_space, env.observation_space
     finally:

@@ -1,21 +1,12 @@
 """One training run of TD3 or EDE-TD3: the environment loop, evaluation, checkpoints, outputs.
 
-A run is determined by its task, algorithm, seed, budget, params and (for EDE-TD3) embedding. It
-writes, into its directory:
-
-* ``eval.csv``: ``step, episode, mean_return, std_return, wall_seconds`` after every evaluation;
-* ``run.json``: what made the run — its identity (task, algo, seed, budget, the params that
-  change its result, the embedding's checksum) and the versions of the software;
-* ``diagnostics.csv``: ``step, updates, critic_loss, actor_loss, mean_q``, the means over the
-  updates since the previous evaluation (mean_q: Q_1(s, μ(s), 0) on the actor's batches);
-* ``metrics.json``: final and best return, area under the curve, steps per second, episodes;
-  written last, so a run with ``metrics.json`` is complete;
-* ``policy/``: the final actor as safetensors beside its JSON metadata;
-* ``checkpoint/`` while it runs: everything needed to continue exactly, in the format of
-  :mod:`ede.checkpoint` — the same for a run trained alone and for a member of a group, so either
-  resumes the other. A run started where a checkpoint of the same configuration exists continues
-  from it; on CPU a run killed at any point and resumed ends with the same ``eval.csv`` returns
-  as an uninterrupted one.
+A run is determined by its :class:`ede.runs.RunSpec` and (for EDE-TD3) its embedding. It writes
+its folder's files (:mod:`ede.runs`: ``eval.csv`` and ``diagnostics.csv`` after every
+evaluation, ``policy/``, ``run.json`` and, last, ``metrics.json``) and, while it trains,
+``checkpoint/``: everything needed to continue exactly, in the format of :mod:`ede.checkpoint` —
+the same for a run trained alone and for a member of a group, so either resumes the other. A run
+started where a checkpoint of the same configuration exists continues from it; on CPU a run
+killed at any point and resumed ends with the same ``eval.csv`` returns as an uninterrupted one.
 
 A group of runs (several seeds of one task and algorithm) is one :class:`ede.td3.Agent` with a
 member per run; a run alone is a group of one. Each run's outputs are what it gets alone.
@@ -26,10 +17,6 @@ the runs' steps and batched updates, and :class:`_Session` writes one run's outp
 
 from __future__ import annotations
 
-import csv
-import hashlib
-import io
-import json
 import shutil
 import time
 from collections.abc import Callable
@@ -41,19 +28,12 @@ import gymnasium
 import numpy as np
 import torch
 from ede import checkpoint
-from ede.atomic import (
-    claim,
-    remove_stale_temporaries,
-    save_tensors,
-    write_atomically,
-    write_json,
-    write_text,
-)
+from ede.atomic import claim, remove_stale_temporaries
 from ede.checkpoint import CheckpointError, Episode, Layout
-from ede.config import EdeTD3Config, TD3Config
+from ede.config import ALGOS
 from ede.embedding import ActionEmbedding
 from ede.nets import flush_denormals
-from ede.provenance import software_versions
+from ede.runs import RUN_KIND, RUN_OWNS, RunSpec, write_curves, write_finished, write_policy
 from ede.stats import area_under_curve
 from ede.tasks import make
 from ede.td3 import (
@@ -65,7 +45,7 @@ from ede.td3 import (
     ReplayBuffer,
 )
 
-__all__ = ["Diverged", "RunSpec", "evaluate", "train_group", "train_run"]
+__all__ = ["Diverged", "evaluate", "train_group", "train_run"]
 
 
 class Diverged(Exception):
@@ -75,44 +55,6 @@ class Diverged(Exception):
 
 
 EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes are seeded apart from training ones
-EVAL_COLUMNS = ("step", "episode", "mean_return", "std_return", "wall_seconds")
-DIAGNOSTIC_COLUMNS = ("step", "updates", "critic_loss", "actor_loss", "mean_q")
-# A run's folder, filled as it trains: what it may hold (a stage refuses any other folder).
-RUN_KIND = "training run"
-RUN_OWNS = ("eval.csv", "diagnostics.csv", "run.json", "metrics.json", "policy", "checkpoint",
-            "checkpoint.bad-*", "*.tmp-*")
-# td3 settings that leave results alone (compile: within rounding)
-RESOURCES = {"threads", "device", "checkpoint_every", "compile"}
-
-
-@dataclass(frozen=True)
-class RunSpec:
-    """What determines a run."""
-
-    task: str
-    algo: str  # "td3" or "ede-td3"
-    seed: int
-    budget: int  # environment steps
-    td3: TD3Config
-    ede_td3: EdeTD3Config
-    embedding_id: str = ""  # the decoder's weights checksum, for EDE-TD3
-
-    def identity(self) -> dict[str, Any]:
-        return {
-            "task": self.task,
-            "algo": self.algo,
-            "seed": self.seed,
-            "budget": self.budget,
-            "params": {  # what changes the result: not where or how fast it runs
-                "td3": self.td3.model_dump(mode="json", exclude=RESOURCES),
-                "ede_td3": self.ede_td3.model_dump(mode="json"),
-            },
-            "embedding": self.embedding_id,
-        }
-
-    def fingerprint(self) -> str:
-        text = json.dumps(self.identity(), sort_keys=True, allow_nan=False)
-        return hashlib.sha256(text.encode()).hexdigest()
 
 
 def evaluate(
@@ -128,14 +70,6 @@ def evaluate(
         for step in executor.episode(obs, policy):
             returns[e] += step.reward
     return returns
-
-
-def _csv(rows: list[dict[str, float]], columns: tuple[str, ...] = EVAL_COLUMNS) -> str:
-    out = io.StringIO()
-    writer = csv.DictWriter(out, fieldnames=columns, lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    return out.getvalue()
 
 
 def _adapter(spec: RunSpec, space: gymnasium.spaces.Box, embedding: ActionEmbedding | None,
@@ -330,11 +264,6 @@ class _Group:
         return [run for run in stepping if run.failed is None]
 
 
-def _write_curves(out: Path, run: _Run) -> None:
-    write_text(out / "diagnostics.csv", _csv(run.diagnostics, DIAGNOSTIC_COLUMNS))
-    write_text(out / "eval.csv", _csv(run.history))
-
-
 def train_run(
     spec: RunSpec,
     out: Path,
@@ -383,8 +312,8 @@ def train_group(
             (:func:`ede.checkpoint.write`).
     """
     spec = specs[0]
-    if spec.algo not in ("td3", "ede-td3"):
-        raise ValueError(f"unknown algorithm {spec.algo!r}; expected td3 or ede-td3")
+    if spec.algo not in ALGOS:
+        raise ValueError(f"unknown algorithm {spec.algo!r}; expected one of {', '.join(ALGOS)}")
     if spec.algo == "ede-td3" and embedding is None:
         raise ValueError("ede-td3 needs the family's action embedding")
     alike = all(replace(s, seed=0) == replace(spec, seed=0) for s in specs)
@@ -441,7 +370,7 @@ class _Session:
         session = cls(group, index, out, resumed, steps_at_start=run.step, wall_at_start=run.wall)
         if not run.history:
             run.evaluate()
-            _write_curves(out, run)
+            write_curves(out, run.history, run.diagnostics)
         return session
 
     def clock(self) -> None:
@@ -455,7 +384,7 @@ class _Session:
         if run.step % config.eval_every == 0 or run.step == run.spec.budget:
             self.clock()
             run.evaluate()
-            _write_curves(self.out, run)
+            write_curves(self.out, run.history, run.diagnostics)
         if run.step % config.checkpoint_every == 0 and run.step < run.spec.budget:
             self.clock()
             run.save(self.out / "checkpoint")
@@ -474,7 +403,7 @@ class _Session:
         """The run's final outputs; ``metrics.json`` last."""
         run, out, spec = self.run, self.out, self.run.spec
         self.clock()
-        _write_curves(out, run)
+        write_curves(out, run.history, run.diagnostics)
         steps = np.array([row["step"] for row in run.history], dtype=float)
         returns = np.array([row["mean_return"] for row in run.history])
         session_steps = run.step - self.steps_at_start
@@ -488,8 +417,7 @@ class _Session:
             "resumed_from_step": self.steps_at_start if self.resumed else None,
         }
         save_policy(out / "policy", self.group.agent, self.index, spec, self.group.adapter)
-        write_json(out / "run.json", {**spec.identity(), "software": software_versions()})
-        write_json(out / "metrics.json", metrics)  # last: a run with metrics.json is complete
+        write_finished(out, spec, metrics, self.group.device)
         path = out / "checkpoint"
         if not keep_checkpoint:
             shutil.rmtree(path, ignore_errors=True)
@@ -513,18 +441,11 @@ def save_policy(path: Path, agent: Agent, member: int, spec: RunSpec,
     """Member ``member``'s final actor: ``policy.safetensors`` (the single-network ``Actor``'s
     tensors: ``net.0.weight``, ``net.0.bias``, ..., ``centre``, ``half_range``; an
     ``ede.nets.mlp`` of ``hidden`` loads ``net.*``) beside ``policy.json``."""
-
-    def write(tmp: Path) -> None:
-        state = {k: v.detach().cpu().contiguous() for k, v in agent.policy(member).items()}
-        save_tensors(state, tmp / "policy.safetensors")
-        meta = {
-            **spec.identity(),
-            "k": adapter.k,
-            "code_size": adapter.code_size,
-            "code_low": adapter.code_low.tolist(),
-            "code_high": adapter.code_high.tolist(),
-            "hidden": spec.td3.hidden,
-        }
-        write_json(tmp / "policy.json", meta)
-
-    write_atomically(path, write, kind="policy")
+    write_policy(path, agent.policy(member), {
+        **spec.identity(),
+        "k": adapter.k,
+        "code_size": adapter.code_size,
+        "code_low": adapter.code_low.tolist(),
+        "code_high": adapter.code_high.tolist(),
+        "hidden": spec.td3.hidden,
+    })

@@ -18,12 +18,12 @@ from typing import Any
 
 import click
 
+from ede.config import ALGO_LABELS
 from ede_pipeline import layout
 
 __all__ = ["experiment_blocks", "experiments"]
 
 WIDTH = 80
-ALGO_LABELS = {"td3": "TD3", "ede-td3": "EDE-TD3"}
 PARAMS_FILE = "params.yaml"
 
 

@@ -29,23 +29,20 @@ from ede.embedding import ActionEmbedding
 from ede.provenance import describe_software, software_versions
 from ede.report import (
     ALGO_STYLE,
-    Curve,
+    RANDOM_EPISODES,
+    SCORES,
     TaskRow,
+    across_tasks_section,
     curve_band,
     diagnostics_figure,
     effect_space,
     exploration,
     learning_curve_figure,
-    RunRejected,
-    across_tasks_section,
-    RANDOM_EPISODES,
-    SCORES,
     random_policy_return,
-    read_run,
     summarise_task,
 )
+from ede.runs import Curve, RunRejected, RunSpec, read_run
 from ede.stats import divergence
-from ede.training import RunSpec
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, holding, params_option
 

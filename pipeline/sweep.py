@@ -55,6 +55,7 @@ from tqdm import tqdm
 
 from ede.atomic import unwritable
 from ede.config import Params
+from ede.errors import first_line
 from ede_pipeline import layout
 from ede_pipeline.common import DEFAULT_PARAMS, BadInput, read_params
 from ede_pipeline.progress import PROGRESS_ENV, read_progress
@@ -377,9 +378,8 @@ class RayExecutor:
             try:
                 yield ray.get(ref)
             except ray.exceptions.RayError as error:  # lost every attempt, or run_job raised
-                first = str(error).strip().splitlines()[0] if str(error).strip() else ""
                 yield Outcome(job.stage, None, time.perf_counter() - start,
-                              error=f"{type(error).__name__}: {first}",
+                              error=f"{type(error).__name__}: {first_line(error)}",
                               attempts=attempts(job))
 
 

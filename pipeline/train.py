@@ -10,10 +10,11 @@ import click
 import torch
 
 from ede.artifacts import ArtifactError, load_action_embedding, params_mismatches
+from ede.checkpoint import CheckpointError, CheckpointWriteError
 from ede.config import ALGOS, SEED_RANGE, Params, is_seed
 from ede.nets import pick_device
-from ede.checkpoint import CheckpointError, CheckpointWriteError
-from ede.training import RUN_KIND, Diverged, RunSpec, train_group
+from ede.runs import RUN_KIND, RunSpec
+from ede.training import Diverged, train_group
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, Failed, check_outputs, holding, params_option
 from ede_pipeline.progress import progress

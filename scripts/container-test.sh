@@ -75,6 +75,7 @@ pipconf=$state/pip.conf
 printf '[global]\ncert = /etc/ssl/host-ca.crt\n' >"$pipconf"
 build_start=$SECONDS
 nice -n 10 podman "${storage[@]}" build --pull=never --network host \
+    --build-arg EDE_COMMIT="$(git rev-parse HEAD)" \
     -v /etc/ssl/certs/ca-certificates.crt:/etc/ssl/host-ca.crt:ro -v "$pipconf:/etc/pip.conf:ro" \
     -t localhost/ede:latest -t docker.io/library/ede:latest . >"$state/build.log" 2>&1 \
     || { tail -40 "$state/build.log"; fail "podman build"; }

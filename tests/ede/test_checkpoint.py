@@ -16,7 +16,8 @@ from ede import checkpoint
 from ede.atomic import sha256
 from ede.checkpoint import CheckpointError
 from ede.config import EdeTD3Config, TD3Config
-from ede.training import RunSpec, _Group
+from ede.runs import RunSpec
+from ede.training import _Group
 
 CPU = torch.device("cpu")
 CONFIG = TD3Config(hidden=[16, 16], batch_size=8, start_steps=0, update_schedule="step",
@@ -129,10 +130,10 @@ def test_a_missing_file_is_named(copy: Path, name: str) -> None:
 
 
 def test_another_runs_checkpoint_names_the_first_difference(saved: Path) -> None:
-    with pytest.raises(CheckpointError, match="^another run's: seed 0, not 1$"):
+    with pytest.raises(CheckpointError, match="^another run's: seed is 0, expected 1$"):
         read(saved, spec(seed=1))
     other = CONFIG.model_copy(update={"lr": 3e-4})
-    with pytest.raises(CheckpointError, match="^another run's: made with other params$"):
+    with pytest.raises(CheckpointError, match=r"^another run's: made with td3.lr = 0.001, but the params say 0.0003$"):
         read(saved, spec(config=other))
 
 

@@ -13,8 +13,9 @@ import pytest
 import torch
 
 from ede.config import EdeTD3Config, TD3Config
+from ede.runs import RunSpec
 from ede.tasks import make
-from ede.training import Diverged, RunSpec, train_group, train_run
+from ede.training import Diverged, train_group, train_run
 
 CPU = torch.device("cpu")
 SMALL = dict(hidden=[16, 16], batch_size=8, eval_every=100, eval_episodes=2, checkpoint_every=200,

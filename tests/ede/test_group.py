@@ -14,8 +14,9 @@ import torch
 
 from ede.atomic import MARK
 from ede.config import EdeTD3Config, TD3Config
+from ede.runs import RunSpec
 from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
-from ede.training import RunSpec, train_group, train_run
+from ede.training import train_group, train_run
 
 pytestmark = pytest.mark.slow
 

@@ -16,7 +16,8 @@ import torch
 from safetensors.torch import load_file
 
 from ede.config import EdeTD3Config, TD3Config
-from ede.training import RunSpec, train_group, train_run
+from ede.runs import RunSpec
+from ede.training import train_group, train_run
 
 pytestmark = [
     pytest.mark.slow,

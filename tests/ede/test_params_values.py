@@ -22,8 +22,9 @@ from ede.config import (
 from ede.embedding import train_decoder, train_encoder
 from ede.report import random_policy_return
 from ede.rollouts import Rollouts, collect
+from ede.runs import RunSpec
 from ede.stats import across_tasks, global_numpy_seed
-from ede.training import RunSpec, train_run
+from ede.training import train_run
 from ede_pipeline.cli import main
 from ede_pipeline.common import BadInput
 from ede_pipeline.train import parse_seeds

@@ -7,7 +7,8 @@ import pytest
 from matplotlib.figure import Figure
 from matplotlib.text import Text
 
-from ede.report import Curve, diagnostics_figure, learning_curve_figure
+from ede.report import diagnostics_figure, learning_curve_figure
+from ede.runs import Curve
 
 STEPS = np.arange(1_000, 11_000, 1_000, dtype=float)
 
@@ -50,7 +51,8 @@ def test_the_diagnostics_titles_fit_one_task_or_many(tasks: list[str]) -> None:
 
 
 def test_across_tasks_on_hand_built_runs_whose_aggregates_are_known() -> None:
-    from ede.report import Curve, across_tasks_section
+    from ede.report import across_tasks_section
+    from ede.runs import Curve
 
     steps = np.array([0.0, 500.0, 1000.0])
 
@@ -78,7 +80,8 @@ def test_across_tasks_on_hand_built_runs_whose_aggregates_are_known() -> None:
 
 
 def test_unequal_run_counts_of_the_two_algorithms_are_all_used() -> None:
-    from ede.report import Curve, across_tasks_section
+    from ede.report import across_tasks_section
+    from ede.runs import Curve
 
     steps = np.array([0.0, 1000.0])
     # TD3's 2 seeds end at 0 and 2, EDE-TD3's 4 at 1, 3, 3, 3: of the 8 pairs EDE-TD3 wins 7.
@@ -91,7 +94,8 @@ def test_unequal_run_counts_of_the_two_algorithms_are_all_used() -> None:
 
 
 def test_the_probability_of_improvement_on_one_task_uses_all_its_runs() -> None:
-    from ede.report import Curve, improvement_on_task
+    from ede.report import improvement_on_task
+    from ede.runs import Curve
 
     steps = np.array([0.0, 1000.0])
     # As above: of the 8 pairs EDE-TD3 wins 7, by its final return and so by its area too.
@@ -105,7 +109,8 @@ def test_the_probability_of_improvement_on_one_task_uses_all_its_runs() -> None:
 
 
 def test_a_task_no_run_lifted_above_a_random_policy_is_left_out_by_name() -> None:
-    from ede.report import Curve, across_tasks_section
+    from ede.report import across_tasks_section
+    from ede.runs import Curve
 
     steps = np.array([0.0, 1000.0])
     good = {(t, a): [Curve(s, steps, np.array([-9.0, -1.0 - s - (a == "td3")])) for s in range(3)]
@@ -117,7 +122,8 @@ def test_a_task_no_run_lifted_above_a_random_policy_is_left_out_by_name() -> Non
 
 
 def test_the_performance_profile_band_has_the_reports_confidence() -> None:
-    from ede.report import Curve, across_tasks_section
+    from ede.report import across_tasks_section
+    from ede.runs import Curve
 
     steps = np.array([0.0, 1000.0])
     rng = np.random.default_rng(5)

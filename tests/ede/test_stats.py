@@ -9,10 +9,10 @@ import pytest
 
 from ede.stats import (
     Interval,
+    across_tasks,
     align_curves,
     area_under_curve,
     bin_curve,
-    across_tasks,
     bootstrap_mean,
     bootstrap_means,
     divergence,
@@ -107,7 +107,8 @@ def test_a_bin_without_evaluations_is_left_out_and_uneven_steps_bin_by_value() -
 
 
 def test_binned_band_is_the_mean_over_seeds_of_each_seeds_bin_means() -> None:
-    from ede.report import Curve, curve_band
+    from ede.report import curve_band
+    from ede.runs import Curve
 
     steps = np.array([0, 1000, 2000, 3000, 4000, 5000])
     curves = [Curve(0, steps, np.array([0.0, 1, 2, 3, 4, 5])), Curve(1, steps, np.array([2.0, 2, 2, 9, 9, 9]))]
@@ -121,7 +122,8 @@ def test_binned_band_is_the_mean_over_seeds_of_each_seeds_bin_means() -> None:
 
 
 def test_a_band_over_runs_of_unequal_length_uses_the_seeds_each_point_has() -> None:
-    from ede.report import Curve, curve_band
+    from ede.report import curve_band
+    from ede.runs import Curve
 
     steps = np.array([0, 1000, 2000])
     curves = [Curve(0, steps, np.array([0.0, 4.0, 8.0])), Curve(1, steps[:2], np.array([2.0, 6.0])),

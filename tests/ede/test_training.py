@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from ede.config import EdeTD3Config, TD3Config
-from ede.training import RunSpec, _Group
+from ede.runs import RunSpec
+from ede.training import _Group
 
 CPU = torch.device("cpu")
 

@@ -109,7 +109,7 @@ def test_another_seeds_checkpoint_is_named_moved_aside_and_not_resumed(
     run_with(good_checkpoint, out)
     result = workdir.run(*train_args(out, "td3", 1))
     assert result.returncode == 0, result.stderr
-    assert "another run's: seed 0, not 1; moved aside to checkpoint.bad-" in result.stderr
+    assert "another run's: seed is 0, expected 1; moved aside to checkpoint.bad-" in result.stderr
     assert json.loads((out / "metrics.json").read_text())["resumed_from_step"] is None
     assert json.loads((out / "run.json").read_text())["seed"] == 1
 

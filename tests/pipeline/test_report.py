@@ -20,7 +20,7 @@ from ede.config import DecoderConfig, EmbeddingConfig, load_params
 from ede.embedding import train_decoder, train_encoder
 from ede.provenance import describe_software, software_versions
 from ede.rollouts import Rollouts, collect, write_store
-from ede.training import RunSpec
+from ede.runs import RunSpec
 from ede_pipeline import layout
 from ede_pipeline.cli import main
 

@@ -16,10 +16,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner, Result
 
-from ede.provenance import software_versions
+from ede.provenance import machine, software_versions
 from ede.tasks import make
 from ede.training import EVAL_SEED_OFFSET
 from ede_pipeline.cli import main
+from tests.support import REPO
 
 BUDGET = 3_000
 
@@ -102,6 +103,11 @@ def test_both_algorithms_clearly_beat_a_random_policy(in_workdir: Path, algo: st
     made = json.loads((out / "run.json").read_text())
     assert made["algo"] == algo and made["seed"] == 0 and made["budget"] == BUDGET
     assert made["software"] == software_versions()
+    head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "HEAD"], capture_output=True,
+                          text=True, check=True).stdout.strip()
+    assert made["code"]["commit"] == head and isinstance(made["code"]["modified"], bool)
+    assert made["machine"]["cpu"] == machine()["cpu"]
+    assert made["machine"]["instruction_sets"] == machine()["instruction_sets"]
     assert "threads" not in made["params"]["td3"] and made["params"]["td3"]["tau"] == 0.005
     assert metrics["steps_per_second"] > 0
     policy = json.loads((out / "policy/policy.json").read_text())
@@ -166,7 +172,7 @@ def test_a_checkpoint_of_other_params_is_moved_aside_not_resumed(in_workdir: Pat
         params.write_text(text)
     assert result.exit_code == 0
     assert json.loads((out / "metrics.json").read_text())["resumed_from_step"] is None
-    assert "another run's: made with other params; moved aside to checkpoint.bad-" in result.stderr
+    assert "another run's: made with td3.discount = 0.99, but the params say 0.98; moved aside to checkpoint.bad-" in result.stderr
     assert len(list(out.glob("checkpoint.bad-*/state.json"))) == 1
 
 
