@@ -79,7 +79,7 @@ quick: install
 # The experiments of this commit in 80 columns: per experiment its changed params and the report's
 # final return and area under the curve per task and algorithm (README.md, "Comparing experiments").
 experiments: install
-	$(BIN)/ede-pipeline experiments
+	$(BIN)/ede-pipeline experiment show
 
 test: install
 	$(BIN)/pytest $(PYTEST_ARGS)

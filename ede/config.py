@@ -48,6 +48,7 @@ __all__ = [
     "episode_length",
     "is_seed",
     "load_params",
+    "overridden",
     "result_neutral",
     "validate_params",
 ]
@@ -618,6 +619,29 @@ def load_params(path: str | Path) -> Params:
     """
     path = Path(path)
     return validate_params(read_yaml(path), path)
+
+
+def overridden(params: dict[str, Any], overrides: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``params`` (a params file's content) with the file ``overrides`` applied, and the overrides.
+
+    An overrides file (``params-quick.yaml``, an experiment of ``experiments/``) holds sections
+    of the params with only the keys to change; each key given replaces that key's value whole
+    (a mapping such as ``runs.budgets`` included), and every other key keeps its value.
+
+    Raises:
+        ParamsError: the file cannot be read, is not sections of keys, or its result is not
+            valid params (naming ``overrides`` and the key).
+    """
+    changes = read_yaml(overrides) or {}
+    if not isinstance(changes, dict):
+        raise ParamsError(overrides, ["expected a mapping of params sections"])
+    merged = dict(params)
+    for section, values in changes.items():
+        if not isinstance(values, dict) or not isinstance(merged.get(section), dict):
+            raise ParamsError(overrides, [f"{section}: expected a section of the params with keys"])
+        merged[section] = {**merged[section], **values}
+    validate_params(merged, overrides)
+    return merged, changes
 
 
 def validate_params(raw: Any, path: Path) -> Params:

@@ -41,6 +41,7 @@ from ede.provenance import code_version, machine, software_versions
 __all__ = [
     "DIAGNOSTIC_COLUMNS",
     "EVAL_COLUMNS",
+    "PUBLISHED",
     "RUN_KIND",
     "RUN_OWNS",
     "Curve",
@@ -60,6 +61,8 @@ DIAGNOSTIC_COLUMNS = ("step", "updates", "critic_loss", "actor_loss", "mean_q")
 RUN_KIND = "training run"
 RUN_OWNS = ("eval.csv", "diagnostics.csv", "run.json", "metrics.json", "policy", "checkpoint",
             "checkpoint.bad-*", "*.tmp-*")
+# A finished run's files that are published (docs/results/runs/): its numbers and what made it.
+PUBLISHED = ("eval.csv", "diagnostics.csv", "run.json", "metrics.json")
 
 
 @dataclass(frozen=True)

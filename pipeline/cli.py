@@ -12,9 +12,8 @@ from pathlib import Path
 from typing import Any
 
 import click
-from pydantic import ValidationError
 
-from ede.config import Params, ParamsError, read_yaml
+from ede.config import Params, ParamsError, overridden
 from ede_pipeline import (
     collect,
     experiments,
@@ -58,21 +57,9 @@ def set_params(params: Params, overrides: Path, name: str | None) -> None:
     ``--force``, which also reruns every stage instead of taking unchanged ones from its run cache.
     """
     try:
-        changes = read_yaml(overrides) or {}
+        _, changes = overridden(params.model_dump(mode="json"), overrides)
     except ParamsError as error:
-        raise BadInput(str(error)) from None
-    if not isinstance(changes, dict):
-        raise BadInput(f"{overrides}: expected a mapping of params sections")
-    merged = params.model_dump(mode="json")
-    for section, values in changes.items():
-        if not isinstance(values, dict) or section not in merged:
-            raise BadInput(f"{overrides}: {section}: expected a section of the params with keys")
-        merged[section] = {**merged[section], **values}
-    try:
-        Params.model_validate(merged)
-    except ValidationError as error:
-        first = error.errors()[0]
-        raise BadInput(f"{overrides}: {'.'.join(map(str, first['loc']))}: {first['msg']}") from None
+        raise BadInput(str(error).splitlines()[0]) from None
     click.echo("--name")
     click.echo(name or experiment_name(overrides, datetime.now()))
     for section, values in changes.items():
@@ -119,4 +106,4 @@ main.add_command(pretrain.pretrain)
 main.add_command(train.train)
 main.add_command(report.report)
 main.add_command(sweep.sweep)
-main.add_command(experiments.experiments)
+main.add_command(experiments.experiment)

@@ -1,27 +1,54 @@
-"""``ede-pipeline experiments``: the DVC experiments of this repository, readable in 80 columns.
+"""``ede-pipeline experiment``: the committed experiments, run by the sweep and recorded by DVC.
 
-``dvc exp show`` puts every param, metric and dependency hash of an experiment on one line, far
-wider than a terminal. This prints, per experiment, a block: its name and commit, the params it
-changed against the commit it started from, and per task the report's headline numbers for each
-algorithm (mean final return and area under the curve, and the seeds that ran). It reads
-``dvc exp show --json``, so it shows exactly what DVC holds.
+An experiment is a committed file, ``experiments/NAME.yaml``: the params sections with only the
+keys it changes against ``params.yaml`` (as ``params-quick.yaml``), each key replacing its value
+whole. ``experiment run NAME`` runs it in a working copy of its own,
+``.dvc/tmp/experiments/NAME/`` (a git worktree sharing this checkout's DVC cache): this
+checkout's files (the code that runs, committed or not), the experiment's params, and its
+outputs, so that experiments neither touch this workspace nor each other, and a killed one
+resumes there. Families that none of its tasks uses and no figure draws are left out, so it learns
+only the embeddings it needs; an embedding another experiment already made with the same code and
+params comes from DVC's run cache instead of being made again. The train stages run through
+``ede-pipeline sweep`` (side by side, ``--jobs``, Ray when asked, each run resuming from its
+checkpoint), the rest (the report) through ``dvc repro``, and ``dvc exp save`` records it as the
+DVC experiment NAME: ``dvc exp show`` lists it with its metrics, ``dvc exp apply NAME`` brings it
+into the workspace, ``dvc exp push`` shares it.
+
+``experiment export NAME`` copies its finished runs' files into the published layout
+(``docs/results/runs/<task>/<algo>/seed<N>/``, with a ``source.json`` per task naming the
+experiment file and the commit), from which ``ede-pipeline results`` draws the results page.
+
+``experiment show`` prints DVC's experiments readably: ``dvc exp show`` puts every param, metric
+and dependency hash of an experiment on one line, far wider than a terminal; this prints, per
+experiment, a block — its name and commit, the params it changed against the commit it started
+from, and per task the report's headline numbers for each algorithm (mean final return and area
+under the curve, and the seeds that ran). It reads ``dvc exp show --json``, so it shows exactly
+what DVC holds.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import subprocess
 import sys
 import textwrap
 from collections.abc import Iterable
+from pathlib import Path
 from typing import Any
 
 import click
+import yaml
 
-from ede.config import ALGO_LABELS
+from ede.atomic import write_json, write_text
+from ede.config import ALGO_LABELS, Params, ParamsError, overridden, read_yaml, validate_params
+from ede.errors import first_line
+from ede.runs import PUBLISHED
 from ede_pipeline import layout
+from ede_pipeline.common import DEFAULT_PARAMS, BadInput, Failed, read_params
 
-__all__ = ["experiment_blocks", "experiments"]
+__all__ = ["experiment", "experiment_blocks", "experiment_params", "prepare_workspace"]
 
 WIDTH = 80
 PARAMS_FILE = "params.yaml"
@@ -123,14 +150,224 @@ def experiment_blocks(commits: Iterable[dict[str, Any]]) -> list[str]:
     return lines
 
 
-@click.command()
+# Running and exporting ------------------------------------------------------------------------
+
+EXPERIMENTS = Path("experiments")  # the committed experiment files
+WORKSPACES = Path(".dvc") / "tmp" / "experiments"  # each one's working copy (git-ignored by DVC)
+RESULTS = Path("docs") / "results" / "runs"  # the published runs (`ede-pipeline results`)
+
+
+def experiment_file(name: str) -> Path:
+    """``experiments/NAME.yaml``; one line naming the experiments there when it is not one."""
+    path = EXPERIMENTS / f"{name}.yaml"
+    if "/" in name or not path.is_file():
+        known = ", ".join(sorted(p.stem for p in EXPERIMENTS.glob("*.yaml"))) or "none"
+        raise BadInput(f"experiment {name!r}: no {path}; the experiments are: {known}")
+    return path
+
+
+def experiment_params(name: str, base: Path = DEFAULT_PARAMS) -> dict[str, Any]:
+    """The experiment's params: ``base`` with ``experiments/NAME.yaml`` applied
+    (:func:`ede.config.overridden`), less the families that none of its tasks uses and no
+    figure draws. Bad params end here: one line naming the file and the key."""
+    try:
+        merged, _ = overridden(read_yaml(base), experiment_file(name))
+    except ParamsError as error:
+        raise BadInput(str(error).splitlines()[0]) from None
+    used = set(merged["runs"]["tasks"].values())
+    used |= {merged["report"].get(key) for key in ("effect_space_family", "exploration_family")}
+    merged["families"] = {f: family for f, family in merged["families"].items() if f in used}
+    validate_params(merged, experiment_file(name))  # the pruned file is as valid: checked anyway
+    return merged
+
+
+def _git(*args: str, cwd: Path | None = None) -> str:
+    done = subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True)
+    if done.returncode:
+        raise Failed(f"git {' '.join(args)}: {first_line(RuntimeError(done.stderr))}")
+    return done.stdout
+
+
+def _checkout_files() -> list[str]:
+    """This checkout's files as git sees them: committed, changed or new, never ignored ones."""
+    listed = _git("ls-files", "-z", "--cached", "--others", "--exclude-standard").split("\0")
+    return [name for name in listed if name and Path(name).is_file()]
+
+
+def prepare_workspace(name: str, params: dict[str, Any]) -> Path:
+    """The experiment's working copy, made or brought up to date: a git worktree at this
+    checkout's commit holding this checkout's files as they are (the code that runs: the
+    installed package is this checkout) and the experiment's params, its DVC cache this
+    checkout's. Its ``data/`` (outputs and checkpoints) and ``dvc.lock`` are kept."""
+    workspace = WORKSPACES / name
+    head = _git("rev-parse", "HEAD").strip()
+    if not (workspace / ".git").exists():
+        _git("worktree", "prune")  # a working copy deleted by hand leaves its registration
+        workspace.parent.mkdir(parents=True, exist_ok=True)
+        _git("worktree", "add", "--detach", "--force", str(workspace), head)
+    else:
+        _git("checkout", "--quiet", "--detach", "--force", head, cwd=workspace)
+    files = _checkout_files()
+    for file in files:
+        source, copy = Path(file), workspace / file
+        if not copy.is_file() or copy.read_bytes() != source.read_bytes():
+            copy.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, copy)
+    present = set(files)
+    for file in _git("ls-files", "-z", cwd=workspace).split("\0"):
+        if file and file not in present:  # deleted here, not yet committed
+            (workspace / file).unlink(missing_ok=True)
+    write_text(workspace / DEFAULT_PARAMS, f"# experiments/{name}.yaml applied to params.yaml "
+               f"(ede-pipeline experiment run {name})\n" + yaml.safe_dump(params, sort_keys=False))
+    cache = (Path(".dvc") / "cache").resolve()
+    write_text(workspace / ".dvc" / "config.local", f"[cache]\n    dir = {cache}\n")
+    (workspace / layout.DATA).mkdir(exist_ok=True)
+    return workspace
+
+
+def _tool(workspace: Path, *argv: str) -> int:
+    """Run one of this environment's tools (``ede-pipeline``, ``dvc``) in ``workspace``, its
+    output to ours; a signal that stops us stops it first."""
+    bin_dir = Path(sys.executable).parent
+    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}"}
+    child = subprocess.Popen([str(bin_dir / argv[0]), *argv[1:]], cwd=workspace, env=env)
+    try:
+        return child.wait()
+    except BaseException:
+        child.terminate()
+        child.wait()
+        raise
+
+
+def _git_identity() -> dict[str, str]:
+    """``dvc exp save`` commits: where git has no user, one named for the tool."""
+    if subprocess.run(["git", "config", "user.email"], capture_output=True).returncode == 0:
+        return {}
+    return {"GIT_AUTHOR_NAME": "ede-pipeline", "GIT_AUTHOR_EMAIL": "ede-pipeline@localhost",
+            "GIT_COMMITTER_NAME": "ede-pipeline", "GIT_COMMITTER_EMAIL": "ede-pipeline@localhost"}
+
+
+@click.group()
+def experiment() -> None:
+    """The committed experiments (experiments/NAME.yaml): run, export, show."""
+
+
+@experiment.command("list")
+def list_experiments() -> None:
+    """The experiment files, each with the first line of its description."""
+    for path in sorted(EXPERIMENTS.glob("*.yaml")):
+        first = next((line.lstrip("# ").strip() for line in path.read_text().splitlines()
+                      if line.startswith("#")), "")
+        click.echo(f"{path.stem:28s} {first}")
+
+
+@experiment.command("run", context_settings={"ignore_unknown_options": True})
+@click.argument("name")
+@click.argument("sweep_args", nargs=-1, type=click.UNPROCESSED)
+def run_experiment(name: str, sweep_args: tuple[str, ...]) -> None:
+    """Run experiments/NAME.yaml in its working copy and record it as the DVC experiment NAME.
+
+    SWEEP_ARGS go to `ede-pipeline sweep` as they are (e.g. `--jobs 2`, `--executor ray`).
+    Run it again after a kill or a failure: finished runs are kept, the others resume from their
+    checkpoints.
+    """
+    from ede_pipeline.sweep import sweep
+
+    if not Path("dvc.yaml").is_file() or not (Path(".dvc")).is_dir():
+        raise BadInput(f"run from the repository root (no dvc.yaml and .dvc/ in {Path.cwd()})")
+    try:  # bad sweep options end here, before anything is made
+        sweep.make_context("sweep", list(sweep_args))
+    except click.UsageError as error:
+        raise BadInput(f"sweep options: {error.format_message()}") from None
+    params = experiment_params(name)
+    workspace = prepare_workspace(name, params)
+    click.echo(f"experiment {name}: in {workspace}", err=True)
+    if code := _tool(workspace, "ede-pipeline", "sweep", *sweep_args):
+        raise Failed(f"experiment {name}: the sweep failed (exit {code}); run it again to resume")
+    if code := _tool(workspace, "dvc", "repro"):
+        raise Failed(f"experiment {name}: dvc repro failed (exit {code}); run it again to resume")
+    os.environ.update(_git_identity())
+    if code := _tool(workspace, "dvc", "exp", "save", "--name", name, "--force"):
+        raise Failed(f"experiment {name}: dvc exp save failed (exit {code})")
+    click.echo(f"experiment {name}: recorded (`dvc exp show`, `ede-pipeline experiment show`); "
+               f"export its runs with `ede-pipeline experiment export {name}`", err=True)
+
+
+@experiment.command("export")
+@click.argument("name")
+@click.option("--to", "to", type=click.Path(file_okay=False, path_type=Path), default=RESULTS,
+              show_default=True, help="The published runs' folder.")
+def export(name: str, to: Path) -> None:
+    """Copy experiment NAME's finished runs into the published layout.
+
+    Each finished run's eval.csv, diagnostics.csv, run.json and metrics.json go to
+    TO/<task>/<algo>/seed<N>/, checked first (`ede.runs.read_run`: the run the experiment's
+    params name, finished, its files whole); each task's source.json names the experiment file,
+    the commit its runs were made at, its seeds, and report.thresholds' returns for it.
+    """
+    experiment_file(name)
+    workspace = WORKSPACES / name
+    if not (workspace / DEFAULT_PARAMS).is_file():
+        raise BadInput(f"experiment {name}: not run here yet (no {workspace}); "
+                       f"`ede-pipeline experiment run {name}` first")
+    params = read_params(workspace / DEFAULT_PARAMS)
+    finished, problems = _finished_runs(workspace, params)
+    if problems:
+        raise BadInput(problems[0])
+    if not finished:
+        raise BadInput(f"experiment {name}: no run has finished yet")
+    for task in params.runs.tasks:
+        runs = [(algo, seed, folder, made) for (t, algo, seed), (folder, made) in finished.items()
+                if t == task]
+        for algo, seed, folder, _ in runs:
+            target = layout.run(task, algo, seed, to)
+            target.mkdir(parents=True, exist_ok=True)
+            for file in PUBLISHED:
+                if (folder / file).is_file():
+                    shutil.copy2(folder / file, target / file)
+        commits = sorted({str((made.get("code") or {}).get("commit")) for *_, made in runs})
+        source = {"experiment": experiment_file(name).as_posix(),
+                  "commit": commits[0] if len(commits) == 1 else commits,
+                  "seeds": list(params.runs.seeds)}
+        threshold = params.report.thresholds.get(task)
+        if threshold is not None:
+            source["thresholds"] = [threshold]
+        write_json(to / task / "source.json", source)
+        click.echo(f"{task}: {len(runs)} runs to {to / task}", err=True)
+
+
+def _finished_runs(workspace: Path, params: Params) -> tuple[dict, list[str]]:
+    """Every finished run of ``params`` in ``workspace``, checked, by (task, algo, seed): its
+    folder and run.json; and one line per run that cannot be published."""
+    from ede.runs import RunRejected, RunSpec, read_run
+
+    finished, problems = {}, []
+    for (task, algo, seed), out in _planned(params, workspace).items():
+        spec = RunSpec(task, algo, seed, params.runs.budgets[task], params.td3, params.ede_td3)
+        expected = {k: v for k, v in spec.identity().items() if k != "embedding"}
+        try:
+            run = read_run(out, expected)
+        except RunRejected as error:
+            problems.append(str(error))
+            continue
+        if run is not None:
+            finished[(task, algo, seed)] = (out, run.made)
+    return finished, problems
+
+
+def _planned(params: Params, root: Path) -> dict[tuple[str, str, int], Path]:
+    return {(task, algo, seed): root / layout.run(task, algo, seed)
+            for task in params.runs.tasks for algo in params.runs.algos for seed in params.runs.seeds}
+
+
+@experiment.command()
 @click.option("--num", "-n", type=int, default=1, show_default=True,
               help="The experiments of the last N commits (first parents); -1: all of them.")
-def experiments(num: int) -> None:
+def show(num: int) -> None:
     """The DVC experiments, in 80 columns: name, changed params, headline returns per task."""
     command = [sys.executable, "-m", "dvc", "exp", "show", "--json", "--num", str(num)]
     shown = subprocess.run(command, capture_output=True, text=True)
     if shown.returncode:
         raise click.ClickException(f"dvc exp show failed: {shown.stderr.strip()}")
     lines = experiment_blocks(json.loads(shown.stdout))
-    click.echo("\n".join(lines) if lines else "no experiments yet (`make quick` makes one)")
+    click.echo("\n".join(lines) if lines else "no experiments yet (`ede-pipeline experiment run NAME` or `make quick` makes one)")

@@ -1,4 +1,4 @@
-"""``ede-pipeline experiments``: DVC's experiments, each as a block that fits 80 columns."""
+"""``ede-pipeline experiment show``: DVC's experiments, each as a block that fits 80 columns."""
 
 from __future__ import annotations
 
@@ -75,7 +75,7 @@ def repo(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_each_experiment_shows_its_changes_and_returns_in_80_columns(repo: Path,
                                                                      monkeypatch) -> None:
     monkeypatch.chdir(repo)
-    result = CliRunner().invoke(main, ["experiments"])
+    result = CliRunner().invoke(main, ["experiment", "show"])
     assert result.exit_code == 0, result.output
     lines = result.output.splitlines()
     assert all(len(line) <= WIDTH for line in lines), [line for line in lines if len(line) > WIDTH]
