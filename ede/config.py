@@ -20,6 +20,7 @@ import yaml
 from pydantic import (
     AfterValidator,
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     ValidationError,
@@ -349,13 +350,28 @@ class RunsConfig(_Section):
         return len(self.all_tasks) * len(self.algos) * len(self.seeds)
 
 
+def _returns(value: Any) -> Any:
+    """A return, or a list of them, as a list (``report.thresholds``)."""
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if number:
+        return [value]
+    if not isinstance(value, list) or not value or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+        raise ValueError("expected a return or a non-empty list of returns")
+    return value
+
+
+Returns = Annotated[list[float], BeforeValidator(_returns)]
+
+
 class ReportConfig(_Section):
     """Stage 5: the report's statistics, and the families of its two pictures."""
 
     confidence: float = Field(0.95, gt=0, lt=1)
     bootstrap_samples: PositiveInt = 2_000
-    thresholds: dict[str, float] = Field(
-        default_factory=dict, description="return that counts as solved, per task"
+    thresholds: dict[str, Returns] = Field(
+        default_factory=dict, description="per task, a return that counts as solved, or a list of "
+        "them: the report gives the steps each run takes to reach each"
     )
     seed: Seed = 0
     bin_steps: PositiveInt | None = Field(

@@ -6,7 +6,7 @@ writing HTML is the pipeline's business.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import matplotlib
@@ -68,7 +68,7 @@ class TaskRow:
     algo: str
     final: Interval
     auc: Interval
-    to_threshold: Interval | None
+    to_thresholds: dict[float, Interval]  # per threshold, the steps to reach it
     seeds: list[int] = field(default_factory=list)
     missing: list[int] = field(default_factory=list)
 
@@ -78,24 +78,26 @@ def summarise_task(
     algo: str,
     curves: list[Curve],
     missing: list[int],
-    threshold: float | None,
+    thresholds: Sequence[float],
     confidence: float,
     samples: int,
     rng: np.random.Generator,
 ) -> TaskRow:
-    """Final return, area under the curve and steps to ``threshold``, with bootstrap intervals."""
+    """Final return, area under the curve and the steps to each of ``thresholds``, with
+    bootstrap intervals."""
     final = np.array([c.returns[-1] for c in curves])
     auc = np.array([area_under_curve(c.steps, c.returns) for c in curves])
-    to_threshold = None
-    if threshold is not None:
-        reached = np.array([steps_to_threshold(c.steps, c.returns, threshold) for c in curves])
-        to_threshold = bootstrap_mean(reached, confidence, samples, rng)
+    to_thresholds = {  # drawn first, as when there was one threshold at most
+        t: bootstrap_mean(np.array([steps_to_threshold(c.steps, c.returns, t) for c in curves]),
+                          confidence, samples, rng) for t in thresholds}
+    final_interval = bootstrap_mean(final, confidence, samples, rng)
+    auc_interval = bootstrap_mean(auc, confidence, samples, rng)
     return TaskRow(
         task=task,
         algo=algo,
-        final=bootstrap_mean(final, confidence, samples, rng),
-        auc=bootstrap_mean(auc, confidence, samples, rng),
-        to_threshold=to_threshold,
+        final=final_interval,
+        auc=auc_interval,
+        to_thresholds=to_thresholds,
         seeds=[c.seed for c in curves],
         missing=missing,
     )

@@ -254,11 +254,15 @@ def experiment() -> None:
 
 @experiment.command("list")
 def list_experiments() -> None:
-    """The experiment files, each with the first line of its description."""
+    """The experiment files, each with the first sentence of its description (its opening
+    comment)."""
     for path in sorted(EXPERIMENTS.glob("*.yaml")):
-        first = next((line.lstrip("# ").strip() for line in path.read_text().splitlines()
-                      if line.startswith("#")), "")
-        click.echo(f"{path.stem:28s} {first}")
+        lines = path.read_text().splitlines()
+        comment = " ".join(line.lstrip("#").strip() for line in
+                           lines[:next((i for i, line in enumerate(lines)
+                                        if not line.startswith("#")), len(lines))])
+        first = comment.split(". ")[0].rstrip(".")
+        click.echo(f"{path.stem:22s}{textwrap.shorten(first, WIDTH - 22, placeholder=' …')}")
 
 
 @experiment.command("run", context_settings={"ignore_unknown_options": True})
@@ -329,9 +333,8 @@ def export(name: str, to: Path) -> None:
         source = {"experiment": experiment_file(name).as_posix(),
                   "commit": commits[0] if len(commits) == 1 else commits,
                   "seeds": list(params.runs.seeds)}
-        threshold = params.report.thresholds.get(task)
-        if threshold is not None:
-            source["thresholds"] = [threshold]
+        if task in params.report.thresholds:
+            source["thresholds"] = params.report.thresholds[task]
         write_json(to / task / "source.json", source)
         click.echo(f"{task}: {len(runs)} runs to {to / task}", err=True)
 

@@ -72,8 +72,6 @@ def _interval(interval: Any) -> str:
 
 
 def _steps(interval: Any) -> str:
-    if interval is None:
-        return "no threshold set"
     return _interval(interval) if interval.n == 0 else interval.steps()
 
 
@@ -98,16 +96,18 @@ class Page:
                 f"<style>{STYLE}</style></head><body>\n" + "\n".join(self.parts) + "\n</body></html>\n")
 
 
-def _table(rows: list[TaskRow]) -> str:
-    head = ("<tr><th>algorithm</th><th>final return</th><th>area under curve</th>"
-            "<th>steps to threshold</th><th>seeds</th></tr>")
+def _table(rows: list[TaskRow], thresholds: list[float]) -> str:
+    reach = "".join(f"<th>steps to {t:g}</th>" for t in thresholds)
+    head = (f"<tr><th>algorithm</th><th>final return</th><th>area under curve</th>{reach}"
+            "<th>seeds</th></tr>")
     body = []
     for row in rows:
         label = ALGO_STYLE[row.algo][0]
         missing = (f' <span class="missing">(missing: {", ".join(map(str, row.missing))})</span>'
                    if row.missing else "")
+        steps = "".join(f"<td>{_steps(row.to_thresholds[t])}</td>" for t in thresholds)
         body.append(f"<tr><td>{label}</td><td>{_interval(row.final)}</td><td>{_interval(row.auc)}</td>"
-                    f"<td>{_steps(row.to_threshold)}</td><td>{len(row.seeds)}{missing}</td></tr>")
+                    f"{steps}<td>{len(row.seeds)}{missing}</td></tr>")
     return f"<table>{head}{''.join(body)}</table>"
 
 
@@ -266,7 +266,7 @@ def build(
                         diagnostics.setdefault((task, algo), []).append(record.diagnostics)
                 curves[(task, algo)] = found
                 all_curves[(task, algo)] = found
-                row = summarise_task(task, algo, found, missing, config.thresholds.get(task),
+                row = summarise_task(task, algo, found, missing, config.thresholds.get(task, []),
                                      config.confidence, config.bootstrap_samples, fresh())
                 rows.setdefault(task, []).append(row)
                 metrics.setdefault(task, {})[algo] = {
@@ -287,9 +287,9 @@ def build(
             page.figure(f"diagnostics-{family}", diagnostics_figure(family, tasks, diagnostics),
                         f"training diagnostics of the {family} family")
         for task in tasks:
-            threshold = config.thresholds.get(task)
-            note = f" (threshold {threshold:g})" if threshold is not None else ""
-            page.add(f"<h4>{task}{note}</h4>" + _table(rows[task]))
+            thresholds = config.thresholds.get(task, [])
+            note = f" (thresholds {', '.join(f'{t:g}' for t in thresholds)})" if thresholds else ""
+            page.add(f"<h4>{task}{note}</h4>" + _table(rows[task], thresholds))
             page.add(_fell_back(task, curves, params))
 
     _across_tasks(page, metrics, all_curves, params)

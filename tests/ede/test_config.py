@@ -158,7 +158,7 @@ def test_defaults_in_the_model_match_the_committed_file() -> None:
         (lambda p: p["decoder"].update(lam=float("nan")), "decoder.lam: got nan"),
         (lambda p: p["ede_td3"].update(bound_scale=float("inf")), "ede_td3.bound_scale: got inf"),
         (lambda p: p["report"]["thresholds"].update({"ede/Pusher-v0": float("-inf")}),
-         "report.thresholds.ede/Pusher-v0: got -inf; expected a finite number"),
+         "report.thresholds.ede/Pusher-v0.0: got -inf; expected a finite number"),
     ],
 )
 def test_a_bad_file_names_the_key_and_value(write_params, edit, key: str) -> None:

@@ -73,7 +73,11 @@ def problems(write_params, edit) -> list[str]:
         (lambda p: p["runs"]["budgets"].update({"ede/Pusher-v0": True}),
          "runs.budgets.ede/Pusher-v0: got true, a boolean; expected an integer"),
         (lambda p: p["report"]["thresholds"].update({"ede/Pusher-v0": "5"}),
-         "report.thresholds.ede/Pusher-v0: got '5', a string; expected a number"),
+         "report.thresholds.ede/Pusher-v0: got '5'; expected a return or a non-empty list of "
+         "returns"),
+        (lambda p: p["report"]["thresholds"].update({"ede/Pusher-v0": []}),
+         "report.thresholds.ede/Pusher-v0: got []; expected a return or a non-empty list of "
+         "returns"),
         (lambda p: p["report"].update(bin_steps=2_500.0),
          "report.bin_steps: got 2500.0, a number; expected an integer"),
         (lambda p: p["td3"].update(critic_action_repeat=True),

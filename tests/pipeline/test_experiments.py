@@ -106,3 +106,21 @@ def test_an_experiment_without_a_report_says_so() -> None:
         "no-report  (abc1234, from main)", "  changed: td3.lr: 0.001 → 0.002", "  no report yet",
     ]
     assert experiment_blocks([{**commit, "experiments": None}]) == []
+
+
+def test_every_committed_experiment_is_valid_params_and_learns_only_what_it_uses(
+    monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from ede_pipeline.experiments import EXPERIMENTS, experiment_params
+    from tests.support import REPO
+
+    monkeypatch.chdir(REPO)
+    names = sorted(p.stem for p in (REPO / EXPERIMENTS).glob("*.yaml"))
+    assert "reacher-vertical" in names
+    for name in names:
+        params = experiment_params(name)
+        families = set(params["runs"]["tasks"].values()) | {
+            params["report"][k] for k in ("effect_space_family", "exploration_family")} - {None}
+        assert set(params["families"]) == families, name
+        first = (REPO / EXPERIMENTS / f"{name}.yaml").read_text().splitlines()[0]
+        assert first.startswith("# "), f"{name}: its first line says what it is"

@@ -80,7 +80,8 @@ def project(tmp_path: Path, write_params, monkeypatch: pytest.MonkeyPatch) -> Pa
     def edit(params: dict) -> None:
         params["runs"].update(tasks=TASKS, seeds=[0, 1, 2], budgets={"ede/ReacherVertical-v0": 2000,
                                                                      "ede/Pusher-v0": 2000})
-        params["report"].update(thresholds={"ede/ReacherVertical-v0": -5.0}, bootstrap_samples=200)
+        params["report"].update(thresholds={"ede/ReacherVertical-v0": [-5.0, -3.0]},
+                                bootstrap_samples=200)
 
     write_params(edit)
     monkeypatch.chdir(tmp_path)
@@ -103,7 +104,7 @@ def test_every_section_with_runs_missing_and_one_cut_short(project: Path, embedd
     _, page = report(project)
     for section in ("Learning curves", "reacher family", "sevendof family", "Figure 6", "R² =",
                     "Figure 7", "of the arena", "Missing and excluded runs", "Provenance",
-                    "threshold -5"):
+                    "thresholds -5, -3", "steps to -5", "steps to -3"):
         assert section in page, section
     for image in ("curves-reacher", "curves-sevendof", "diagnostics-reacher", "effect-space",
                   "exploration", "performance-profile"):

@@ -1,0 +1,119 @@
+"""``ede-pipeline experiment run/export``: a committed experiment file run by the sweep in its own
+working copy, killed and resumed, recorded by DVC, its finished runs exported."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.faults.conftest import tiny
+from tests.support import BIN, dvc, ok, run, scratch_copy, tool_env
+
+pytestmark = pytest.mark.slow
+
+TASK = "ede/Point-v0"
+EXPERIMENT = "# Point at two seeds, TD3 only: a tiny experiment.\nruns:\n  algos: [td3]\n  seeds: [0, 1]\n"
+
+
+def commit(repo: Path) -> None:
+    for command in (["git", "add", "-A"], ["git", "-c", "user.email=t@example.org", "-c",
+                                           "user.name=t", "commit", "-qm", "experiments"]):
+        subprocess.run(command, cwd=repo, check=True, capture_output=True)
+
+
+@pytest.fixture(scope="module")
+def repo(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A checkout at the tiny point pipeline (1,200 steps a run, a checkpoint every 400) with
+    two experiments: ``two-seeds``, and ``two-seeds-lr`` (another td3.lr: new runs, the same
+    family's embedding)."""
+    copy = scratch_copy(tmp_path_factory.mktemp("experiment") / "repo", tiny)
+    (copy / "experiments").mkdir(exist_ok=True)
+    (copy / "experiments" / "two-seeds.yaml").write_text(EXPERIMENT)
+    (copy / "experiments" / "two-seeds-lr.yaml").write_text(EXPERIMENT + "td3:\n  lr: 0.002\n")
+    (copy / "experiments" / "bad.yaml").write_text("td3:\n  batch_size: 0\n")
+    commit(copy)
+    return copy
+
+
+def experiment(repo: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    return run(repo, BIN / "ede-pipeline", "experiment", *args, timeout=900)
+
+
+@pytest.mark.parametrize(("args", "line"), [
+    (["run", "bad"], "experiments/bad.yaml: td3.batch_size: "),
+    (["run", "nothing"], "experiment 'nothing': no experiments/nothing.yaml; the experiments "
+                         "are: bad, two-seeds, two-seeds-lr"),
+    (["run", "two-seeds", "--jobs", "0"], "sweep options: Invalid value for '-j' / '--jobs'"),
+    (["export", "two-seeds-lr"], "experiment two-seeds-lr: not run here yet"),
+])
+def test_bad_input_is_one_line_and_makes_nothing(repo: Path, args: list[str], line: str) -> None:
+    before = sorted(p.name for p in (repo / ".dvc").iterdir())
+    result = experiment(repo, *args)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.startswith(f"Error: {line}"), result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert not (repo / ".dvc" / "tmp" / "experiments" / args[1]).exists()
+    assert sorted(p.name for p in (repo / ".dvc").iterdir()) == before
+
+
+def test_a_killed_experiment_resumes_is_recorded_and_exports_its_runs(repo: Path) -> None:
+    workspace = repo / ".dvc" / "tmp" / "experiments" / "two-seeds"
+    command = [str(BIN / "ede-pipeline"), "experiment", "run", "two-seeds", "--jobs", "2"]
+    process = subprocess.Popen(command, cwd=repo, env=tool_env(), stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL, start_new_session=True)
+    runs = workspace / "data" / "runs" / TASK / "td3"
+    deadline = time.monotonic() + 600
+    while not list(runs.glob("seed*/checkpoint/state.json")):  # killed between checkpoints
+        assert process.poll() is None and time.monotonic() < deadline, "no checkpoint was written"
+        time.sleep(0.2)
+    os.killpg(process.pid, signal.SIGKILL)
+    process.wait()
+    assert not list(runs.glob("seed*/metrics.json")), "both runs finished before the kill"
+
+    ok(experiment(repo, "run", "two-seeds", "--jobs", "2"))
+    resumed = [json.loads((runs / f"seed{s}" / "metrics.json").read_text())["resumed_from_step"]
+               for s in (0, 1)]
+    assert any(step is not None and step > 0 for step in resumed), resumed
+    # The workspace keeps this checkout's params and code; the experiment's changes on top.
+    params = yaml.safe_load((workspace / "params.yaml").read_text())
+    assert params["runs"]["seeds"] == [0, 1] and params["runs"]["algos"] == ["td3"]
+    assert (workspace / "ede" / "td3.py").read_bytes() == (repo / "ede" / "td3.py").read_bytes()
+
+    listed = dvc(repo, "exp", "show", "--json")
+    assert listed.returncode == 0, listed.stderr
+    shown = json.loads(listed.stdout)
+    saved = {rev.get("name"): rev for commit_ in shown for exp in commit_.get("experiments") or []
+             for rev in exp.get("revs") or []}
+    assert "two-seeds" in saved
+    metrics = saved["two-seeds"]["data"]["metrics"]["data/report-metrics.json"]["data"]
+    assert metrics[TASK]["td3"]["seeds"] == 2
+
+    out = repo / "published"
+    ok(experiment(repo, "export", "two-seeds", "--to", str(out)))
+    for seed in (0, 1):
+        for name in ("eval.csv", "diagnostics.csv", "run.json", "metrics.json"):
+            published = out / TASK / "td3" / f"seed{seed}" / name
+            assert published.read_bytes() == (runs / f"seed{seed}" / name).read_bytes()
+        assert not (out / TASK / "td3" / f"seed{seed}" / "policy").exists()
+    source = json.loads((out / TASK / "source.json").read_text())
+    made = json.loads((runs / "seed0" / "run.json").read_text())
+    assert source == {"experiment": "experiments/two-seeds.yaml", "commit": made["code"]["commit"],
+                      "seeds": [0, 1]}
+
+
+def test_experiments_of_one_family_share_its_embedding(repo: Path) -> None:
+    first = ok(experiment(repo, "run", "two-seeds", "--jobs", "2"))  # done: nothing runs
+    assert "Running stage" not in first
+    second = ok(experiment(repo, "run", "two-seeds-lr", "--jobs", "2"))
+    for stage in ("collect@point", "pretrain_encoder@point", "pretrain_decoder@point"):
+        assert f"Running stage '{stage}'" not in second, second[-3000:]
+    workspace = repo / ".dvc" / "tmp" / "experiments" / "two-seeds-lr"
+    run_json = json.loads((workspace / "data/runs" / TASK / "td3/seed1/run.json").read_text())
+    assert run_json["params"]["td3"]["lr"] == 0.002
