@@ -26,7 +26,7 @@ PYTEST_ARGS ?=
 # Stages call `ede-pipeline` and `dvc` by name.
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: install lock repro quick experiments test container-test clean-venv
+.PHONY: install lock repro quick experiment experiments test container-test clean-venv
 
 install: $(STAMP)
 
@@ -75,6 +75,14 @@ quick: install
 	mkdir -p .dvc/tmp
 	$(BIN)/ede-pipeline set-params params-quick.yaml >.dvc/tmp/quick.args
 	xargs -d '\n' -a .dvc/tmp/quick.args $(BIN)/dvc exp run --temp
+
+# One committed experiment (experiments/NAME.yaml), e.g. `make experiment NAME=reacher-vertical
+# ARGS="--jobs 2"`: run by the sweep in its own working copy, resumable, saved as a DVC experiment
+# (docs/parameters.md, "The committed experiments").
+experiment: install
+	@test -n "$(NAME)" || { echo "error: NAME=<an experiment of experiments/>; they are:" >&2; \
+		$(BIN)/ede-pipeline experiment list >&2; exit 2; }
+	$(BIN)/ede-pipeline experiment run $(NAME) $(ARGS)
 
 # The experiments of this commit in 80 columns: per experiment its changed params and the report's
 # final return and area under the curve per task and algorithm (README.md, "Comparing experiments").

@@ -2,6 +2,7 @@
 
     python benchmarks/td3_vs_sb3.py run --learner ours|sb3 --seeds 0-7 [--steps 30000] --out DIR
     python benchmarks/td3_vs_sb3.py summarise --out DIR
+    python benchmarks/td3_vs_sb3.py untrained [--seeds 0-39]
 
 On gymnasium's ``Reacher-v5`` at the paper's TD3 settings (400-300 networks, batch 100, lr 1e-3,
 gamma 0.99, tau 0.005, target noise 0.2 clipped at 0.5, policy delay 2, exploration noise 0.1,
@@ -14,7 +15,12 @@ Each finished (learner, seed) writes ``DIR/<learner>-seed<N>.json`` (runs alread
 skipped, so a killed batch resumes by seed); ``summarise`` prints the mean curve of each learner
 with its 95% percentile bootstrap band over seeds, and at which evaluations our mean lies outside
 stable-baselines3's band; then the area under each learner's curve, and the difference ours − SB3
-of the means, over the run and per evaluation, with bootstrap intervals.
+of the means, over the run and per evaluation, with bootstrap intervals. The area is given twice:
+over the run, and from the first evaluation after an update on, since the first two evaluations
+(steps 0 and 1,000) score the untrained policy, whose return varies from seed to seed with its
+initial weights alone (standard deviation about 21 over seeds); ``untrained`` measures that
+distribution for both learners over many seeds (both initialise as ``nn.Linear`` does, from
+different random streams).
 """
 
 from __future__ import annotations
@@ -31,7 +37,8 @@ import torch
 from ede.config import EdeTD3Config, TD3Config
 from ede.runs import RunSpec
 from ede.stats import area_under_curve, bootstrap_mean
-from ede.training import EVAL_SEED_OFFSET, train_run
+from ede.td3 import Agent, IdentityAdapter
+from ede.training import EVAL_SEED_OFFSET, evaluate, train_run
 
 TASK = "Reacher-v5"
 START = 1_000
@@ -55,17 +62,27 @@ def evaluate_sb3(model, seed: int) -> float:
     return float(np.mean(returns))
 
 
-def run_sb3(seed: int, steps: int) -> list[tuple[int, float]]:
+def sb3_model(seed: int):
     from stable_baselines3 import TD3
-    from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.noise import NormalActionNoise
 
-    env = gymnasium.make(TASK)
-    model = TD3("MlpPolicy", env, learning_rate=1e-3, buffer_size=1_000_000, learning_starts=START,
-                batch_size=100, tau=0.005, gamma=0.99, train_freq=1, gradient_steps=1,
-                action_noise=NormalActionNoise(np.zeros(2), 0.1 * np.ones(2)), policy_delay=2,
-                target_policy_noise=0.2, target_noise_clip=0.5,
-                policy_kwargs={"net_arch": [400, 300]}, seed=seed, device="cpu", verbose=0)
+    return TD3("MlpPolicy", gymnasium.make(TASK), learning_rate=1e-3, buffer_size=1_000_000,
+               learning_starts=START, batch_size=100, tau=0.005, gamma=0.99, train_freq=1,
+               gradient_steps=1, action_noise=NormalActionNoise(np.zeros(2), 0.1 * np.ones(2)),
+               policy_delay=2, target_policy_noise=0.2, target_noise_clip=0.5,
+               policy_kwargs={"net_arch": [400, 300]}, seed=seed, device="cpu", verbose=0)
+
+
+def ours_config() -> TD3Config:
+    return TD3Config(hidden=[400, 300], batch_size=100, start_steps=START, eval_every=EVAL_EVERY,
+                     eval_episodes=EVAL_EPISODES, checkpoint_every=5_000,
+                     update_schedule="step")  # SB3 updates after every step (train_freq=1)
+
+
+def run_sb3(seed: int, steps: int) -> list[tuple[int, float]]:
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    model = sb3_model(seed)
     curve = [(0, evaluate_sb3(model, seed))]
 
     class Evaluate(BaseCallback):
@@ -79,13 +96,31 @@ def run_sb3(seed: int, steps: int) -> list[tuple[int, float]]:
 
 
 def run_ours(seed: int, steps: int, out: Path) -> list[tuple[int, float]]:
-    config = TD3Config(hidden=[400, 300], batch_size=100, start_steps=START, eval_every=EVAL_EVERY,
-                       eval_episodes=EVAL_EPISODES, checkpoint_every=5_000,
-                       update_schedule="step")  # SB3 updates after every step (train_freq=1)
-    spec = RunSpec(TASK, "td3", seed, steps, config, EdeTD3Config())
+    spec = RunSpec(TASK, "td3", seed, steps, ours_config(), EdeTD3Config())
     train_run(spec, out / f"ours-seed{seed}-run", None)
     lines = (out / f"ours-seed{seed}-run" / "eval.csv").read_text().splitlines()[1:]
     return [(int(float(line.split(",")[0])), float(line.split(",")[2])) for line in lines]
+
+
+def untrained(seeds: list[int], confidence: float = 0.95) -> None:
+    """The evaluation return of each learner's untrained policy (its step-0 evaluation), over
+    many seeds: both initialise as ``nn.Linear`` does, from different random streams, so the two
+    should be samples of one distribution."""
+    env = gymnasium.make(TASK)
+    adapter = IdentityAdapter(env.action_space.low, env.action_space.high, torch.device("cpu"))
+    obs_size = env.observation_space.shape[0]
+    scores: dict[str, list[float]] = {"sb3": [], "ours": []}
+    for seed in seeds:
+        scores["sb3"].append(evaluate_sb3(sb3_model(seed), seed))
+        agent = Agent(obs_size, adapter, ours_config(), torch.device("cpu"), [seed])
+        returns = evaluate(env, lambda obs: agent.act(0, obs, explore=False), adapter,
+                           EVAL_EPISODES, EVAL_SEED_OFFSET * (seed + 1))
+        scores["ours"].append(float(returns.mean()))
+    rng = np.random.default_rng(0)
+    for name, values in scores.items():
+        print(f"untrained policy, {name} ({len(seeds)} seeds): "
+              f"{bootstrap_mean(np.array(values), confidence, 2_000, rng)}, "
+              f"standard deviation over seeds {np.std(values, ddof=1):.2f}")
 
 
 def summarise(out: Path, confidence: float = 0.95) -> None:
@@ -124,18 +159,25 @@ def difference(curves: dict, steps: list[int], confidence: float, rng: np.random
     resamples each learner's seeds independently."""
     values = {name: np.array([[dict(map(tuple, run["curve"]))[step] for step in steps] for run in runs])
               for name, (_, runs) in curves.items()}  # (seeds, evaluations)
-    auc = {name: np.array([area_under_curve(np.array(steps), row) for row in v]) for name, v in values.items()}
-    for name in ("sb3", "ours"):
-        print(f"area under the curve, {name}: {bootstrap_mean(auc[name], confidence, samples, rng)}")
+    tail = (1 - confidence) / 2
+    learning = np.array(steps) > START  # from the first evaluation after an update on
+    for label, kept in (("over the run", slice(None)),
+                        (f"from {steps[int(np.argmax(learning))]:,} steps on (trained policies)",
+                         learning)):
+        part = np.array(steps)[kept]
+        auc = {name: np.array([area_under_curve(part, row[kept]) for row in v])
+               for name, v in values.items()}
+        for name in ("sb3", "ours"):
+            print(f"area under the curve {label}, {name}: "
+                  f"{bootstrap_mean(auc[name], confidence, samples, rng)}")
+        aucs = {name: a[rng.integers(len(a), size=(samples, len(a)))].mean(axis=1)
+                for name, a in auc.items()}
+        low, high = np.quantile(aucs["ours"] - aucs["sb3"], [tail, 1 - tail])
+        print(f"area under the curve {label}, ours - sb3: "
+              f"{auc['ours'].mean() - auc['sb3'].mean():+.2f} [{low:+.2f}, {high:+.2f}]")
     draws = {name: v[rng.integers(len(v), size=(samples, len(v)))].mean(axis=1)
              for name, v in values.items()}  # (samples, evaluations)
     gaps = draws["ours"] - draws["sb3"]
-    aucs = {name: auc[name][rng.integers(len(auc[name]), size=(samples, len(auc[name])))].mean(axis=1)
-            for name in auc}
-    tail = (1 - confidence) / 2
-    low, high = np.quantile(aucs["ours"] - aucs["sb3"], [tail, 1 - tail])
-    print(f"area under the curve, ours - sb3: {auc['ours'].mean() - auc['sb3'].mean():+.2f} "
-          f"[{low:+.2f}, {high:+.2f}]")
     lows, highs = np.quantile(gaps, [tail, 1 - tail], axis=0)
     apart = [(step, "above" if lo > 0 else "below") for step, lo, hi in zip(steps, lows, highs)
              if lo > 0 or hi < 0]
@@ -153,13 +195,18 @@ def main() -> None:
     run.add_argument("--out", type=Path, required=True)
     show = sub.add_parser("summarise")
     show.add_argument("--out", type=Path, required=True)
+    init = sub.add_parser("untrained", help="the untrained policies' returns over many seeds")
+    init.add_argument("--seeds", default="0-39")
     args = parser.parse_args()
     if args.command == "summarise":
         summarise(args.out)
         return
     torch.set_num_threads(1)
     first, _, last = args.seeds.partition("-")
-    seeds = range(int(first), int(last) + 1) if last else [int(s) for s in args.seeds.split(",")]
+    seeds = list(range(int(first), int(last) + 1)) if last else [int(s) for s in args.seeds.split(",")]
+    if args.command == "untrained":
+        untrained(seeds)
+        return
     args.out.mkdir(parents=True, exist_ok=True)
     for seed in seeds:
         result = args.out / f"{args.learner}-seed{seed}.json"

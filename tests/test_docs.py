@@ -105,6 +105,9 @@ def _pipeline_problems(words: list[str]) -> list[str]:
         command, path = command.commands[name], [*path, name]
     options = {opt for param in command.params for opt in [*param.opts, *param.secondary_opts]}
     options |= {"--help", "-h"}
+    if command.context_settings.get("ignore_unknown_options"):  # `experiment run`: to the sweep
+        sweep = main.commands["sweep"]
+        options |= {opt for param in sweep.params for opt in [*param.opts, *param.secondary_opts]}
     return [f"{' '.join(path)} {w.split('=')[0]}: no such option" for w in words
             if w.startswith("-") and w.split("=")[0] not in options and not re.fullmatch(r"-\d.*", w)]
 
