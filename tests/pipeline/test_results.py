@@ -1,20 +1,20 @@
-"""``benchmarks/results.py``: docs/results.md's tables and figures, redrawn from per-run files."""
+"""``ede-pipeline results``: docs/results.md's tables and figures, redrawn from per-run files."""
 
 from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
+from ede_pipeline.cli import main
 from tests.support import REPO
 
-SCRIPT = REPO / "benchmarks" / "results.py"
 TASK = "ede/ReacherTurn-v0"
 BUDGET = 20_000
 
@@ -32,9 +32,20 @@ def write_run(runs: Path, algo: str, seed: int, returns: np.ndarray, budget: int
     (folder / "metrics.json").write_text(json.dumps({"final_return": float(returns[-1])}))
 
 
-def results(runs: Path, figures: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(SCRIPT), "--runs", str(runs), "--figures",
-                           str(figures)], capture_output=True, text=True, cwd=REPO)
+class Done(NamedTuple):
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def results(runs: Path, figures: Path) -> Done:
+    """``ede-pipeline results`` on ``runs`` with the committed params; an exception other than
+    click's exit is raised, not reported."""
+    done = CliRunner().invoke(main, ["results", "--runs", str(runs), "--figures", str(figures),
+                                     "--params", str(REPO / "params.yaml")])
+    if done.exception is not None and not isinstance(done.exception, SystemExit):
+        raise done.exception
+    return Done(done.exit_code, done.stdout, done.stderr)
 
 
 def test_tables_name_disjoint_bins_and_diverged_seeds(tmp_path: Path) -> None:
@@ -100,7 +111,7 @@ def test_the_committed_runs_redraw(tmp_path: Path) -> None:
 
 
 def task_table(out: str, task: str) -> str:
-    """One task's section of results.py's output."""
+    """One task's section of the output."""
     return out.split(f"### {task}\n")[1].split("\n### ")[0]
 
 

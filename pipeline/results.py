@@ -1,7 +1,8 @@
-"""The measured results of docs/results.md, redrawn from the per-run files committed beside it.
+"""``ede-pipeline results``: the measured results of docs/results.md, redrawn from the per-run
+files committed beside it.
 
-    python benchmarks/results.py [--runs docs/results/runs] [--figures docs/results] [--bins 20]
-                                 [--ablations docs/results/ablations]
+    ede-pipeline results [--runs docs/results/runs] [--figures docs/results] [--bins 20]
+                         [--ablations docs/results/ablations] [--params params.yaml]
 
 ``--runs`` holds one folder per finished run, ``<task>/<algorithm>/seed<N>/`` with its
 ``eval.csv``, ``run.json`` and ``metrics.json`` (as ``ede-pipeline train`` writes them), and per
@@ -54,18 +55,17 @@ is written.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import click
 import gymnasium
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ede.config import ParamsError, load_params
+from ede.config import Params
 from ede.report import (
     ALGO_STYLE,
     RANDOM_EPISODES,
@@ -82,14 +82,10 @@ from ede.report import (
 from ede.runs import Curve, RunRejected, read_run
 from ede.stats import bootstrap_mean, divergence, separation, steps_to_threshold
 from ede_pipeline import layout
+from ede_pipeline.common import BadInput, params_option
 
-REPO = Path(__file__).resolve().parents[1]
+RESULTS = Path("docs") / "results"  # the results page's figures, beside its per-run files
 ZERO_EPISODES = 100  # episodes behind a task's zero-action return (its standard error ~10 on Reacher's)
-
-
-class Refused(Exception):
-    """Input this cannot use: one line naming the file and what is expected (exit code 2, before
-    anything is written)."""
 
 
 @dataclass
@@ -119,12 +115,12 @@ def read_folder(folder: Path, task: str) -> TaskRuns | None:
             try:
                 record = read_run(run, {"task": task, "algo": algo, "seed": int(run.name[4:])})
             except RunRejected as error:
-                raise Refused(str(error)) from None
+                raise BadInput(str(error)) from None
             if record is not None:
                 curves.setdefault(algo, []).append(record.curve)
                 budgets.add(int(record.curve.steps[-1]))  # checked: the run's budget
     if len(budgets) > 1:
-        raise Refused(f"{folder}: runs of different budgets {sorted(budgets)}; keep one per task")
+        raise BadInput(f"{folder}: runs of different budgets {sorted(budgets)}; keep one per task")
     if not curves:
         return None
     return TaskRuns(task, folder, curves, budgets.pop(), read_source(folder),
@@ -140,16 +136,16 @@ def read_source(folder: Path) -> dict:
     except (OSError, ValueError):
         made = None
     if not isinstance(made, dict) or not isinstance(made.get("commit"), str):
-        raise Refused(f"{path}: expected JSON naming the 'commit' that made the runs beside it")
+        raise BadInput(f"{path}: expected JSON naming the 'commit' that made the runs beside it")
     thresholds = made.get("thresholds", [])
     if not isinstance(thresholds, list) or not all(
             isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t)
             for t in thresholds):
-        raise Refused(f"{path}: 'thresholds' is {thresholds!r}; expected a list of returns")
+        raise BadInput(f"{path}: 'thresholds' is {thresholds!r}; expected a list of returns")
     seeds = made.get("seeds", [])
     if not isinstance(seeds, list) or not all(
             isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds):
-        raise Refused(f"{path}: 'seeds' is {seeds!r}; expected a list of seeds (whole numbers >= 0)")
+        raise BadInput(f"{path}: 'seeds' is {seeds!r}; expected a list of seeds (whole numbers >= 0)")
     return made
 
 
@@ -167,7 +163,7 @@ def embedding_figures(folder: Path) -> str | None:
             parts += [f"inverse error {d['inverse_error']:.2g}",
                       f"{d['at_bounds']:.1%} of decoded actions at a bound"]
     except (OSError, ValueError, KeyError, TypeError):
-        raise Refused(f"{folder / 'embedding'}: expected pretrain's metrics, prediction_ratio and "
+        raise BadInput(f"{folder / 'embedding'}: expected pretrain's metrics, prediction_ratio and "
                       "kl of the encoder, inverse_error and at_bounds of the decoder") from None
     return ", ".join(parts)
 
@@ -178,7 +174,7 @@ def run_task(folder: Path) -> str | None:
         try:
             return str(json.loads(made.read_text())["task"])
         except (ValueError, KeyError, TypeError):
-            raise Refused(f"{made}: not a run record; expected JSON naming its 'task'") from None
+            raise BadInput(f"{made}: not a run record; expected JSON naming its 'task'") from None
     return None
 
 
@@ -196,7 +192,7 @@ def read_runs(runs: Path, params) -> dict[str, list[TaskRuns]]:
         if (task := run_task(folder)) is None:
             continue
         if folder.name != task_folder(task):
-            raise Refused(f"{folder}: its runs are of {task}; keep them in {task_folder(task)}/")
+            raise BadInput(f"{folder}: its runs are of {task}; keep them in {task_folder(task)}/")
         family = layout.own_family(task, params.families)
         if found := read_folder(folder, task):
             families.setdefault(family, []).append(found)
@@ -341,7 +337,7 @@ def read_ablations(ablations: Path, runs: Path) -> list[tuple[str, TaskRuns, Tas
     found = []
     for variant in sorted(p for p in ablations.glob("*") if p.is_dir()):
         if variant.name == "default":
-            raise Refused(f"{variant}: a variant named 'default' would be set against itself; "
+            raise BadInput(f"{variant}: a variant named 'default' would be set against itself; "
                           "rename it")
         for folder in sorted(p for p in variant.glob("*") if p.is_dir()):
             if (task := run_task(folder)) is None or (ours := read_folder(folder, task)) is None:
@@ -349,17 +345,17 @@ def read_ablations(ablations: Path, runs: Path) -> list[tuple[str, TaskRuns, Tas
             default = runs / folder.name
             theirs = read_folder(default, task) if default.is_dir() else None
             if theirs is None:
-                raise Refused(f"{folder}: no finished default runs of {task} in {default} to set "
+                raise BadInput(f"{folder}: no finished default runs of {task} in {default} to set "
                               "it against")
             if theirs.budget != ours.budget:
-                raise Refused(f"{folder}: runs of {ours.budget} steps against the default's "
+                raise BadInput(f"{folder}: runs of {ours.budget} steps against the default's "
                               f"{theirs.budget} in {default}; compare like with like")
             chosen = {}
             for algo, variant_runs in ours.curves.items():
                 seeds = {c.seed for c in variant_runs}
                 chosen[algo] = [c for c in theirs.curves.get(algo, []) if c.seed in seeds]
                 if {c.seed for c in chosen[algo]} != seeds:
-                    raise Refused(f"{folder / algo}: the default's runs of seeds {sorted(seeds)} "
+                    raise BadInput(f"{folder / algo}: the default's runs of seeds {sorted(seeds)} "
                                   f"are not all in {default / algo}; compare like with like")
             theirs.curves = chosen
             found.append((variant.name, ours, theirs))
@@ -402,30 +398,35 @@ def references(tasks: list[str], params) -> dict[str, tuple[float, float, float]
             found[task] = (random_policy_return(task, RANDOM_EPISODES, params.report.seed),
                            *zero_action_return(task, ZERO_EPISODES, params.report.seed))
         except (gymnasium.error.Error, ValueError) as error:
-            raise Refused(f"{task}: cannot be made to measure its reference returns: {error}") from None
+            raise BadInput(f"{task}: cannot be made to measure its reference returns: {error}") from None
     return found
 
 
-def positive(text: str) -> int:
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"got {text!r}; expected a whole number of bins, at least 1")
-    return int(text)
+@click.command()
+@click.option("--runs", type=click.Path(file_okay=False, path_type=Path), default=RESULTS / "runs",
+              show_default=True, help="The published runs: a folder per task, as `ede-pipeline "
+              "experiment export` writes them.")
+@click.option("--figures", type=click.Path(file_okay=False, path_type=Path), default=RESULTS,
+              show_default=True, help="Where the figures go.")
+@click.option("--bins", type=click.IntRange(min=1), default=20, show_default=True,
+              help="Bins per run's budget.")
+@click.option("--ablations", type=click.Path(file_okay=False, path_type=Path),
+              help="One folder per variant, each compared with the default's runs in --runs  "
+              "[default: 'ablations' beside --runs]")
+@params_option
+def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Path | None) -> None:
+    """Print docs/results.md's tables (Markdown) and draw its figures from the published runs.
 
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", type=Path, default=REPO / "docs/results/runs")
-    parser.add_argument("--figures", type=Path, default=REPO / "docs/results")
-    parser.add_argument("--bins", type=positive, default=20, help="bins per run's budget")
-    parser.add_argument("--params", type=Path, default=REPO / "params.yaml")
-    parser.add_argument("--ablations", type=Path, help="one folder per variant, each compared with "
-                        "the default's runs in --runs [default: 'ablations' beside --runs]")
-    args = parser.parse_args()
-    args.ablations = args.ablations or args.runs.parent / "ablations"
-    params = load_params(args.params)
+    Per task: budget, seeds, commit, reference returns, final return, area and steps to each
+    threshold with bootstrap intervals, the bins where the algorithms' intervals are disjoint, the
+    probability of improvement, and which seeds diverged; per family, its figure and the aggregates
+    across tasks; per fidelity ablation, its runs against the default's. Every statistic is the
+    report's (params' `report`). Bad input is one line, exit 2, before anything is written.
+    """
+    ablations = ablations or runs.parent / "ablations"
     report = params.report
-    families = read_runs(args.runs, params)
-    ablations = read_ablations(args.ablations, args.runs) if args.ablations.is_dir() else []
+    families = read_runs(runs, params)
+    found_ablations = read_ablations(ablations, runs) if ablations.is_dir() else []
     curves_of = {family: {(f.task, a): c for f in found for a, c in f.curves.items()}
                  for family, found in families.items()}
     both = {task for curves in curves_of.values() for (task, _) in curves
@@ -439,17 +440,17 @@ def main() -> None:
         bands = {}
         for task_runs in found:
             text, task_bands = task_section(task_runs, family, source,
-                                            params.runs.budgets.get(task_runs.task), args.bins,
+                                            params.runs.budgets.get(task_runs.task), bins,
                                             refs[task_runs.task], params)
-            print(text)
+            click.echo(text)
             bands.update({(task_runs.task, a): band for a, band in task_bands.items()})
         figure = learning_curve_figure(
             family, [f.task for f in found], curves_of[family], report.confidence,
-            report.bootstrap_samples, None, {f.task: f.budget / args.bins for f in found}, bands)
-        args.figures.mkdir(parents=True, exist_ok=True)
-        figure.savefig(args.figures / f"{family}.png", dpi=120)
+            report.bootstrap_samples, None, {f.task: f.budget / bins for f in found}, bands)
+        figures.mkdir(parents=True, exist_ok=True)
+        figure.savefig(figures / f"{family}.png", dpi=120)
         plt.close(figure)
-        print(f"Figure: {args.figures / f'{family}.png'}\n")
+        click.echo(f"Figure: {figures / f'{family}.png'}\n")
     everything = {key: c for curves in curves_of.values() for key, c in curves.items()}
     sets = [(f"the {family} family", curves) for family, curves in curves_of.items()]
     paper = [family for family in curves_of if family in params.families]
@@ -460,31 +461,23 @@ def main() -> None:
         aggregates = across_tasks_section(curves, {t: lows[t] for t in tasks}, report.confidence,
                                           report.bootstrap_samples, report.seed)
         if aggregates is not None:
-            print(across_section(title, aggregates, params) + waiting)
+            click.echo(across_section(title, aggregates, params) + waiting)
             if title == "every task" or len(curves_of) == 1:
-                aggregates.figure.savefig(args.figures / "performance-profile.png", dpi=120)
+                aggregates.figure.savefig(figures / "performance-profile.png", dpi=120)
             plt.close(aggregates.figure)
     drawn: dict[str, list[tuple[TaskRuns, dict[str, tuple]]]] = {}
-    for variant, ours, theirs in ablations:
-        text, variant_bands = ablation_sections(variant, ours, theirs, args.bins, params)
-        print(text)
+    for variant, ours, theirs in found_ablations:
+        text, variant_bands = ablation_sections(variant, ours, theirs, bins, params)
+        click.echo(text)
         if set(ours.curves) == set(ALGO_STYLE):  # both algorithms: drawn as a family is
             drawn.setdefault(variant, []).append((ours, variant_bands))
     for variant, kept in drawn.items():
         figure = learning_curve_figure(
             variant, [k.task for k, _ in kept],
             {(k.task, a): c for k, _ in kept for a, c in k.curves.items()}, report.confidence,
-            report.bootstrap_samples, None, {k.task: k.budget / args.bins for k, _ in kept},
+            report.bootstrap_samples, None, {k.task: k.budget / bins for k, _ in kept},
             {(k.task, a): band for k, bands in kept for a, band in bands.items()},
             title=f"the {variant} variant (a fidelity ablation)")
-        figure.savefig(args.figures / f"ablation-{variant}.png", dpi=120)
+        figure.savefig(figures / f"ablation-{variant}.png", dpi=120)
         plt.close(figure)
-        print(f"Figure: {args.figures / f'ablation-{variant}.png'}\n")
-
-
-if __name__ == "__main__":
-    try:
-        main()
-    except (Refused, ParamsError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        raise SystemExit(2) from None
+        click.echo(f"Figure: {figures / f'ablation-{variant}.png'}\n")
