@@ -154,7 +154,6 @@ def experiment_blocks(commits: Iterable[dict[str, Any]]) -> list[str]:
 
 EXPERIMENTS = Path("experiments")  # the committed experiment files
 WORKSPACES = Path(".dvc") / "tmp" / "experiments"  # each one's working copy (git-ignored by DVC)
-RESULTS = Path("docs") / "results" / "runs"  # the published runs (`ede-pipeline results`)
 
 
 def experiment_file(name: str) -> Path:
@@ -295,7 +294,7 @@ def run_experiment(name: str, sweep_args: tuple[str, ...]) -> None:
 
 @experiment.command("export")
 @click.argument("name")
-@click.option("--to", "to", type=click.Path(file_okay=False, path_type=Path), default=RESULTS,
+@click.option("--to", "to", type=click.Path(file_okay=False, path_type=Path), default=layout.RESULTS_RUNS,
               show_default=True, help="The published runs' folder.")
 def export(name: str, to: Path) -> None:
     """Copy experiment NAME's finished runs into the published layout.
@@ -332,8 +331,8 @@ def export(name: str, to: Path) -> None:
         threshold = params.report.thresholds.get(task)
         if threshold is not None:
             source["thresholds"] = [threshold]
-        write_json(to / task / "source.json", source)
-        click.echo(f"{task}: {len(runs)} runs to {to / task}", err=True)
+        write_json(layout.task_runs(task, to) / "source.json", source)
+        click.echo(f"{task}: {len(runs)} runs to {layout.task_runs(task, to)}", err=True)
 
 
 def _finished_runs(workspace: Path, params: Params) -> tuple[dict, list[str]]:

@@ -5,10 +5,13 @@ files committed beside it.
                          [--ablations docs/results/ablations] [--params params.yaml]
 
 ``--runs`` holds one folder per finished run, ``<task>/<algorithm>/seed<N>/`` with its
-``eval.csv``, ``run.json`` and ``metrics.json`` (as ``ede-pipeline train`` writes them), and per
-task a ``source.json`` naming the commit and command that made its runs and, optionally, the
+``eval.csv``, ``run.json`` and ``metrics.json`` (as ``ede-pipeline train`` writes them), laid out as
+the pipeline's runs (:func:`ede_pipeline.layout.run`: the task by its full id, so
+``ede/ReacherTurn-v0``'s runs are in ``ede/ReacherTurn-v0/``), and in each task's folder a
+``source.json`` naming the commit and command that made its runs and, optionally, the
 returns whose first crossing to report (``"thresholds": [500, 1000]``) and the seeds its command
-runs (``"seeds": [0, 1, 2, 3]``). The tasks are those of the
+runs (``"seeds": [0, 1, 2, 3]``). A task's folder is any folder there holding
+a ``source.json`` and runs; its path must be the task its runs name. The tasks are those of the
 committed ``params.yaml``'s families, then every other task with a folder there, each its own
 family named after it (as ``benchmarks/experiment.py`` runs a task ``params.yaml`` does not
 train on; never one of ``params.yaml``'s families, whose name it then takes whole). For each
@@ -49,8 +52,8 @@ The confidence, the bootstrap's resamples and its seed are the report's (``repor
 ``params.yaml``), and every statistic's bootstrap (an interval, a band of the figure) starts afresh
 from that seed, so a number depends on its own runs alone: the same on every machine, whatever
 other tasks, algorithms or thresholds are beside it. Bad input (a run, ``source.json``, an
-embedding's metrics, an ablation without its default) is one line and exit code 2, before anything
-is written.
+embedding's metrics, a task's folder not at its task's path, an ablation without its default) is
+one line and exit code 2 (:class:`ede_pipeline.common.BadInput`), before anything is written.
 """
 
 from __future__ import annotations
@@ -100,20 +103,18 @@ class TaskRuns:
     embedding: str | None  # the held-out figures of the embedding EDE-TD3 used, where kept
 
 
-def task_folder(task: str) -> str:
-    """``ede/ReacherTurn-v0`` is kept in ``ReacherTurn-v0``."""
-    return task.split("/")[-1]
-
-
-def read_folder(folder: Path, task: str) -> TaskRuns | None:
-    """A task folder's finished runs with its ``source.json`` and embedding figures; None where
-    no run is finished."""
+def read_folder(root: Path, task: str) -> TaskRuns | None:
+    """A task's finished runs under ``root`` (:func:`ede_pipeline.layout.run`) with its
+    ``source.json`` and embedding figures; None where no run is finished."""
+    folder = layout.task_runs(task, root)
     curves: dict[str, list[Curve]] = {}
     budgets = set()
     for algo in ALGO_STYLE:
-        for run in sorted((folder / algo).glob("seed*"), key=lambda p: int(p.name[4:])):
+        seeds = sorted(int(p.name[4:]) for p in layout.run(task, algo, 0, root).parent.glob("seed*"))
+        for seed in seeds:
             try:
-                record = read_run(run, {"task": task, "algo": algo, "seed": int(run.name[4:])})
+                record = read_run(layout.run(task, algo, seed, root),
+                                  {"task": task, "algo": algo, "seed": seed})
             except RunRejected as error:
                 raise BadInput(str(error)) from None
             if record is not None:
@@ -178,23 +179,35 @@ def run_task(folder: Path) -> str | None:
     return None
 
 
-def read_runs(runs: Path, params) -> dict[str, list[TaskRuns]]:
-    """Each family with finished runs, and its tasks': ``params.yaml``'s tasks in its order, then
-    every task with a folder under ``runs`` that it does not train on, as its own family (as
-    ``benchmarks/experiment.py`` runs such a task: its embedding learned on its own random data)."""
-    families: dict[str, list[TaskRuns]] = {}
-    for task, family in params.runs.tasks.items():
-        folder = runs / task_folder(task)
-        if folder.is_dir() and (found := read_folder(folder, task)):
-            families.setdefault(family, []).append(found)
-    known = {task_folder(t) for t in params.runs.tasks}
-    for folder in sorted(p for p in runs.glob("*") if p.is_dir() and p.name not in known):
+def task_folders(root: Path) -> list[str]:
+    """The tasks kept under ``root``, sorted: each folder holding a ``source.json`` and runs is
+    one, its task its path under ``root`` (:func:`ede_pipeline.layout.task_runs`), which must be
+    the task its runs name. (A folder of runs without its ``source.json`` is one too, so that
+    :func:`read_source` names what is missing rather than its runs being passed over.)"""
+    folders = {source.parent for source in root.rglob("source.json")}
+    folders |= {made.parents[2] for made in root.rglob("seed*/run.json")
+                if len(made.relative_to(root).parts) > 3}  # <task>/<algo>/seed<N>/run.json
+    tasks = []
+    for folder in sorted(folders):
         if (task := run_task(folder)) is None:
             continue
-        if folder.name != task_folder(task):
-            raise BadInput(f"{folder}: its runs are of {task}; keep them in {task_folder(task)}/")
-        family = layout.own_family(task, params.families)
-        if found := read_folder(folder, task):
+        if folder != (kept := layout.task_runs(task, root)):
+            raise BadInput(f"{folder}: its runs are of {task}; keep them in {kept}/")
+        tasks.append(task)
+    return tasks
+
+
+def read_runs(runs: Path, params) -> dict[str, list[TaskRuns]]:
+    """Each family with finished runs, and its tasks': ``params.yaml``'s tasks in its order, then
+    every other task kept under ``runs``, as its own family (as ``benchmarks/experiment.py`` runs
+    such a task: its embedding learned on its own random data)."""
+    kept = task_folders(runs) if runs.is_dir() else []
+    tasks = {**{t: f for t, f in params.runs.tasks.items() if t in kept},
+             **{t: layout.own_family(t, params.families) for t in kept
+                if t not in params.runs.tasks}}
+    families: dict[str, list[TaskRuns]] = {}
+    for task, family in tasks.items():
+        if found := read_folder(runs, task):
             families.setdefault(family, []).append(found)
     return families
 
@@ -339,11 +352,11 @@ def read_ablations(ablations: Path, runs: Path) -> list[tuple[str, TaskRuns, Tas
         if variant.name == "default":
             raise BadInput(f"{variant}: a variant named 'default' would be set against itself; "
                           "rename it")
-        for folder in sorted(p for p in variant.glob("*") if p.is_dir()):
-            if (task := run_task(folder)) is None or (ours := read_folder(folder, task)) is None:
+        for task in task_folders(variant):
+            if (ours := read_folder(variant, task)) is None:
                 continue
-            default = runs / folder.name
-            theirs = read_folder(default, task) if default.is_dir() else None
+            folder, default = layout.task_runs(task, variant), layout.task_runs(task, runs)
+            theirs = read_folder(runs, task)
             if theirs is None:
                 raise BadInput(f"{folder}: no finished default runs of {task} in {default} to set "
                               "it against")
