@@ -8,9 +8,11 @@ files committed beside it.
 ``eval.csv``, ``run.json`` and ``metrics.json`` (as ``ede-pipeline train`` writes them), laid out as
 the pipeline's runs (:func:`ede_pipeline.layout.run`: the task by its full id, so
 ``ede/ReacherTurn-v0``'s runs are in ``ede/ReacherTurn-v0/``), and in each task's folder a
-``source.json`` naming the commit and command that made its runs and, optionally, the
-returns whose first crossing to report (``"thresholds": [500, 1000]``) and the seeds its command
-runs (``"seeds": [0, 1, 2, 3]``). A task's folder is any folder there holding
+``source.json`` naming what made its runs: the commit (``"commit"``, a string, or a list where its
+runs were made at several) and the experiment file (``"experiment": "experiments/NAME.yaml"``,
+as ``ede-pipeline experiment export`` writes it) or, in files written before experiments were
+files, the command (``"command"``); and, optionally, the returns whose first crossing to report
+(``"thresholds": [500, 1000]``) and the seeds it runs (``"seeds": [0, 1, 2, 3]``). A task's folder is any folder there holding
 a ``source.json`` and runs; its path must be the task its runs name. The tasks are those of the
 committed ``params.yaml``'s families, then every other task with a folder there, each its own
 family named after it (as ``benchmarks/experiment.py`` runs a task ``params.yaml`` does not
@@ -20,7 +22,7 @@ seeds with its bootstrap band, evaluations averaged in ``--bins`` bins of a run'
 report draws them) and prints, per task, in Markdown:
 
 - the budget a run, as a fraction of the paper's (``runs.budgets``; none beyond the paper), the
-  seeds, the commit;
+  seeds, the experiment file where ``source.json`` names one and the commits (7 characters);
 - two reference returns: uniform random actions' (the normalised scores' 0, as the report's) and
   zero actions' over ``ZERO_EPISODES`` episodes with its standard error (doing nothing: on a task
   that penalises actions, a policy must beat it to have learned what the task rewards);
@@ -44,8 +46,8 @@ aggregates each task's lowest seeds, as many as the fewest, and the rest are nam
 
 ``--ablations`` holds the fidelity ablations' runs the same way, one folder per variant
 (``<variant>/<task>/<algorithm>/seed<N>/``, ``source.json`` per task, and where kept the variant's
-embedding metrics in ``<task>/embedding/``): each is printed against the default's runs of the
-same task, algorithm and seeds in ``--runs``, with the bins where their intervals are disjoint; a
+embedding metrics in ``<task>/embedding/``): each is printed, with its experiment file or command,
+against the default's runs of the same task, algorithm and seeds in ``--runs``, with the bins where their intervals are disjoint; a
 variant run with both algorithms is drawn as a family is, to ``<figures>/ablation-<variant>.png``.
 
 The confidence, the bootstrap's resamples and its seed are the report's (``report`` in
@@ -91,6 +93,30 @@ RESULTS = Path("docs") / "results"  # the results page's figures, beside its per
 ZERO_EPISODES = 100  # episodes behind a task's zero-action return (its standard error ~10 on Reacher's)
 
 
+@dataclass(frozen=True)
+class Source:
+    """A task folder's ``source.json``: what made its runs, and what of them to report."""
+
+    commits: list[str]  # one, or several where its runs were made at several commits
+    experiment: str | None  # the experiment file (``ede-pipeline experiment export`` names it)
+    command: str | None  # the command line, in files written before experiment files
+    thresholds: list[float]  # the returns whose first crossing to report
+    seeds: list[int]  # the seeds it plans; none named: the runs there are all there are
+
+    def made_at(self) -> str:
+        """``commit 0123456``; ``experiment `experiments/NAME.yaml`, commits 0123456, 89abcde``."""
+        commits = f"commit{'s' * (len(self.commits) > 1)} {', '.join(self.short_commits())}"
+        return f"experiment `{self.experiment}`, {commits}" if self.experiment else commits
+
+    def short_commits(self) -> list[str]:
+        return [commit[:7] for commit in self.commits]
+
+    def maker(self) -> str:
+        """``experiment `experiments/NAME.yaml``` or ``command `…```."""
+        return (f"experiment `{self.experiment}`" if self.experiment is not None
+                else f"command `{self.command}`")
+
+
 @dataclass
 class TaskRuns:
     """One task's finished runs as kept in its folder, read and checked."""
@@ -99,7 +125,7 @@ class TaskRuns:
     folder: Path
     curves: dict[str, list[Curve]]  # per algorithm, by seed
     budget: int  # the steps every run of the folder ran
-    made: dict  # source.json: "commit", "command", "thresholds", "seeds"
+    source: Source
     embedding: str | None  # the held-out figures of the embedding EDE-TD3 used, where kept
 
 
@@ -128,16 +154,25 @@ def read_folder(root: Path, task: str) -> TaskRuns | None:
                     embedding_figures(folder))
 
 
-def read_source(folder: Path) -> dict:
-    """A task folder's ``source.json``: the commit and command that made its runs, and the
-    returns whose first crossing to report."""
+def read_source(folder: Path) -> Source:
+    """A task folder's ``source.json``: the commit (or commits) and the experiment file (or, in
+    files written before experiment files, the command) that made its runs, the returns whose
+    first crossing to report, and the seeds it plans."""
     path = folder / "source.json"
     try:
         made = json.loads(path.read_text())
     except (OSError, ValueError):
         made = None
-    if not isinstance(made, dict) or not isinstance(made.get("commit"), str):
-        raise BadInput(f"{path}: expected JSON naming the 'commit' that made the runs beside it")
+    commits = made.get("commit") if isinstance(made, dict) else None
+    commits = [commits] if isinstance(commits, str) else commits
+    if not isinstance(made, dict) or not isinstance(commits, list) or not commits or not all(
+            isinstance(c, str) for c in commits):
+        raise BadInput(f"{path}: expected JSON naming the 'commit' that made the runs beside it "
+                       "(a string, or a list of them)")
+    experiment, command = made.get("experiment"), made.get("command")
+    if not isinstance(experiment if "experiment" in made else command, str):
+        raise BadInput(f"{path}: expected the 'experiment' file (or the 'command') that made the "
+                       "runs beside it, as a string")
     thresholds = made.get("thresholds", [])
     if not isinstance(thresholds, list) or not all(
             isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t)
@@ -147,7 +182,7 @@ def read_source(folder: Path) -> dict:
     if not isinstance(seeds, list) or not all(
             isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds):
         raise BadInput(f"{path}: 'seeds' is {seeds!r}; expected a list of seeds (whole numbers >= 0)")
-    return made
+    return Source(commits, experiment, command, thresholds, seeds)
 
 
 def embedding_figures(folder: Path) -> str | None:
@@ -289,10 +324,10 @@ def task_section(found: TaskRuns, family: str, source: str, paper_budget: int | 
         origin = (f"{family} family, embedding learned on {source} ({role}). {budget:,} steps a "
                   f"run, {budget / paper_budget:.1%} of the paper's {paper_budget:,}")
     arms = {ALGO_STYLE[a][0]: (a, runs, seed_list(runs)) for a, runs in found.curves.items()}
-    table, bands = summary_table(found.task, "algorithm", "seeds", arms, found.made.get("thresholds", []),
+    table, bands = summary_table(found.task, "algorithm", "seeds", arms, found.source.thresholds,
                                  width, params)
     lines = [f"### {found.task}", "",
-             f"{origin}; commit {found.made['commit'][:7]}; curves binned per {width:,.0f} steps."
+             f"{origin}; {found.source.made_at()}; curves binned per {width:,.0f} steps."
              + (f" Its embedding, held out: {found.embedding}." if found.embedding else "")
              + f" References: uniform random actions {refs[0]:.4g} ({RANDOM_EPISODES} episodes), "
              f"zero actions {refs[1]:.4g} ± {refs[2]:.2g} ({ZERO_EPISODES} episodes, ± standard error).",
@@ -385,15 +420,15 @@ def ablation_sections(variant: str, ours: TaskRuns, theirs: TaskRuns, bins: int,
     for algo, runs in ours.curves.items():
         def column(kept: TaskRuns) -> str:  # TD3 runs use no embedding
             figures = kept.embedding if algo == "ede-td3" else None
-            return f"{kept.made['commit'][:7]}; {figures or '—'}"
+            return f"{', '.join(kept.source.short_commits())}; {figures or '—'}"
 
         arms = {"default": (algo, theirs.curves[algo], column(theirs)),
                 variant: (algo, runs, column(ours))}
         table, bands = summary_table(ours.task, "runs", "commit; embedding (held out)", arms,
-                                     ours.made.get("thresholds", []), width, params)
+                                     ours.source.thresholds, width, params)
         lines = [f"### {variant}: {ours.task}, {ALGO_STYLE[algo][0]}", "",
                  f"{ours.budget:,} steps a run, seeds {seed_list(runs)} of each; the variant's "
-                 f"command `{ours.made.get('command', '')}`; curves binned per {width:,.0f} steps.",
+                 f"{ours.source.maker()}; curves binned per {width:,.0f} steps.",
                  "", *table, "",
                  *disjoint_bins(arms, bands, (variant, "default"), width, params.report.confidence,
                                 (variant, "the default"))]
@@ -446,7 +481,7 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
             if all((task, a) in curves for a in ALGO_STYLE)}
     refs = references([f.task for found in families.values() for f in found], params)
     lows = {task: refs[task][0] for task in both}
-    planned = {f.task: f.made.get("seeds", []) for found in families.values() for f in found}
+    planned = {f.task: f.source.seeds for found in families.values() for f in found}
     # Every input is read and checked: from here on, print and draw.
     for family, found in families.items():
         source = params.families[family].source if family in params.families else found[0].task

@@ -18,7 +18,8 @@ from tests.support import REPO
 
 TASK = "ede/ReacherTurn-v0"
 BUDGET = 20_000
-SOURCE = {"commit": "0123456789ab"}  # a task folder's source.json, unless a test writes its own
+# A task folder's source.json, unless a test writes its own: as those made before experiment files.
+SOURCE = {"commit": "0123456789ab", "command": "experiment.py --seeds 0-3"}
 
 
 def write_run(runs: Path, algo: str, seed: int, returns: np.ndarray, budget: int = BUDGET,
@@ -231,6 +232,27 @@ def test_an_ablation_is_set_against_the_defaults_runs_of_the_same_seeds(tmp_path
     assert "fast above the default at 1K–20K; below at none." in section
 
 
+
+def test_a_source_written_by_experiment_export_names_its_file_and_commits(tmp_path: Path) -> None:
+    runs, ablations = tmp_path / "runs", tmp_path / "ablations"
+    for algo in ("td3", "ede-td3"):
+        write_run(runs, algo, 0, np.linspace(-200, -100, 21))
+        write_run(ablations / "fast", algo, 0, np.linspace(-200, -90, 21))
+    # As `ede-pipeline experiment export` writes it, of runs made at two commits.
+    made = {"experiment": "experiments/turn.yaml", "commit": ["0123456789ab", "fedcba987654"],
+            "seeds": [0]}
+    (layout.task_runs(TASK, runs) / "source.json").write_text(json.dumps(made))
+    variant = {"experiment": "experiments/fast.yaml", "commit": "fedcba987654", "seeds": [0]}
+    (layout.task_runs(TASK, ablations / "fast") / "source.json").write_text(json.dumps(variant))
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 0, done.stderr
+    assert ("2.0% of the paper's 1,000,000; experiment `experiments/turn.yaml`, commits 0123456, "
+            "fedcba9; curves binned per 1,000 steps.") in task_table(done.stdout, TASK)
+    section = done.stdout.split("### fast: ede/ReacherTurn-v0, TD3\n")[1]
+    assert "seeds 0 of each; the variant's experiment `experiments/fast.yaml`; curves" in section
+    rows = {line.split(" | ")[0]: line.split(" | ") for line in section.splitlines() if line.startswith("| ")}
+    assert rows["| default"][1] == "0123456, fedcba9; —" and rows["| fast"][1] == "fedcba9; —"
+
 def test_an_ablation_without_the_defaults_seeds_is_refused_by_name(tmp_path: Path) -> None:
     runs, ablations = tmp_path / "runs", tmp_path / "ablations"
     write_run(runs, "ede-td3", 0, np.zeros(21))
@@ -273,9 +295,17 @@ def bad_input_cases() -> dict[str, tuple]:
 
     return {
         "no commit": (source({"command": "experiment.py"}), "source.json: expected JSON naming the 'commit'"),
-        "thresholds": (source({"commit": "0123456", "thresholds": "150"}),
+        "no commits": (source({"commit": [], "experiment": "experiments/a.yaml"}),
+                       "source.json: expected JSON naming the 'commit' that made the runs beside it "
+                       "(a string, or a list of them)"),
+        "no maker": (source({"commit": "0123456"}),
+                     "source.json: expected the 'experiment' file (or the 'command') that made"),
+        "experiment": (source({"commit": ["0123456"], "experiment": ["experiments/a.yaml"],
+                               "command": "experiment.py"}),
+                       "source.json: expected the 'experiment' file (or the 'command') that made"),
+        "thresholds": (source({**SOURCE, "thresholds": "150"}),
                        "source.json: 'thresholds' is '150'; expected a list of returns"),
-        "seeds": (source({"commit": "0123456", "seeds": [0, -1]}),
+        "seeds": (source({**SOURCE, "seeds": [0, -1]}),
                   "source.json: 'seeds' is [0, -1]; expected a list of seeds (whole numbers >= 0)"),
         "embedding": (embedding, "embedding: expected pretrain's metrics"),
         "unknown task": (unknown_task, "HalfCheetah-v99: cannot be made to measure its reference returns"),
