@@ -23,6 +23,8 @@ report draws them) and prints, per task, in Markdown:
 
 - the budget a run, as a fraction of the paper's (``runs.budgets``; none beyond the paper), the
   seeds, the experiment file where ``source.json`` names one and the commits (7 characters);
+- the CPUs that made its runs (each one's model and instruction sets, as its ``run.json``'s
+  ``machine`` records them, and how many runs it made; "CPU unrecorded" for runs made before);
 - two reference returns: uniform random actions' (the normalised scores' 0, as the report's) and
   zero actions' over ``ZERO_EPISODES`` episodes with its standard error (doing nothing: on a task
   that penalises actions, a policy must beat it to have learned what the task rewards);
@@ -62,6 +64,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -71,6 +74,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from ede.config import Params
+from ede.provenance import INSTRUCTION_SETS
 from ede.report import (
     ALGO_STYLE,
     RANDOM_EPISODES,
@@ -89,7 +93,6 @@ from ede.stats import bootstrap_mean, divergence, separation, steps_to_threshold
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, params_option
 
-RESULTS = Path("docs") / "results"  # the results page's figures, beside its per-run files
 ZERO_EPISODES = 100  # episodes behind a task's zero-action return (its standard error ~10 on Reacher's)
 
 
@@ -106,7 +109,7 @@ class Source:
     def made_at(self) -> str:
         """``commit 0123456``; ``experiment `experiments/NAME.yaml`, commits 0123456, 89abcde``."""
         commits = f"commit{'s' * (len(self.commits) > 1)} {', '.join(self.short_commits())}"
-        return f"experiment `{self.experiment}`, {commits}" if self.experiment else commits
+        return commits if self.experiment is None else f"experiment `{self.experiment}`, {commits}"
 
     def short_commits(self) -> list[str]:
         return [commit[:7] for commit in self.commits]
@@ -127,6 +130,7 @@ class TaskRuns:
     budget: int  # the steps every run of the folder ran
     source: Source
     embedding: str | None  # the held-out figures of the embedding EDE-TD3 used, where kept
+    cpus: dict[str | None, int]  # runs per CPU (with its instruction sets); None: unrecorded
 
 
 def read_folder(root: Path, task: str) -> TaskRuns | None:
@@ -134,24 +138,49 @@ def read_folder(root: Path, task: str) -> TaskRuns | None:
     ``source.json`` and embedding figures; None where no run is finished."""
     folder = layout.task_runs(task, root)
     curves: dict[str, list[Curve]] = {}
-    budgets = set()
+    budgets: set[int] = set()
+    cpus: Counter[str | None] = Counter()
     for algo in ALGO_STYLE:
         seeds = sorted(int(p.name[4:]) for p in layout.run(task, algo, 0, root).parent.glob("seed*"))
         for seed in seeds:
+            run = layout.run(task, algo, seed, root)
             try:
-                record = read_run(layout.run(task, algo, seed, root),
-                                  {"task": task, "algo": algo, "seed": seed})
+                record = read_run(run, {"task": task, "algo": algo, "seed": seed})
             except RunRejected as error:
                 raise BadInput(str(error)) from None
             if record is not None:
                 curves.setdefault(algo, []).append(record.curve)
                 budgets.add(int(record.curve.steps[-1]))  # checked: the run's budget
+                cpus[cpu(run / "run.json", record.made)] += 1
     if len(budgets) > 1:
         raise BadInput(f"{folder}: runs of different budgets {sorted(budgets)}; keep one per task")
     if not curves:
         return None
     return TaskRuns(task, folder, curves, budgets.pop(), read_source(folder),
-                    embedding_figures(folder))
+                    embedding_figures(folder), dict(cpus))
+
+
+def cpu(path: Path, made: dict) -> str | None:
+    """The CPU that made a run, with the instruction sets of it that change results (its
+    ``run.json``'s ``machine``, :func:`ede.provenance.machine`); None where unrecorded (runs made
+    before run.json named its machine)."""
+    machine = made.get("machine")
+    if machine is None:
+        return None
+    model, sets = (machine.get("cpu"), machine.get("instruction_sets")) if isinstance(
+        machine, dict) else (None, None)
+    if not isinstance(model, str) or not isinstance(sets, list) or not all(
+            isinstance(s, str) for s in sets):
+        raise BadInput(f"{path}: 'machine' is {machine!r}; expected its 'cpu' and "
+                       "'instruction_sets', as ede.provenance.machine records them")
+    return f"{model} ({', '.join(sets) or 'none of ' + ', '.join(INSTRUCTION_SETS)})"
+
+
+def cpu_line(cpus: dict[str | None, int]) -> str:
+    """``Runs made on: Intel(R) Xeon(R) Processor (avx2, avx512f): 8; CPU unrecorded: 8.``"""
+    named = [f"{name}: {count}" for name, count in cpus.items() if name is not None]
+    unrecorded = [f"CPU unrecorded: {cpus[None]}"] if None in cpus else []
+    return f"Runs made on: {'; '.join(named + unrecorded)}."
 
 
 def read_source(folder: Path) -> Source:
@@ -331,7 +360,7 @@ def task_section(found: TaskRuns, family: str, source: str, paper_budget: int | 
              + (f" Its embedding, held out: {found.embedding}." if found.embedding else "")
              + f" References: uniform random actions {refs[0]:.4g} ({RANDOM_EPISODES} episodes), "
              f"zero actions {refs[1]:.4g} ± {refs[2]:.2g} ({ZERO_EPISODES} episodes, ± standard error).",
-             "", *table, ""]
+             "", cpu_line(found.cpus), "", *table, ""]
     if len(arms) == 2:
         lines += disjoint_bins(arms, bands, ("EDE-TD3", "TD3"), width, params.report.confidence)
         report = params.report
@@ -451,11 +480,12 @@ def references(tasks: list[str], params) -> dict[str, tuple[float, float, float]
 
 
 @click.command()
-@click.option("--runs", type=click.Path(file_okay=False, path_type=Path), default=RESULTS / "runs",
-              show_default=True, help="The published runs: a folder per task, as `ede-pipeline "
-              "experiment export` writes them.")
-@click.option("--figures", type=click.Path(file_okay=False, path_type=Path), default=RESULTS,
-              show_default=True, help="Where the figures go.")
+@click.option("--runs", type=click.Path(file_okay=False, path_type=Path),
+              default=layout.RESULTS_RUNS, show_default=True,
+              help="The published runs: a folder per task, as `ede-pipeline experiment export` "
+              "writes them.")
+@click.option("--figures", type=click.Path(file_okay=False, path_type=Path),
+              default=layout.RESULTS, show_default=True, help="Where the figures go.")
 @click.option("--bins", type=click.IntRange(min=1), default=20, show_default=True,
               help="Bins per run's budget.")
 @click.option("--ablations", type=click.Path(file_okay=False, path_type=Path),
@@ -465,11 +495,12 @@ def references(tasks: list[str], params) -> dict[str, tuple[float, float, float]
 def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Path | None) -> None:
     """Print docs/results.md's tables (Markdown) and draw its figures from the published runs.
 
-    Per task: budget, seeds, commit, reference returns, final return, area and steps to each
-    threshold with bootstrap intervals, the bins where the algorithms' intervals are disjoint, the
-    probability of improvement, and which seeds diverged; per family, its figure and the aggregates
-    across tasks; per fidelity ablation, its runs against the default's. Every statistic is the
-    report's (params' `report`). Bad input is one line, exit 2, before anything is written.
+    Per task: budget, seeds, experiment and commits, the CPUs of its runs, reference returns,
+    final return, area and steps to each threshold with bootstrap intervals, the bins where the
+    algorithms' intervals are disjoint, the probability of improvement, and which seeds diverged;
+    per family, its figure and the aggregates across tasks; per fidelity ablation, its runs against
+    the default's. Every statistic is the report's (params' `report`). Bad input is one line, exit
+    2, before anything is written.
     """
     ablations = ablations or runs.parent / "ablations"
     report = params.report

@@ -23,7 +23,7 @@ SOURCE = {"commit": "0123456789ab", "command": "experiment.py --seeds 0-3"}
 
 
 def write_run(runs: Path, algo: str, seed: int, returns: np.ndarray, budget: int = BUDGET,
-              task: str = TASK) -> None:
+              task: str = TASK, machine: dict | None = None) -> None:
     """A finished run in the pipeline's layout (``runs/<task id>/<algo>/seed<N>/``), and its task's
     ``source.json`` where it has none yet."""
     folder = layout.run(task, algo, seed, runs)
@@ -35,6 +35,8 @@ def write_run(runs: Path, algo: str, seed: int, returns: np.ndarray, budget: int
     (folder / "eval.csv").write_text("step,episode,mean_return,std_return,wall_seconds\n"
                                      + "\n".join(rows) + "\n")
     made = {"task": task, "algo": algo, "seed": seed, "budget": budget}
+    if machine is not None:  # as run.json records it since 2026-12; the committed runs have none
+        made["machine"] = machine
     (folder / "run.json").write_text(json.dumps(made))
     (folder / "metrics.json").write_text(json.dumps({"final_return": float(returns[-1])}))
 
@@ -253,6 +255,24 @@ def test_a_source_written_by_experiment_export_names_its_file_and_commits(tmp_pa
     rows = {line.split(" | ")[0]: line.split(" | ") for line in section.splitlines() if line.startswith("| ")}
     assert rows["| default"][1] == "0123456, fedcba9; —" and rows["| fast"][1] == "fedcba9; —"
 
+
+def test_each_task_names_the_cpus_that_made_its_runs(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    xeon = {"cpu": "Intel(R) Xeon(R) Processor", "instruction_sets": ["avx2", "avx512f"],
+            "torch_cpu_capability": "AVX512", "torch_threads": 1, "gpu": None}
+    write_run(runs, "td3", 0, np.linspace(-200, -100, 21), machine=xeon)
+    write_run(runs, "td3", 1, np.linspace(-200, -100, 21), machine=xeon)
+    write_run(runs, "ede-td3", 0, np.linspace(-200, -90, 21),
+              machine={**xeon, "cpu": "AMD EPYC 7B13", "instruction_sets": []})
+    write_run(runs, "ede-td3", 1, np.linspace(-200, -90, 21))  # made before run.json named it
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 0, done.stderr
+    table = task_table(done.stdout, TASK)
+    assert "\nRuns made on: Intel(R) Xeon(R) Processor (avx2, avx512f): 2; AMD EPYC 7B13 (none of " \
+        "avx2, avx512f, avx512_bf16, amx_tile, amx_bf16): 1; CPU unrecorded: 1.\n" in table
+    # After the line naming the commit, before the table.
+    assert table.index("commit 0123456") < table.index("Runs made on") < table.index("| algorithm |")
+
 def test_an_ablation_without_the_defaults_seeds_is_refused_by_name(tmp_path: Path) -> None:
     runs, ablations = tmp_path / "runs", tmp_path / "ablations"
     write_run(runs, "ede-td3", 0, np.zeros(21))
@@ -290,10 +310,16 @@ def bad_input_cases() -> dict[str, tuple]:
         for algo in ("td3", "ede-td3"):
             write_run(runs, algo, 0, np.zeros(21), task="HalfCheetah-v99")
 
+    def machine(runs: Path) -> None:
+        made = layout.run(TASK, "td3", 0, runs) / "run.json"
+        made.write_text(json.dumps({**json.loads(made.read_text()), "machine": "a laptop"}))
+
     def misplaced(runs: Path) -> None:  # beside its own folder, under another task's name
         shutil.copytree(layout.task_runs(TASK, runs), runs / "ede" / "ReacherTurn-v1")
 
     return {
+        "machine": (machine, "run.json: 'machine' is 'a laptop'; expected its 'cpu' and "
+                    "'instruction_sets'"),
         "no commit": (source({"command": "experiment.py"}), "source.json: expected JSON naming the 'commit'"),
         "no commits": (source({"commit": [], "experiment": "experiments/a.yaml"}),
                        "source.json: expected JSON naming the 'commit' that made the runs beside it "
