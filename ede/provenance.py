@@ -14,7 +14,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["SOFTWARE", "code_version", "describe_software", "machine", "software_versions"]
+__all__ = ["INSTRUCTION_SETS", "SOFTWARE", "code_version", "describe_software", "machine",
+           "software_versions"]
 
 # Python, the array and learning libraries, and the simulator. Each is pinned by
 # requirements.lock; recording them beside every output says which pins made it.

@@ -19,6 +19,7 @@ from ede_pipeline import (
     experiments,
     pretrain,
     report,
+    results,
     sweep,
     task_code,
     task_inputs,
@@ -105,5 +106,6 @@ main.add_command(collect.inspect_rollouts)
 main.add_command(pretrain.pretrain)
 main.add_command(train.train)
 main.add_command(report.report)
+main.add_command(results.results)
 main.add_command(sweep.sweep)
 main.add_command(experiments.experiment)

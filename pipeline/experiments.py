@@ -154,7 +154,6 @@ def experiment_blocks(commits: Iterable[dict[str, Any]]) -> list[str]:
 
 EXPERIMENTS = Path("experiments")  # the committed experiment files
 WORKSPACES = Path(".dvc") / "tmp" / "experiments"  # each one's working copy (git-ignored by DVC)
-RESULTS = Path("docs") / "results" / "runs"  # the published runs (`ede-pipeline results`)
 
 
 def experiment_file(name: str) -> Path:
@@ -299,8 +298,8 @@ def run_experiment(name: str, sweep_args: tuple[str, ...]) -> None:
 
 @experiment.command("export")
 @click.argument("name")
-@click.option("--to", "to", type=click.Path(file_okay=False, path_type=Path), default=RESULTS,
-              show_default=True, help="The published runs' folder.")
+@click.option("--to", "to", type=click.Path(file_okay=False, path_type=Path),
+              default=layout.RESULTS_RUNS, show_default=True, help="The published runs' folder.")
 def export(name: str, to: Path) -> None:
     """Copy experiment NAME's finished runs into the published layout.
 
@@ -329,14 +328,14 @@ def export(name: str, to: Path) -> None:
             for file in PUBLISHED:
                 if (folder / file).is_file():
                     shutil.copy2(folder / file, target / file)
-        commits = sorted({str((made.get("code") or {}).get("commit")) for *_, made in runs})
+        commits = sorted({made["code"]["commit"] for *_, made in runs})
         source = {"experiment": experiment_file(name).as_posix(),
                   "commit": commits[0] if len(commits) == 1 else commits,
                   "seeds": list(params.runs.seeds)}
         if task in params.report.thresholds:
             source["thresholds"] = params.report.thresholds[task]
-        write_json(to / task / "source.json", source)
-        click.echo(f"{task}: {len(runs)} runs to {to / task}", err=True)
+        write_json(layout.task_runs(task, to) / "source.json", source)
+        click.echo(f"{task}: {len(runs)} runs to {layout.task_runs(task, to)}", err=True)
 
 
 def _finished_runs(workspace: Path, params: Params) -> tuple[dict, list[str]]:
@@ -353,7 +352,10 @@ def _finished_runs(workspace: Path, params: Params) -> tuple[dict, list[str]]:
         except RunRejected as error:
             problems.append(str(error))
             continue
-        if run is not None:
+        if run is not None and not (run.made.get("code") or {}).get("commit"):
+            problems.append(f"{out / 'run.json'}: names no commit (an image built without "
+                            "EDE_COMMIT?); only runs whose code is known are published")
+        elif run is not None:
             finished[(task, algo, seed)] = (out, run.made)
     return finished, problems
 

@@ -1,4 +1,5 @@
-"""Where every output of the pipeline lives under ``data/``: the one place paths are built.
+"""Where every output of the pipeline lives under ``data/``, and the published runs under
+``docs/results/``: the one place paths are built.
 
 ``dvc.yaml`` writes the same paths into each stage's command (``tests/pipeline/test_layout.py``
 holds the two together); the commands use these as the defaults of their path options.
@@ -17,6 +18,8 @@ __all__ = [
     "REPORT",
     "REPORT_CURVES",
     "REPORT_METRICS",
+    "RESULTS",
+    "RESULTS_RUNS",
     "RUNS",
     "code",
     "decoder",
@@ -27,6 +30,7 @@ __all__ = [
     "run",
     "task_code",
     "task_inputs",
+    "task_runs",
 ]
 
 DATA = Path("data")
@@ -37,6 +41,8 @@ REPORT = DATA / "report"
 REPORT_METRICS = DATA / "report-metrics.json"
 REPORT_CURVES = DATA / "report-curves"
 ENCODER, DECODER = "encoder", "decoder"  # the two artifacts in an embedding's folder
+RESULTS = Path("docs") / "results"  # the results page's figures (`ede-pipeline results`)
+RESULTS_RUNS = RESULTS / "runs"  # the published runs, laid out as RUNS (`experiment export`)
 
 
 def code(family: str, families: Path = FAMILIES) -> Path:
@@ -81,6 +87,12 @@ def task_inputs(task: str) -> Path:
     return TASKS / task
 
 
+def task_runs(task: str, runs: Path = RUNS) -> Path:
+    """The folder of one task's runs, named by its full id: ``ede/ReacherTurn-v0`` is
+    ``ede/ReacherTurn-v0/``. Published, it holds the task's ``source.json`` beside them."""
+    return runs / task
+
+
 def run(task: str, algo: str, seed: int, runs: Path = RUNS) -> Path:
     """One training run's directory in the folder of all runs."""
-    return runs / task / algo / f"seed{seed}"
+    return task_runs(task, runs) / algo / f"seed{seed}"

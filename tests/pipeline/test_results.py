@@ -1,40 +1,65 @@
-"""``benchmarks/results.py``: docs/results.md's tables and figures, redrawn from per-run files."""
+"""``ede-pipeline results``: docs/results.md's tables and figures, redrawn from per-run files."""
 
 from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
+from ede_pipeline import layout
+from ede_pipeline.cli import main
 from tests.support import REPO
 
-SCRIPT = REPO / "benchmarks" / "results.py"
 TASK = "ede/ReacherTurn-v0"
 BUDGET = 20_000
+# A task folder's source.json, unless a test writes its own: as those made before experiment files.
+SOURCE = {"commit": "0123456789ab", "command": "experiment.py --seeds 0-3"}
 
 
 def write_run(runs: Path, algo: str, seed: int, returns: np.ndarray, budget: int = BUDGET,
-              task: str = TASK) -> None:
-    folder = runs / task.split("/")[-1] / algo / f"seed{seed}"
+              task: str = TASK, machine: dict | None = None) -> None:
+    """A finished run in the pipeline's layout (``runs/<task id>/<algo>/seed<N>/``), and its task's
+    ``source.json`` where it has none yet."""
+    folder = layout.run(task, algo, seed, runs)
     folder.mkdir(parents=True)
+    if not (folder.parents[1] / "source.json").exists():
+        write_source(runs, task)
     steps = np.linspace(0, budget, len(returns))
     rows = [f"{int(s)},{i},{r},1.0,{i}" for i, (s, r) in enumerate(zip(steps, returns))]
     (folder / "eval.csv").write_text("step,episode,mean_return,std_return,wall_seconds\n"
                                      + "\n".join(rows) + "\n")
     made = {"task": task, "algo": algo, "seed": seed, "budget": budget}
+    if machine is not None:  # as run.json records it since 2026-12; the committed runs have none
+        made["machine"] = machine
     (folder / "run.json").write_text(json.dumps(made))
     (folder / "metrics.json").write_text(json.dumps({"final_return": float(returns[-1])}))
 
 
-def results(runs: Path, figures: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(SCRIPT), "--runs", str(runs), "--figures",
-                           str(figures)], capture_output=True, text=True, cwd=REPO)
+class Done(NamedTuple):
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def write_source(runs: Path, task: str = TASK, **made: object) -> None:
+    """``runs/<task>/source.json``: :data:`SOURCE` with ``made``'s keys."""
+    (layout.task_runs(task, runs) / "source.json").write_text(json.dumps({**SOURCE, **made}))
+
+
+def results(runs: Path, figures: Path) -> Done:
+    """``ede-pipeline results`` on ``runs`` with the committed params; an exception other than
+    click's exit is raised, not reported."""
+    done = CliRunner().invoke(main, ["results", "--runs", str(runs), "--figures", str(figures),
+                                     "--params", str(REPO / "params.yaml")])
+    if done.exception is not None and not isinstance(done.exception, SystemExit):
+        raise done.exception
+    return Done(done.exit_code, done.stdout, done.stderr)
 
 
 def test_tables_name_disjoint_bins_and_diverged_seeds(tmp_path: Path) -> None:
@@ -45,11 +70,9 @@ def test_tables_name_disjoint_bins_and_diverged_seeds(tmp_path: Path) -> None:
         write_run(runs, "ede-td3", seed, -200 + 150 * x + noise[0])  # learns steadily
         td3 = np.where(x < 0.5, -200 + 100 * x, -150 - 100 * (x - 0.5))  # falls after half
         write_run(runs, "td3", seed, td3 + noise[1])
-    (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
     for algo in ("td3", "ede-td3"):  # a task still running: one seed of each of its 4 so far
         write_run(runs, algo, 0, np.linspace(-200, -100, 41), task="ede/ReacherPush-v0")
-    made = {"commit": "0123456789ab", "seeds": [0, 1, 2, 3]}
-    (runs / "ReacherPush-v0" / "source.json").write_text(json.dumps(made))
+    write_source(runs, "ede/ReacherPush-v0", seeds=[0, 1, 2, 3])
 
     done = results(runs, tmp_path / "figures")
     assert done.returncode == 0, done.stderr
@@ -90,17 +113,17 @@ def test_runs_of_different_budgets_are_refused_by_name(tmp_path: Path) -> None:
 def test_the_committed_runs_redraw(tmp_path: Path) -> None:
     done = results(REPO / "docs" / "results" / "runs", tmp_path)
     assert done.returncode == 0, done.stderr
-    # Each task as its runs name it: ede/ReacherVertical-v0 lives in ReacherVertical-v0/, and a
-    # task beyond the paper keeps its own name (HalfCheetah-v5).
+    # Each task as its runs name it, in the pipeline's layout: ede/ReacherVertical-v0 lives in
+    # ede/ReacherVertical-v0/, and a task beyond the paper keeps its own name (HalfCheetah-v5).
     committed = {json.loads(made.read_text())["task"]
-                 for made in (REPO / "docs/results/runs").glob("*/*/seed*/run.json")}
+                 for made in (REPO / "docs/results/runs").rglob("seed*/run.json")}
     assert "HalfCheetah-v5" in committed and "ede/ReacherVertical-v0" in committed
     for task in committed:
         assert f"### {task}\n" in done.stdout
 
 
 def task_table(out: str, task: str) -> str:
-    """One task's section of results.py's output."""
+    """One task's section of the output."""
     return out.split(f"### {task}\n")[1].split("\n### ")[0]
 
 
@@ -109,7 +132,6 @@ def test_a_tasks_numbers_do_not_depend_on_the_other_tasks_present(tmp_path: Path
     for seed in range(8):  # enough for the bootstrap's percentiles not to fall on the same means
         for algo in ("td3", "ede-td3"):
             write_run(runs, algo, seed, np.random.default_rng([seed, len(algo)]).normal(-100, 20, 21))
-    (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
     alone = results(runs, tmp_path / "figures")
     assert alone.returncode == 0, alone.stderr
     # ReacherVertical comes first in params.yaml: its bootstraps run before ReacherTurn's; and
@@ -118,9 +140,7 @@ def test_a_tasks_numbers_do_not_depend_on_the_other_tasks_present(tmp_path: Path
         for algo in ("td3", "ede-td3"):
             write_run(runs, algo, seed, np.random.default_rng(seed + 7).normal(-20, 5, 21),
                       budget=50_000, task="ede/ReacherVertical-v0")
-    (runs / "ReacherVertical-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
-    made = {"commit": "0123456789ab", "thresholds": [-110]}
-    (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps(made))
+    write_source(runs, thresholds=[-110])
     beside = results(runs, tmp_path / "figures")
     assert beside.returncode == 0, beside.stderr
     assert beside.stdout.index("### ede/ReacherVertical-v0") < beside.stdout.index("### ede/ReacherTurn-v0")
@@ -141,8 +161,7 @@ def test_a_task_run_with_more_seeds_joins_the_aggregates_with_as_many_as_the_oth
         for seed in range(seeds):
             write_run(runs, "td3", seed, np.linspace(start, start / 2 - seed, 21), task=task)
             write_run(runs, "ede-td3", seed, np.linspace(start, start / 4 - seed, 21), task=task)
-        made = {"commit": "0123456789ab", "seeds": list(range(seeds))}
-        (runs / task.split("/")[-1] / "source.json").write_text(json.dumps(made))
+        write_source(runs, task, seeds=list(range(seeds)))
     done = results(runs, tmp_path / "figures")
     assert done.returncode == 0, done.stderr
     across = done.stdout.split("### Across tasks: the reacher family")[1]
@@ -160,12 +179,10 @@ def test_a_task_beyond_the_paper_is_its_own_family_with_its_thresholds(tmp_path:
     for seed in range(3):
         write_run(runs, "ede-td3", seed, -1200 + 1100 * np.sqrt(x) + seed, task="Pendulum-v1")
         write_run(runs, "td3", seed, -1200 + 1100 * x + seed, task="Pendulum-v1")
-    made = {"commit": "0123456789ab", "thresholds": [-600, -50]}
-    (runs / "Pendulum-v1" / "source.json").write_text(json.dumps(made))
+    write_source(runs, "Pendulum-v1", thresholds=[-600, -50])
     for algo in ("td3", "ede-td3"):  # and a task of the paper's, beside it
         for seed in range(3):
             write_run(runs, algo, seed, np.linspace(-200, -100 - 20 * (algo == "ede-td3"), 21))
-    (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
 
     done = results(runs, tmp_path / "figures")
     assert done.returncode == 0, done.stderr
@@ -189,18 +206,16 @@ def test_an_ablation_is_set_against_the_defaults_runs_of_the_same_seeds(tmp_path
     for seed in range(4):  # the default: seeds 0-3, each ending at -100 - 10 * seed
         write_run(runs, "ede-td3", seed, -200 + (100 - 10 * seed) * x)
         write_run(runs, "td3", seed, -200 + 50 * x)
-    (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
     for seed in (0, 1):  # the variant: seeds 0 and 1 of EDE-TD3, learning twice as fast
         write_run(ablations / "fast", "ede-td3", seed, -200 + 150 * np.sqrt(x) + seed)
-    made = {"commit": "fedcba987654", "command": "experiment.py --variant fast:x=1",
-            "thresholds": [-150]}
-    (ablations / "fast" / "ReacherTurn-v0" / "source.json").write_text(json.dumps(made))
-    embedding = ablations / "fast" / "ReacherTurn-v0" / "embedding"
+    write_source(ablations / "fast", commit="fedcba987654", command="experiment.py --variant fast:x=1",
+                 thresholds=[-150])
+    embedding = layout.task_runs(TASK, ablations / "fast") / "embedding"
     embedding.mkdir()
     (embedding / "encoder_metrics.json").write_text(json.dumps({"prediction_ratio": 0.7021, "kl": 7.94}))
     for algo in ("td3", "ede-td3"):  # a variant of both algorithms, drawn as a family is
         write_run(ablations / "both", algo, 0, -200 + 20 * x)
-    (ablations / "both" / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0"}))
+    write_source(ablations / "both", commit="0")
 
     done = results(runs, tmp_path / "figures")
     assert (tmp_path / "figures" / "ablation-both.png").stat().st_size > 10_000
@@ -219,12 +234,50 @@ def test_an_ablation_is_set_against_the_defaults_runs_of_the_same_seeds(tmp_path
     assert "fast above the default at 1K–20K; below at none." in section
 
 
+
+def test_a_source_written_by_experiment_export_names_its_file_and_commits(tmp_path: Path) -> None:
+    runs, ablations = tmp_path / "runs", tmp_path / "ablations"
+    for algo in ("td3", "ede-td3"):
+        write_run(runs, algo, 0, np.linspace(-200, -100, 21))
+        write_run(ablations / "fast", algo, 0, np.linspace(-200, -90, 21))
+    # As `ede-pipeline experiment export` writes it, of runs made at two commits.
+    made = {"experiment": "experiments/turn.yaml", "commit": ["0123456789ab", "fedcba987654"],
+            "seeds": [0]}
+    (layout.task_runs(TASK, runs) / "source.json").write_text(json.dumps(made))
+    variant = {"experiment": "experiments/fast.yaml", "commit": "fedcba987654", "seeds": [0]}
+    (layout.task_runs(TASK, ablations / "fast") / "source.json").write_text(json.dumps(variant))
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 0, done.stderr
+    assert ("2.0% of the paper's 1,000,000; experiment `experiments/turn.yaml`, commits 0123456, "
+            "fedcba9; curves binned per 1,000 steps.") in task_table(done.stdout, TASK)
+    section = done.stdout.split("### fast: ede/ReacherTurn-v0, TD3\n")[1]
+    assert "seeds 0 of each; the variant's experiment `experiments/fast.yaml`; curves" in section
+    rows = {line.split(" | ")[0]: line.split(" | ") for line in section.splitlines() if line.startswith("| ")}
+    assert rows["| default"][1] == "0123456, fedcba9; —" and rows["| fast"][1] == "fedcba9; —"
+
+
+def test_each_task_names_the_cpus_that_made_its_runs(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    xeon = {"cpu": "Intel(R) Xeon(R) Processor", "instruction_sets": ["avx2", "avx512f"],
+            "torch_cpu_capability": "AVX512", "torch_threads": 1, "gpu": None}
+    write_run(runs, "td3", 0, np.linspace(-200, -100, 21), machine=xeon)
+    write_run(runs, "td3", 1, np.linspace(-200, -100, 21), machine=xeon)
+    write_run(runs, "ede-td3", 0, np.linspace(-200, -90, 21),
+              machine={**xeon, "cpu": "AMD EPYC 7B13", "instruction_sets": []})
+    write_run(runs, "ede-td3", 1, np.linspace(-200, -90, 21))  # made before run.json named it
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 0, done.stderr
+    table = task_table(done.stdout, TASK)
+    assert "\nRuns made on: Intel(R) Xeon(R) Processor (avx2, avx512f): 2; AMD EPYC 7B13 (none of " \
+        "avx2, avx512f, avx512_bf16, amx_tile, amx_bf16): 1; CPU unrecorded: 1.\n" in table
+    # After the line naming the commit, before the table.
+    assert table.index("commit 0123456") < table.index("Runs made on") < table.index("| algorithm |")
+
 def test_an_ablation_without_the_defaults_seeds_is_refused_by_name(tmp_path: Path) -> None:
     runs, ablations = tmp_path / "runs", tmp_path / "ablations"
     write_run(runs, "ede-td3", 0, np.zeros(21))
-    (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
     write_run(ablations / "fast", "ede-td3", 3, np.zeros(21))
-    (ablations / "fast" / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0"}))
+    write_source(ablations / "fast", commit="0")
     done = results(runs, tmp_path / "figures")
     assert done.returncode == 2 and "Traceback" not in done.stderr
     assert "the default's runs of seeds [3] are not all in" in done.stderr
@@ -236,7 +289,6 @@ def test_a_task_alone_never_joins_a_family_of_the_papers_and_one_seed_claims_no_
     runs = tmp_path / "runs"
     for algo in ("td3", "ede-td3"):  # gymnasium's Reacher-v5 would be family "reacher"
         write_run(runs, algo, 0, np.linspace(-50, -5 - 5 * (algo == "td3"), 21), task="Reacher-v5")
-    (runs / "Reacher-v5" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
     done = results(runs, tmp_path / "figures")
     assert done.returncode == 0, done.stderr
     assert "reacher-v5 family, its own (beyond the paper)" in done.stdout
@@ -248,29 +300,42 @@ def test_a_task_alone_never_joins_a_family_of_the_papers_and_one_seed_claims_no_
 def bad_input_cases() -> dict[str, tuple]:
     """Each case: what to break in a folder of good runs, and the line expected."""
     def source(value: object) -> Callable[[Path], None]:
-        return lambda runs: (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps(value))
+        return lambda runs: (layout.task_runs(TASK, runs) / "source.json").write_text(json.dumps(value))
 
     def embedding(runs: Path) -> None:
-        (runs / "ReacherTurn-v0" / "embedding").mkdir()
-        (runs / "ReacherTurn-v0" / "embedding" / "encoder_metrics.json").write_text("{}")
+        (layout.task_runs(TASK, runs) / "embedding").mkdir()
+        (layout.task_runs(TASK, runs) / "embedding" / "encoder_metrics.json").write_text("{}")
 
     def unknown_task(runs: Path) -> None:
         for algo in ("td3", "ede-td3"):
             write_run(runs, algo, 0, np.zeros(21), task="HalfCheetah-v99")
-        (runs / "HalfCheetah-v99" / "source.json").write_text(json.dumps({"commit": "0123456"}))
 
-    def misplaced(runs: Path) -> None:
-        shutil.copytree(runs / "ReacherTurn-v0", runs / "ReacherTurn-v0-copy")
+    def machine(runs: Path) -> None:
+        made = layout.run(TASK, "td3", 0, runs) / "run.json"
+        made.write_text(json.dumps({**json.loads(made.read_text()), "machine": "a laptop"}))
+
+    def misplaced(runs: Path) -> None:  # beside its own folder, under another task's name
+        shutil.copytree(layout.task_runs(TASK, runs), runs / "ede" / "ReacherTurn-v1")
 
     return {
+        "machine": (machine, "run.json: 'machine' is 'a laptop'; expected its 'cpu' and "
+                    "'instruction_sets'"),
         "no commit": (source({"command": "experiment.py"}), "source.json: expected JSON naming the 'commit'"),
-        "thresholds": (source({"commit": "0123456", "thresholds": "150"}),
+        "no commits": (source({"commit": [], "experiment": "experiments/a.yaml"}),
+                       "source.json: expected JSON naming the 'commit' that made the runs beside it "
+                       "(a string, or a list of them)"),
+        "no maker": (source({"commit": "0123456"}),
+                     "source.json: expected the 'experiment' file (or the 'command') that made"),
+        "experiment": (source({"commit": ["0123456"], "experiment": ["experiments/a.yaml"],
+                               "command": "experiment.py"}),
+                       "source.json: expected the 'experiment' file (or the 'command') that made"),
+        "thresholds": (source({**SOURCE, "thresholds": "150"}),
                        "source.json: 'thresholds' is '150'; expected a list of returns"),
-        "seeds": (source({"commit": "0123456", "seeds": [0, -1]}),
+        "seeds": (source({**SOURCE, "seeds": [0, -1]}),
                   "source.json: 'seeds' is [0, -1]; expected a list of seeds (whole numbers >= 0)"),
         "embedding": (embedding, "embedding: expected pretrain's metrics"),
         "unknown task": (unknown_task, "HalfCheetah-v99: cannot be made to measure its reference returns"),
-        "misplaced": (misplaced, "its runs are of ede/ReacherTurn-v0; keep them in ReacherTurn-v0/"),
+        "misplaced": (misplaced, "ReacherTurn-v1: its runs are of ede/ReacherTurn-v0; keep them in "),
     }
 
 
@@ -279,9 +344,21 @@ def test_bad_input_is_one_line_exit_2_and_nothing_drawn(tmp_path: Path, case: st
     runs = tmp_path / "runs"
     for algo in ("td3", "ede-td3"):
         write_run(runs, algo, 0, np.linspace(-200, -100, 21))
-    (runs / "ReacherTurn-v0" / "source.json").write_text(json.dumps({"commit": "0123456789ab"}))
     breaks, expected = bad_input_cases()[case]
     breaks(runs)
     done = results(runs, tmp_path / "figures")
     assert done.returncode == 2 and expected in done.stderr, done.stderr
     assert len(done.stderr.strip().splitlines()) == 1 and not (tmp_path / "figures").exists()
+
+
+def test_a_task_folder_whose_runs_name_another_task_is_refused_in_one_line(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    for algo in ("td3", "ede-td3"):
+        write_run(runs, algo, 0, np.linspace(-200, -100, 21))
+    # As they were kept before a task's folder took its full id.
+    shutil.move(layout.task_runs(TASK, runs), runs / "ReacherTurn-v0")
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 2 and done.stderr == (
+        f"Error: {runs / 'ReacherTurn-v0'}: its runs are of ede/ReacherTurn-v0; keep them in "
+        f"{runs / 'ede' / 'ReacherTurn-v0'}/\n")
+    assert not (tmp_path / "figures").exists()

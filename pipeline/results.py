@@ -1,13 +1,19 @@
-"""The measured results of docs/results.md, redrawn from the per-run files committed beside it.
+"""``ede-pipeline results``: the measured results of docs/results.md, redrawn from the per-run
+files committed beside it.
 
-    python benchmarks/results.py [--runs docs/results/runs] [--figures docs/results] [--bins 20]
-                                 [--ablations docs/results/ablations]
+    ede-pipeline results [--runs docs/results/runs] [--figures docs/results] [--bins 20]
+                         [--ablations docs/results/ablations] [--params params.yaml]
 
 ``--runs`` holds one folder per finished run, ``<task>/<algorithm>/seed<N>/`` with its
-``eval.csv``, ``run.json`` and ``metrics.json`` (as ``ede-pipeline train`` writes them), and per
-task a ``source.json`` naming the commit and command that made its runs and, optionally, the
-returns whose first crossing to report (``"thresholds": [500, 1000]``) and the seeds its command
-runs (``"seeds": [0, 1, 2, 3]``). The tasks are those of the
+``eval.csv``, ``run.json`` and ``metrics.json`` (as ``ede-pipeline train`` writes them), laid out as
+the pipeline's runs (:func:`ede_pipeline.layout.run`: the task by its full id, so
+``ede/ReacherTurn-v0``'s runs are in ``ede/ReacherTurn-v0/``), and in each task's folder a
+``source.json`` naming what made its runs: the commit (``"commit"``, a string, or a list where its
+runs were made at several) and the experiment file (``"experiment": "experiments/NAME.yaml"``,
+as ``ede-pipeline experiment export`` writes it) or, in files written before experiments were
+files, the command (``"command"``); and, optionally, the returns whose first crossing to report
+(``"thresholds": [500, 1000]``) and the seeds it runs (``"seeds": [0, 1, 2, 3]``). A task's folder is any folder there holding
+a ``source.json`` and runs; its path must be the task its runs name. The tasks are those of the
 committed ``params.yaml``'s families, then every other task with a folder there, each its own
 family named after it (as ``benchmarks/experiment.py`` runs a task ``params.yaml`` does not
 train on; never one of ``params.yaml``'s families, whose name it then takes whole). For each
@@ -16,7 +22,9 @@ seeds with its bootstrap band, evaluations averaged in ``--bins`` bins of a run'
 report draws them) and prints, per task, in Markdown:
 
 - the budget a run, as a fraction of the paper's (``runs.budgets``; none beyond the paper), the
-  seeds, the commit;
+  seeds, the experiment file where ``source.json`` names one and the commits (7 characters);
+- the CPUs that made its runs (each one's model and instruction sets, as its ``run.json``'s
+  ``machine`` records them, and how many runs it made; "CPU unrecorded" for runs made before);
 - two reference returns: uniform random actions' (the normalised scores' 0, as the report's) and
   zero actions' over ``ZERO_EPISODES`` episodes with its standard error (doing nothing: on a task
   that penalises actions, a policy must beat it to have learned what the task rewards);
@@ -40,32 +48,33 @@ aggregates each task's lowest seeds, as many as the fewest, and the rest are nam
 
 ``--ablations`` holds the fidelity ablations' runs the same way, one folder per variant
 (``<variant>/<task>/<algorithm>/seed<N>/``, ``source.json`` per task, and where kept the variant's
-embedding metrics in ``<task>/embedding/``): each is printed against the default's runs of the
-same task, algorithm and seeds in ``--runs``, with the bins where their intervals are disjoint; a
+embedding metrics in ``<task>/embedding/``): each is printed, with its experiment file or command,
+against the default's runs of the same task, algorithm and seeds in ``--runs``, with the bins where their intervals are disjoint; a
 variant run with both algorithms is drawn as a family is, to ``<figures>/ablation-<variant>.png``.
 
 The confidence, the bootstrap's resamples and its seed are the report's (``report`` in
 ``params.yaml``), and every statistic's bootstrap (an interval, a band of the figure) starts afresh
 from that seed, so a number depends on its own runs alone: the same on every machine, whatever
 other tasks, algorithms or thresholds are beside it. Bad input (a run, ``source.json``, an
-embedding's metrics, an ablation without its default) is one line and exit code 2, before anything
-is written.
+embedding's metrics, a task's folder not at its task's path, an ablation without its default) is
+one line and exit code 2 (:class:`ede_pipeline.common.BadInput`), before anything is written.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import sys
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
+import click
 import gymnasium
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ede.config import ParamsError, load_params
+from ede.config import Params
+from ede.provenance import INSTRUCTION_SETS
 from ede.report import (
     ALGO_STYLE,
     RANDOM_EPISODES,
@@ -82,14 +91,33 @@ from ede.report import (
 from ede.runs import Curve, RunRejected, read_run
 from ede.stats import bootstrap_mean, divergence, separation, steps_to_threshold
 from ede_pipeline import layout
+from ede_pipeline.common import BadInput, params_option
 
-REPO = Path(__file__).resolve().parents[1]
 ZERO_EPISODES = 100  # episodes behind a task's zero-action return (its standard error ~10 on Reacher's)
 
 
-class Refused(Exception):
-    """Input this cannot use: one line naming the file and what is expected (exit code 2, before
-    anything is written)."""
+@dataclass(frozen=True)
+class Source:
+    """A task folder's ``source.json``: what made its runs, and what of them to report."""
+
+    commits: list[str]  # one, or several where its runs were made at several commits
+    experiment: str | None  # the experiment file (``ede-pipeline experiment export`` names it)
+    command: str | None  # the command line, in files written before experiment files
+    thresholds: list[float]  # the returns whose first crossing to report
+    seeds: list[int]  # the seeds it plans; none named: the runs there are all there are
+
+    def made_at(self) -> str:
+        """``commit 0123456``; ``experiment `experiments/NAME.yaml`, commits 0123456, 89abcde``."""
+        commits = f"commit{'s' * (len(self.commits) > 1)} {', '.join(self.short_commits())}"
+        return commits if self.experiment is None else f"experiment `{self.experiment}`, {commits}"
+
+    def short_commits(self) -> list[str]:
+        return [commit[:7] for commit in self.commits]
+
+    def maker(self) -> str:
+        """``experiment `experiments/NAME.yaml``` or ``command `…```."""
+        return (f"experiment `{self.experiment}`" if self.experiment is not None
+                else f"command `{self.command}`")
 
 
 @dataclass
@@ -100,57 +128,90 @@ class TaskRuns:
     folder: Path
     curves: dict[str, list[Curve]]  # per algorithm, by seed
     budget: int  # the steps every run of the folder ran
-    made: dict  # source.json: "commit", "command", "thresholds", "seeds"
+    source: Source
     embedding: str | None  # the held-out figures of the embedding EDE-TD3 used, where kept
+    cpus: dict[str | None, int]  # runs per CPU (with its instruction sets); None: unrecorded
 
 
-def task_folder(task: str) -> str:
-    """``ede/ReacherTurn-v0`` is kept in ``ReacherTurn-v0``."""
-    return task.split("/")[-1]
-
-
-def read_folder(folder: Path, task: str) -> TaskRuns | None:
-    """A task folder's finished runs with its ``source.json`` and embedding figures; None where
-    no run is finished."""
+def read_folder(root: Path, task: str) -> TaskRuns | None:
+    """A task's finished runs under ``root`` (:func:`ede_pipeline.layout.run`) with its
+    ``source.json`` and embedding figures; None where no run is finished."""
+    folder = layout.task_runs(task, root)
     curves: dict[str, list[Curve]] = {}
-    budgets = set()
+    budgets: set[int] = set()
+    cpus: Counter[str | None] = Counter()
     for algo in ALGO_STYLE:
-        for run in sorted((folder / algo).glob("seed*"), key=lambda p: int(p.name[4:])):
+        seeds = sorted(int(p.name[4:]) for p in layout.run(task, algo, 0, root).parent.glob("seed*"))
+        for seed in seeds:
+            run = layout.run(task, algo, seed, root)
             try:
-                record = read_run(run, {"task": task, "algo": algo, "seed": int(run.name[4:])})
+                record = read_run(run, {"task": task, "algo": algo, "seed": seed})
             except RunRejected as error:
-                raise Refused(str(error)) from None
+                raise BadInput(str(error)) from None
             if record is not None:
                 curves.setdefault(algo, []).append(record.curve)
                 budgets.add(int(record.curve.steps[-1]))  # checked: the run's budget
+                cpus[cpu(run / "run.json", record.made)] += 1
     if len(budgets) > 1:
-        raise Refused(f"{folder}: runs of different budgets {sorted(budgets)}; keep one per task")
+        raise BadInput(f"{folder}: runs of different budgets {sorted(budgets)}; keep one per task")
     if not curves:
         return None
     return TaskRuns(task, folder, curves, budgets.pop(), read_source(folder),
-                    embedding_figures(folder))
+                    embedding_figures(folder), dict(cpus))
 
 
-def read_source(folder: Path) -> dict:
-    """A task folder's ``source.json``: the commit and command that made its runs, and the
-    returns whose first crossing to report."""
+def cpu(path: Path, made: dict) -> str | None:
+    """The CPU that made a run, with the instruction sets of it that change results (its
+    ``run.json``'s ``machine``, :func:`ede.provenance.machine`); None where unrecorded (runs made
+    before run.json named its machine)."""
+    machine = made.get("machine")
+    if machine is None:
+        return None
+    model, sets = (machine.get("cpu"), machine.get("instruction_sets")) if isinstance(
+        machine, dict) else (None, None)
+    if not isinstance(model, str) or not isinstance(sets, list) or not all(
+            isinstance(s, str) for s in sets):
+        raise BadInput(f"{path}: 'machine' is {machine!r}; expected its 'cpu' and "
+                       "'instruction_sets', as ede.provenance.machine records them")
+    return f"{model} ({', '.join(sets) or 'none of ' + ', '.join(INSTRUCTION_SETS)})"
+
+
+def cpu_line(cpus: dict[str | None, int]) -> str:
+    """``Runs made on: Intel(R) Xeon(R) Processor (avx2, avx512f): 8; CPU unrecorded: 8.``"""
+    named = [f"{name}: {count}" for name, count in cpus.items() if name is not None]
+    unrecorded = [f"CPU unrecorded: {cpus[None]}"] if None in cpus else []
+    return f"Runs made on: {'; '.join(named + unrecorded)}."
+
+
+def read_source(folder: Path) -> Source:
+    """A task folder's ``source.json``: the commit (or commits) and the experiment file (or, in
+    files written before experiment files, the command) that made its runs, the returns whose
+    first crossing to report, and the seeds it plans."""
     path = folder / "source.json"
     try:
         made = json.loads(path.read_text())
     except (OSError, ValueError):
         made = None
-    if not isinstance(made, dict) or not isinstance(made.get("commit"), str):
-        raise Refused(f"{path}: expected JSON naming the 'commit' that made the runs beside it")
+    commits = made.get("commit") if isinstance(made, dict) else None
+    commits = [commits] if isinstance(commits, str) else commits
+    if not isinstance(made, dict) or not isinstance(commits, list) or not commits or not all(
+            isinstance(c, str) for c in commits):
+        raise BadInput(f"{path}: expected JSON naming the 'commit' that made the runs beside it "
+                       "(a string, or a list of them)")
+    experiment, command = made.get("experiment"), made.get("command")
+    if not isinstance(experiment if "experiment" in made else command, str):
+        raise BadInput(f"{path}: expected the 'experiment' file (or the 'command') that made the "
+                       "runs beside it, as a string")
     thresholds = made.get("thresholds", [])
     if not isinstance(thresholds, list) or not all(
             isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t)
             for t in thresholds):
-        raise Refused(f"{path}: 'thresholds' is {thresholds!r}; expected a list of returns")
+        raise BadInput(f"{path}: 'thresholds' is {thresholds!r}; expected a list of returns")
     seeds = made.get("seeds", [])
     if not isinstance(seeds, list) or not all(
             isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds):
-        raise Refused(f"{path}: 'seeds' is {seeds!r}; expected a list of seeds (whole numbers >= 0)")
-    return made
+        raise BadInput(f"{path}: 'seeds' is {seeds!r}; expected a list of seeds (whole numbers >= 0)")
+    return Source(commits, experiment, command, thresholds, seeds)
 
 
 def embedding_figures(folder: Path) -> str | None:
@@ -167,7 +228,7 @@ def embedding_figures(folder: Path) -> str | None:
             parts += [f"inverse error {d['inverse_error']:.2g}",
                       f"{d['at_bounds']:.1%} of decoded actions at a bound"]
     except (OSError, ValueError, KeyError, TypeError):
-        raise Refused(f"{folder / 'embedding'}: expected pretrain's metrics, prediction_ratio and "
+        raise BadInput(f"{folder / 'embedding'}: expected pretrain's metrics, prediction_ratio and "
                       "kl of the encoder, inverse_error and at_bounds of the decoder") from None
     return ", ".join(parts)
 
@@ -178,27 +239,39 @@ def run_task(folder: Path) -> str | None:
         try:
             return str(json.loads(made.read_text())["task"])
         except (ValueError, KeyError, TypeError):
-            raise Refused(f"{made}: not a run record; expected JSON naming its 'task'") from None
+            raise BadInput(f"{made}: not a run record; expected JSON naming its 'task'") from None
     return None
+
+
+def task_folders(root: Path) -> list[str]:
+    """The tasks kept under ``root``, sorted: each folder holding a ``source.json`` and runs is
+    one, its task its path under ``root`` (:func:`ede_pipeline.layout.task_runs`), which must be
+    the task its runs name. (A folder of runs without its ``source.json`` is one too, so that
+    :func:`read_source` names what is missing rather than its runs being passed over.)"""
+    folders = {source.parent for source in root.rglob("source.json")}
+    folders |= {made.parents[2] for made in root.rglob("seed*/run.json")
+                if len(made.relative_to(root).parts) > 3}  # <task>/<algo>/seed<N>/run.json
+    tasks = []
+    for folder in sorted(folders):
+        if (task := run_task(folder)) is None:
+            continue
+        if folder != (kept := layout.task_runs(task, root)):
+            raise BadInput(f"{folder}: its runs are of {task}; keep them in {kept}/")
+        tasks.append(task)
+    return tasks
 
 
 def read_runs(runs: Path, params) -> dict[str, list[TaskRuns]]:
     """Each family with finished runs, and its tasks': ``params.yaml``'s tasks in its order, then
-    every task with a folder under ``runs`` that it does not train on, as its own family (as
-    ``benchmarks/experiment.py`` runs such a task: its embedding learned on its own random data)."""
+    every other task kept under ``runs``, as its own family (as ``benchmarks/experiment.py`` runs
+    such a task: its embedding learned on its own random data)."""
+    kept = task_folders(runs) if runs.is_dir() else []
+    tasks = {**{t: f for t, f in params.runs.tasks.items() if t in kept},
+             **{t: layout.own_family(t, params.families) for t in kept
+                if t not in params.runs.tasks}}
     families: dict[str, list[TaskRuns]] = {}
-    for task, family in params.runs.tasks.items():
-        folder = runs / task_folder(task)
-        if folder.is_dir() and (found := read_folder(folder, task)):
-            families.setdefault(family, []).append(found)
-    known = {task_folder(t) for t in params.runs.tasks}
-    for folder in sorted(p for p in runs.glob("*") if p.is_dir() and p.name not in known):
-        if (task := run_task(folder)) is None:
-            continue
-        if folder.name != task_folder(task):
-            raise Refused(f"{folder}: its runs are of {task}; keep them in {task_folder(task)}/")
-        family = layout.own_family(task, params.families)
-        if found := read_folder(folder, task):
+    for task, family in tasks.items():
+        if found := read_folder(runs, task):
             families.setdefault(family, []).append(found)
     return families
 
@@ -240,7 +313,7 @@ def summary_table(task: str, first: str, second: str, arms: dict[str, tuple[str,
              "|---|---|---|---|" + "---|" * len(thresholds)]
     bands = {}
     for name, (algo, runs, column) in arms.items():
-        row = summarise_task(task, algo, runs, [], None, report.confidence,
+        row = summarise_task(task, algo, runs, [], [], report.confidence,
                              report.bootstrap_samples, fresh())
         bands[name] = curve_band(runs, report.confidence, report.bootstrap_samples, fresh(), width)
         reached = [bootstrap_mean(np.array([steps_to_threshold(c.steps, c.returns, t) for c in runs]),
@@ -280,14 +353,14 @@ def task_section(found: TaskRuns, family: str, source: str, paper_budget: int | 
         origin = (f"{family} family, embedding learned on {source} ({role}). {budget:,} steps a "
                   f"run, {budget / paper_budget:.1%} of the paper's {paper_budget:,}")
     arms = {ALGO_STYLE[a][0]: (a, runs, seed_list(runs)) for a, runs in found.curves.items()}
-    table, bands = summary_table(found.task, "algorithm", "seeds", arms, found.made.get("thresholds", []),
+    table, bands = summary_table(found.task, "algorithm", "seeds", arms, found.source.thresholds,
                                  width, params)
     lines = [f"### {found.task}", "",
-             f"{origin}; commit {found.made['commit'][:7]}; curves binned per {width:,.0f} steps."
+             f"{origin}; {found.source.made_at()}; curves binned per {width:,.0f} steps."
              + (f" Its embedding, held out: {found.embedding}." if found.embedding else "")
              + f" References: uniform random actions {refs[0]:.4g} ({RANDOM_EPISODES} episodes), "
              f"zero actions {refs[1]:.4g} ± {refs[2]:.2g} ({ZERO_EPISODES} episodes, ± standard error).",
-             "", *table, ""]
+             "", cpu_line(found.cpus), "", *table, ""]
     if len(arms) == 2:
         lines += disjoint_bins(arms, bands, ("EDE-TD3", "TD3"), width, params.report.confidence)
         report = params.report
@@ -341,25 +414,25 @@ def read_ablations(ablations: Path, runs: Path) -> list[tuple[str, TaskRuns, Tas
     found = []
     for variant in sorted(p for p in ablations.glob("*") if p.is_dir()):
         if variant.name == "default":
-            raise Refused(f"{variant}: a variant named 'default' would be set against itself; "
+            raise BadInput(f"{variant}: a variant named 'default' would be set against itself; "
                           "rename it")
-        for folder in sorted(p for p in variant.glob("*") if p.is_dir()):
-            if (task := run_task(folder)) is None or (ours := read_folder(folder, task)) is None:
+        for task in task_folders(variant):
+            if (ours := read_folder(variant, task)) is None:
                 continue
-            default = runs / folder.name
-            theirs = read_folder(default, task) if default.is_dir() else None
+            folder, default = layout.task_runs(task, variant), layout.task_runs(task, runs)
+            theirs = read_folder(runs, task)
             if theirs is None:
-                raise Refused(f"{folder}: no finished default runs of {task} in {default} to set "
+                raise BadInput(f"{folder}: no finished default runs of {task} in {default} to set "
                               "it against")
             if theirs.budget != ours.budget:
-                raise Refused(f"{folder}: runs of {ours.budget} steps against the default's "
+                raise BadInput(f"{folder}: runs of {ours.budget} steps against the default's "
                               f"{theirs.budget} in {default}; compare like with like")
             chosen = {}
             for algo, variant_runs in ours.curves.items():
                 seeds = {c.seed for c in variant_runs}
                 chosen[algo] = [c for c in theirs.curves.get(algo, []) if c.seed in seeds]
                 if {c.seed for c in chosen[algo]} != seeds:
-                    raise Refused(f"{folder / algo}: the default's runs of seeds {sorted(seeds)} "
+                    raise BadInput(f"{folder / algo}: the default's runs of seeds {sorted(seeds)} "
                                   f"are not all in {default / algo}; compare like with like")
             theirs.curves = chosen
             found.append((variant.name, ours, theirs))
@@ -376,15 +449,15 @@ def ablation_sections(variant: str, ours: TaskRuns, theirs: TaskRuns, bins: int,
     for algo, runs in ours.curves.items():
         def column(kept: TaskRuns) -> str:  # TD3 runs use no embedding
             figures = kept.embedding if algo == "ede-td3" else None
-            return f"{kept.made['commit'][:7]}; {figures or '—'}"
+            return f"{', '.join(kept.source.short_commits())}; {figures or '—'}"
 
         arms = {"default": (algo, theirs.curves[algo], column(theirs)),
                 variant: (algo, runs, column(ours))}
         table, bands = summary_table(ours.task, "runs", "commit; embedding (held out)", arms,
-                                     ours.made.get("thresholds", []), width, params)
+                                     ours.source.thresholds, width, params)
         lines = [f"### {variant}: {ours.task}, {ALGO_STYLE[algo][0]}", "",
                  f"{ours.budget:,} steps a run, seeds {seed_list(runs)} of each; the variant's "
-                 f"command `{ours.made.get('command', '')}`; curves binned per {width:,.0f} steps.",
+                 f"{ours.source.maker()}; curves binned per {width:,.0f} steps.",
                  "", *table, "",
                  *disjoint_bins(arms, bands, (variant, "default"), width, params.report.confidence,
                                 (variant, "the default"))]
@@ -402,54 +475,61 @@ def references(tasks: list[str], params) -> dict[str, tuple[float, float, float]
             found[task] = (random_policy_return(task, RANDOM_EPISODES, params.report.seed),
                            *zero_action_return(task, ZERO_EPISODES, params.report.seed))
         except (gymnasium.error.Error, ValueError) as error:
-            raise Refused(f"{task}: cannot be made to measure its reference returns: {error}") from None
+            raise BadInput(f"{task}: cannot be made to measure its reference returns: {error}") from None
     return found
 
 
-def positive(text: str) -> int:
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"got {text!r}; expected a whole number of bins, at least 1")
-    return int(text)
+@click.command()
+@click.option("--runs", type=click.Path(file_okay=False, path_type=Path),
+              default=layout.RESULTS_RUNS, show_default=True,
+              help="The published runs: a folder per task, as `ede-pipeline experiment export` "
+              "writes them.")
+@click.option("--figures", type=click.Path(file_okay=False, path_type=Path),
+              default=layout.RESULTS, show_default=True, help="Where the figures go.")
+@click.option("--bins", type=click.IntRange(min=1), default=20, show_default=True,
+              help="Bins per run's budget.")
+@click.option("--ablations", type=click.Path(file_okay=False, path_type=Path),
+              help="One folder per variant, each compared with the default's runs in --runs  "
+              "[default: 'ablations' beside --runs]")
+@params_option
+def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Path | None) -> None:
+    """Print docs/results.md's tables (Markdown) and draw its figures from the published runs.
 
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", type=Path, default=REPO / "docs/results/runs")
-    parser.add_argument("--figures", type=Path, default=REPO / "docs/results")
-    parser.add_argument("--bins", type=positive, default=20, help="bins per run's budget")
-    parser.add_argument("--params", type=Path, default=REPO / "params.yaml")
-    parser.add_argument("--ablations", type=Path, help="one folder per variant, each compared with "
-                        "the default's runs in --runs [default: 'ablations' beside --runs]")
-    args = parser.parse_args()
-    args.ablations = args.ablations or args.runs.parent / "ablations"
-    params = load_params(args.params)
+    Per task: budget, seeds, experiment and commits, the CPUs of its runs, reference returns,
+    final return, area and steps to each threshold with bootstrap intervals, the bins where the
+    algorithms' intervals are disjoint, the probability of improvement, and which seeds diverged;
+    per family, its figure and the aggregates across tasks; per fidelity ablation, its runs against
+    the default's. Every statistic is the report's (params' `report`). Bad input is one line, exit
+    2, before anything is written.
+    """
+    ablations = ablations or runs.parent / "ablations"
     report = params.report
-    families = read_runs(args.runs, params)
-    ablations = read_ablations(args.ablations, args.runs) if args.ablations.is_dir() else []
+    families = read_runs(runs, params)
+    found_ablations = read_ablations(ablations, runs) if ablations.is_dir() else []
     curves_of = {family: {(f.task, a): c for f in found for a, c in f.curves.items()}
                  for family, found in families.items()}
     both = {task for curves in curves_of.values() for (task, _) in curves
             if all((task, a) in curves for a in ALGO_STYLE)}
     refs = references([f.task for found in families.values() for f in found], params)
     lows = {task: refs[task][0] for task in both}
-    planned = {f.task: f.made.get("seeds", []) for found in families.values() for f in found}
+    planned = {f.task: f.source.seeds for found in families.values() for f in found}
     # Every input is read and checked: from here on, print and draw.
     for family, found in families.items():
         source = params.families[family].source if family in params.families else found[0].task
         bands = {}
         for task_runs in found:
             text, task_bands = task_section(task_runs, family, source,
-                                            params.runs.budgets.get(task_runs.task), args.bins,
+                                            params.runs.budgets.get(task_runs.task), bins,
                                             refs[task_runs.task], params)
-            print(text)
+            click.echo(text)
             bands.update({(task_runs.task, a): band for a, band in task_bands.items()})
         figure = learning_curve_figure(
             family, [f.task for f in found], curves_of[family], report.confidence,
-            report.bootstrap_samples, None, {f.task: f.budget / args.bins for f in found}, bands)
-        args.figures.mkdir(parents=True, exist_ok=True)
-        figure.savefig(args.figures / f"{family}.png", dpi=120)
+            report.bootstrap_samples, None, {f.task: f.budget / bins for f in found}, bands)
+        figures.mkdir(parents=True, exist_ok=True)
+        figure.savefig(figures / f"{family}.png", dpi=120)
         plt.close(figure)
-        print(f"Figure: {args.figures / f'{family}.png'}\n")
+        click.echo(f"Figure: {figures / f'{family}.png'}\n")
     everything = {key: c for curves in curves_of.values() for key, c in curves.items()}
     sets = [(f"the {family} family", curves) for family, curves in curves_of.items()]
     paper = [family for family in curves_of if family in params.families]
@@ -460,31 +540,23 @@ def main() -> None:
         aggregates = across_tasks_section(curves, {t: lows[t] for t in tasks}, report.confidence,
                                           report.bootstrap_samples, report.seed)
         if aggregates is not None:
-            print(across_section(title, aggregates, params) + waiting)
+            click.echo(across_section(title, aggregates, params) + waiting)
             if title == "every task" or len(curves_of) == 1:
-                aggregates.figure.savefig(args.figures / "performance-profile.png", dpi=120)
+                aggregates.figure.savefig(figures / "performance-profile.png", dpi=120)
             plt.close(aggregates.figure)
     drawn: dict[str, list[tuple[TaskRuns, dict[str, tuple]]]] = {}
-    for variant, ours, theirs in ablations:
-        text, variant_bands = ablation_sections(variant, ours, theirs, args.bins, params)
-        print(text)
+    for variant, ours, theirs in found_ablations:
+        text, variant_bands = ablation_sections(variant, ours, theirs, bins, params)
+        click.echo(text)
         if set(ours.curves) == set(ALGO_STYLE):  # both algorithms: drawn as a family is
             drawn.setdefault(variant, []).append((ours, variant_bands))
     for variant, kept in drawn.items():
         figure = learning_curve_figure(
             variant, [k.task for k, _ in kept],
             {(k.task, a): c for k, _ in kept for a, c in k.curves.items()}, report.confidence,
-            report.bootstrap_samples, None, {k.task: k.budget / args.bins for k, _ in kept},
+            report.bootstrap_samples, None, {k.task: k.budget / bins for k, _ in kept},
             {(k.task, a): band for k, bands in kept for a, band in bands.items()},
             title=f"the {variant} variant (a fidelity ablation)")
-        figure.savefig(args.figures / f"ablation-{variant}.png", dpi=120)
+        figure.savefig(figures / f"ablation-{variant}.png", dpi=120)
         plt.close(figure)
-        print(f"Figure: {args.figures / f'ablation-{variant}.png'}\n")
-
-
-if __name__ == "__main__":
-    try:
-        main()
-    except (Refused, ParamsError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        raise SystemExit(2) from None
+        click.echo(f"Figure: {figures / f'ablation-{variant}.png'}\n")
