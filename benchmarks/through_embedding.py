@@ -3,8 +3,8 @@
     python benchmarks/through_embedding.py --data DIR --task HalfCheetah-v5 [--episodes 10]
 
 ``DIR`` holds a ``train`` stage's layout (``runs/<task>/td3/seed<N>/policy/`` and
-``families/<family>/embedding/``), as ``benchmarks/experiment.py`` leaves it in
-``OUT/default/data``. Each TD3 run's final actor μ is evaluated twice from the starts its own
+``families/<family>/embedding/``), as ``ede-pipeline experiment run NAME`` leaves it in
+``.dvc/tmp/experiments/NAME/data``. Each TD3 run's final actor μ is evaluated twice from the starts its own
 final evaluation used (``ede.training``: episode e of seed s resets with
 ``EVAL_SEED_OFFSET·(s+1) + e``):
 

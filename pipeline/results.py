@@ -15,7 +15,7 @@ files, the command (``"command"``); and, optionally, the returns whose first cro
 (``"thresholds": [500, 1000]``) and the seeds it runs (``"seeds": [0, 1, 2, 3]``). A task's folder is any folder there holding
 a ``source.json`` and runs; its path must be the task its runs name. The tasks are those of the
 committed ``params.yaml``'s families, then every other task with a folder there, each its own
-family named after it (as ``benchmarks/experiment.py`` runs a task ``params.yaml`` does not
+family named after it (as an experiment file runs a task ``params.yaml`` does not
 train on; never one of ``params.yaml``'s families, whose name it then takes whole). For each
 family with runs, this draws its figure (``<figures>/<family>.png``: each task's mean return over
 seeds with its bootstrap band, evaluations averaged in ``--bins`` bins of a run's budget, as the
@@ -263,7 +263,7 @@ def task_folders(root: Path) -> list[str]:
 
 def read_runs(runs: Path, params) -> dict[str, list[TaskRuns]]:
     """Each family with finished runs, and its tasks': ``params.yaml``'s tasks in its order, then
-    every other task kept under ``runs``, as its own family (as ``benchmarks/experiment.py`` runs
+    every other task kept under ``runs``, as its own family (as an experiment file runs
     such a task: its embedding learned on its own random data)."""
     kept = task_folders(runs) if runs.is_dir() else []
     tasks = {**{t: f for t, f in params.runs.tasks.items() if t in kept},

@@ -107,6 +107,12 @@ def test_a_killed_experiment_resumes_is_recorded_and_exports_its_runs(repo: Path
     assert source == {"experiment": "experiments/two-seeds.yaml", "commit": made["code"]["commit"],
                       "seeds": [0, 1]}
 
+    drawn = ok(run(repo, BIN / "ede-pipeline", "results", "--runs", out, "--figures",
+                   repo / "figures", timeout=600))
+    assert f"### {TASK}" in drawn and "experiment `experiments/two-seeds.yaml`" in drawn
+    assert f"{made['machine']['cpu']} (" in drawn and ": 2" in drawn  # the CPU of both runs
+    assert (repo / "figures" / "point.png").is_file()
+
 
 def test_experiments_of_one_family_share_its_embedding(repo: Path) -> None:
     first = ok(experiment(repo, "run", "two-seeds", "--jobs", "2"))  # done: nothing runs
