@@ -218,10 +218,24 @@ def prepare_workspace(name: str, params: dict[str, Any]) -> Path:
             (workspace / file).unlink(missing_ok=True)
     write_text(workspace / DEFAULT_PARAMS, f"# experiments/{name}.yaml applied to params.yaml "
                f"(ede-pipeline experiment run {name})\n" + yaml.safe_dump(params, sort_keys=False))
-    cache = (Path(".dvc") / "cache").resolve()
-    write_text(workspace / ".dvc" / "config.local", f"[cache]\n    dir = {cache}\n")
+    write_text(workspace / ".dvc" / "config.local", _shared_config())
     (workspace / layout.DATA).mkdir(exist_ok=True)
     return workspace
+
+
+def _shared_config() -> str:
+    """The working copy's ``.dvc/config.local``: this checkout's cache, and its remotes' local
+    paths as this checkout resolves them (a relative one is relative to ``.dvc/``, which in the
+    copy is elsewhere)."""
+    from dvc.repo import Repo
+
+    lines = [f"[cache]\n    dir = {(Path('.dvc') / 'cache').resolve()}\n"]
+    with Repo(".") as repo:  # its config, local paths resolved
+        remotes = {name: remote["url"] for name, remote in repo.config["remote"].items()}
+    for name, url in remotes.items():
+        if "://" not in url:
+            lines.append(f"['remote \"{name}\"']\n    url = {url}\n")
+    return "".join(lines)
 
 
 def _tool(workspace: Path, *argv: str) -> int:
@@ -266,8 +280,10 @@ def list_experiments() -> None:
 
 @experiment.command("run", context_settings={"ignore_unknown_options": True})
 @click.argument("name")
+@click.option("--push", is_flag=True, help="Then send its outputs to the artifact store (`dvc "
+              "push`: the DVC remote, `store` by default).")
 @click.argument("sweep_args", nargs=-1, type=click.UNPROCESSED)
-def run_experiment(name: str, sweep_args: tuple[str, ...]) -> None:
+def run_experiment(name: str, push: bool, sweep_args: tuple[str, ...]) -> None:
     """Run experiments/NAME.yaml in its working copy and record it as the DVC experiment NAME.
 
     SWEEP_ARGS go to `ede-pipeline sweep` as they are (e.g. `--jobs 2`, `--executor ray`).
@@ -292,6 +308,9 @@ def run_experiment(name: str, sweep_args: tuple[str, ...]) -> None:
     os.environ.update(_git_identity())
     if code := _tool(workspace, "dvc", "exp", "save", "--name", name, "--force"):
         raise Failed(f"experiment {name}: dvc exp save failed (exit {code})")
+    if push and (code := _tool(workspace, "dvc", "push")):
+        raise Failed(f"experiment {name}: dvc push failed (exit {code}); it is recorded here, "
+                     "run it again to push")
     click.echo(f"experiment {name}: recorded (`dvc exp show`, `ede-pipeline experiment show`); "
                f"export its runs with `ede-pipeline experiment export {name}`", err=True)
 

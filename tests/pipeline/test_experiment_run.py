@@ -49,7 +49,7 @@ def experiment(repo: Path, *args: str) -> subprocess.CompletedProcess[str]:
 @pytest.mark.parametrize(("args", "line"), [
     (["run", "bad"], "experiments/bad.yaml: td3.batch_size: "),
     (["run", "nothing"], "experiment 'nothing': no experiments/nothing.yaml; the experiments "
-                         "are: bad, two-seeds, two-seeds-lr"),
+                         "are: ablation-epochs6, ablation-step, "),
     (["run", "two-seeds", "--jobs", "0"], "sweep options: Invalid value for '-j' / '--jobs'"),
     (["export", "two-seeds-lr"], "experiment two-seeds-lr: not run here yet"),
 ])
@@ -115,8 +115,10 @@ def test_a_killed_experiment_resumes_is_recorded_and_exports_its_runs(repo: Path
 
 
 def test_experiments_of_one_family_share_its_embedding(repo: Path) -> None:
-    first = ok(experiment(repo, "run", "two-seeds", "--jobs", "2"))  # done: nothing runs
+    store = repo.parent / "ede-store"  # .dvc/config's remote, ../ede-store from the checkout
+    first = ok(experiment(repo, "run", "two-seeds", "--jobs", "2", "--push"))  # done: none runs
     assert "Running stage" not in first
+    assert len([p for p in store.rglob("*") if p.is_file()]) > 10  # its outputs, in the store
     second = ok(experiment(repo, "run", "two-seeds-lr", "--jobs", "2"))
     for stage in ("collect@point", "pretrain_encoder@point", "pretrain_decoder@point"):
         assert f"Running stage '{stage}'" not in second, second[-3000:]
