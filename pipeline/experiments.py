@@ -31,6 +31,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import textwrap
@@ -244,12 +245,15 @@ def _tool(workspace: Path, *argv: str) -> int:
     bin_dir = Path(sys.executable).parent
     env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}"}
     child = subprocess.Popen([str(bin_dir / argv[0]), *argv[1:]], cwd=workspace, env=env)
+    before = signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     try:
         return child.wait()
-    except BaseException:
+    except BaseException:  # Ctrl-C, or SIGTERM (a batch system stopping the job)
         child.terminate()
         child.wait()
         raise
+    finally:
+        signal.signal(signal.SIGTERM, before)
 
 
 def _git_identity() -> dict[str, str]:
