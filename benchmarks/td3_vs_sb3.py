@@ -179,6 +179,10 @@ def difference(curves: dict, steps: list[int], confidence: float, rng: np.random
              for name, v in values.items()}  # (samples, evaluations)
     gaps = draws["ours"] - draws["sb3"]
     lows, highs = np.quantile(gaps, [tail, 1 - tail], axis=0)
+    means = values["ours"].mean(axis=0) - values["sb3"].mean(axis=0)
+    print("difference of the means per evaluation, ours - sb3 [interval]:")
+    for step, mean, lo, hi in zip(steps, means, lows, highs):
+        print(f"  {step:<8d}{mean:+6.2f} [{lo:+6.2f}, {hi:+6.2f}]")
     apart = [(step, "above" if lo > 0 else "below") for step, lo, hi in zip(steps, lows, highs)
              if lo > 0 or hi < 0]
     print(f"difference of the means excludes 0 at {len(apart)} of {len(steps)} evaluations:",
