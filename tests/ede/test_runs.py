@@ -71,6 +71,7 @@ def test_identity_difference_names_one_key_in_words() -> None:
 
 
 def test_run_json_names_the_code_and_the_machine(tmp_path: Path) -> None:
+    provenance.code_version.cache_clear()  # read once a process: the checkout's HEAD of now
     finished(tmp_path)
     made = json.loads((tmp_path / "run.json").read_text())
     root = Path(provenance.__file__).resolve().parents[1]
