@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner, Result
 
-from ede.provenance import machine, software_versions
+from ede.provenance import code_version, machine, software_versions
 from ede.tasks import make
 from ede.training import EVAL_SEED_OFFSET
 from ede_pipeline.cli import main
@@ -89,6 +89,7 @@ def random_policy_return(episodes: int = 5) -> float:
 
 @pytest.mark.parametrize("algo", ["td3", "ede-td3"])
 def test_both_algorithms_clearly_beat_a_random_policy(in_workdir: Path, algo: str) -> None:
+    code_version.cache_clear()  # read once a process: the checkout's HEAD of now
     result = run("train", "--task", "ede/Point-v0", "--algo", algo, "--seed", "0")
     assert result.exit_code == 0, result.output
     out = in_workdir / "data/runs/ede/Point-v0" / algo / "seed0"
