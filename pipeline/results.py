@@ -38,7 +38,9 @@ report draws them) and prints, per task, in Markdown:
   its best earlier bin by more than half of what it had gained by then);
 
 and, per family, over the paper's tasks (where they span two families and there are tasks beyond
-them) and over every task with runs of both algorithms, the report's aggregates across tasks (rliable: the probability that
+them), over the transfer tasks (the families' targets, where there are two or more: the
+transfer claim's own aggregate) and over every task with runs of both algorithms, the report's
+aggregates across tasks (rliable: the probability that
 EDE-TD3 beats TD3 and each one's interquartile mean of normalised scores, over final returns and
 areas, with stratified bootstrap intervals), drawing the performance profile of all of them to
 ``<figures>/performance-profile.png``. A task with a seed of its ``source.json`` not yet
@@ -535,6 +537,11 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
     paper = [family for family in curves_of if family in params.families]
     if len(curves_of) > len(paper) > 1:  # and the tasks beyond, in "every task"
         sets.append(("the paper's tasks", {k: c for f in paper for k, c in curves_of[f].items()}))
+    # The transfer claim's own aggregate: the tasks an embedding learned elsewhere acts in.
+    targets = {t for f in paper for t in params.families[f].targets}
+    transfer = {k: c for f in paper for k, c in curves_of[f].items() if k[0] in targets}
+    if len({task for task, _ in transfer}) > 1:
+        sets.append(("the transfer tasks", transfer))
     for title, curves in sets + [("every task", everything)] * (len(curves_of) > 1):
         tasks, waiting = complete_tasks(curves, both, planned)
         aggregates = across_tasks_section(curves, {t: lows[t] for t in tasks}, report.confidence,

@@ -362,3 +362,31 @@ def test_a_task_folder_whose_runs_name_another_task_is_refused_in_one_line(tmp_p
         f"Error: {runs / 'ReacherTurn-v0'}: its runs are of ede/ReacherTurn-v0; keep them in "
         f"{runs / 'ede' / 'ReacherTurn-v0'}/\n")
     assert not (tmp_path / "figures").exists()
+
+
+def test_the_transfer_tasks_have_an_aggregate_of_their_own(tmp_path: Path) -> None:
+    """The transfer claim's aggregate: the families' target tasks alone (not their sources)."""
+    runs = tmp_path / "runs"
+    for task, start in (("ede/ReacherVertical-v0", -60), (TASK, -200), ("ede/ReacherPush-v0", -220)):
+        for seed in range(2):
+            write_run(runs, "td3", seed, np.linspace(start, start / 2 - seed, 21), task=task)
+            write_run(runs, "ede-td3", seed, np.linspace(start, start / 4 - seed, 21), task=task)
+        write_source(runs, task, seeds=[0, 1])
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 0, done.stderr
+    transfer = done.stdout.split("### Across tasks: the transfer tasks")[1].split("###")[0]
+    assert "2 tasks (ede/ReacherTurn-v0, ede/ReacherPush-v0);" in transfer
+    assert "ede/ReacherVertical-v0" not in transfer
+
+
+def test_one_transfer_task_has_no_transfer_aggregate(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    for task in ("ede/ReacherVertical-v0", TASK):
+        for seed in range(2):
+            for algo in ("td3", "ede-td3"):
+                write_run(runs, algo, seed, np.linspace(-200, -100 - seed, 21), task=task)
+        write_source(runs, task, seeds=[0, 1])
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 0, done.stderr
+    assert "### Across tasks: the reacher family" in done.stdout
+    assert "the transfer tasks" not in done.stdout
