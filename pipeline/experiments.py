@@ -345,6 +345,9 @@ def export(name: str, to: Path) -> None:
     for task in params.runs.tasks:
         runs = [(algo, seed, folder, made) for (t, algo, seed), (folder, made) in finished.items()
                 if t == task]
+        if not runs:  # none of this task's runs has finished yet
+            click.echo(f"{task}: no run finished yet; nothing exported", err=True)
+            continue
         for algo, seed, folder, _ in runs:
             target = layout.run(task, algo, seed, to)
             target.mkdir(parents=True, exist_ok=True)

@@ -154,3 +154,43 @@ def test_every_published_run_was_made_with_its_experiments_params(
             assert run["algo"] in params.runs.algos and run["seed"] in params.runs.seeds, record
             checked += 1
     assert checked >= 80  # the 80 runs published when this test was written, and any since
+
+
+def test_export_publishes_the_finished_runs_of_each_task_and_skips_a_task_with_none(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import torch
+
+    from ede.config import load_params
+    from ede.runs import RunSpec, write_curves, write_finished
+    from ede_pipeline import layout
+    from tests.support import REPO
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "experiments").mkdir()
+    (tmp_path / "experiments" / "two-tasks.yaml").write_text("# two tasks\n")
+    workspace = tmp_path / ".dvc" / "tmp" / "experiments" / "two-tasks"
+    workspace.mkdir(parents=True)
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params["runs"].update(tasks={"ede/ReacherVertical-v0": "reacher", "ede/ReacherTurn-v0": "reacher"},
+                          algos=["td3"], seeds=[0, 1])
+    params["report"]["thresholds"] = {"ede/ReacherVertical-v0": [-15, -10]}
+    (workspace / "params.yaml").write_text(yaml.safe_dump(params))
+    loaded = load_params(workspace / "params.yaml")
+    budget = loaded.runs.budgets["ede/ReacherVertical-v0"]
+    for seed in (0, 1):  # ReacherVertical's two runs finished; ReacherTurn's none
+        out = workspace / layout.run("ede/ReacherVertical-v0", "td3", seed)
+        out.mkdir(parents=True)
+        write_curves(out, [{"step": s, "episode": 0, "mean_return": -9.0, "std_return": 0.0,
+                            "wall_seconds": 0.0} for s in (0, budget)], [])
+        spec = RunSpec("ede/ReacherVertical-v0", "td3", seed, budget, loaded.td3, loaded.ede_td3)
+        write_finished(out, spec, {"final_return": -9.0}, torch.device("cpu"))
+    result = CliRunner().invoke(main, ["experiment", "export", "two-tasks", "--to", "published"])
+    assert result.exit_code == 0, result.output
+    assert "ede/ReacherTurn-v0: no run finished yet; nothing exported" in result.stderr
+    source = json.loads((tmp_path / "published/ede/ReacherVertical-v0/source.json").read_text())
+    assert source["experiment"] == "experiments/two-tasks.yaml" and source["seeds"] == [0, 1]
+    assert source["thresholds"] == [-15, -10]
+    assert sorted(p.name for p in (tmp_path / "published/ede/ReacherVertical-v0/td3").iterdir()) \
+        == ["seed0", "seed1"]
+    assert not (tmp_path / "published/ede/ReacherTurn-v0").exists()
