@@ -14,6 +14,7 @@ from typing import Any
 import click
 
 from ede.config import Params, ParamsError, overridden
+from ede.errors import first_line
 from ede_pipeline import (
     collect,
     experiments,
@@ -60,7 +61,7 @@ def set_params(params: Params, overrides: Path, name: str | None) -> None:
     try:
         _, changes = overridden(params.model_dump(mode="json"), overrides)
     except ParamsError as error:
-        raise BadInput(str(error).splitlines()[0]) from None
+        raise BadInput(first_line(error)) from None
     click.echo("--name")
     click.echo(name or experiment_name(overrides, datetime.now()))
     for section, values in changes.items():

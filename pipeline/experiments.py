@@ -28,6 +28,7 @@ what DVC holds.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import shutil
@@ -173,7 +174,7 @@ def experiment_params(name: str, base: Path = DEFAULT_PARAMS) -> dict[str, Any]:
     try:
         merged, _ = overridden(read_yaml(base), experiment_file(name))
     except ParamsError as error:
-        raise BadInput(str(error).splitlines()[0]) from None
+        raise BadInput(first_line(error)) from None
     used = set(merged["runs"]["tasks"].values())
     used |= {merged["report"].get(key) for key in ("effect_space_family", "exploration_family")}
     merged["families"] = {f: family for f, family in merged["families"].items() if f in used}
@@ -184,7 +185,7 @@ def experiment_params(name: str, base: Path = DEFAULT_PARAMS) -> dict[str, Any]:
 def _git(*args: str, cwd: Path | None = None) -> str:
     done = subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True)
     if done.returncode:
-        raise Failed(f"git {' '.join(args)}: {first_line(RuntimeError(done.stderr))}")
+        raise Failed(f"git {' '.join(args)}: {first_line(done.stderr)}")
     return done.stdout
 
 
@@ -370,7 +371,9 @@ def _finished_runs(workspace: Path, params: Params) -> tuple[dict, list[str]]:
     from ede.runs import RunRejected, RunSpec, read_run
 
     finished, problems = {}, []
-    for (task, algo, seed), out in _planned(params, workspace).items():
+    for task, algo, seed in itertools.product(params.runs.tasks, params.runs.algos,
+                                              params.runs.seeds):
+        out = workspace / layout.run(task, algo, seed)
         spec = RunSpec(task, algo, seed, params.runs.budgets[task], params.td3, params.ede_td3)
         expected = {k: v for k, v in spec.identity().items() if k != "embedding"}
         try:
@@ -385,10 +388,6 @@ def _finished_runs(workspace: Path, params: Params) -> tuple[dict, list[str]]:
             finished[(task, algo, seed)] = (out, run.made)
     return finished, problems
 
-
-def _planned(params: Params, root: Path) -> dict[tuple[str, str, int], Path]:
-    return {(task, algo, seed): root / layout.run(task, algo, seed)
-            for task in params.runs.tasks for algo in params.runs.algos for seed in params.runs.seeds}
 
 
 @experiment.command()
