@@ -16,7 +16,8 @@ into the workspace, ``dvc exp push`` shares it.
 
 ``experiment export NAME`` copies its finished runs' files into the published layout
 (``docs/results/runs/<task>/<algo>/seed<N>/``, with a ``source.json`` per task naming the
-experiment file and the commit), from which ``ede-pipeline results`` draws the results page.
+experiment file and the commit, and the held-out metrics of the embedding its EDE-TD3 runs used;
+an experiment adding seeds to a published task adds its part to that task's ``source.json``), from which ``ede-pipeline results`` draws the results page.
 
 ``experiment show`` prints DVC's experiments readably: ``dvc exp show`` puts every param, metric
 and dependency hash of an experiment on one line, far wider than a terminal; this prints, per
@@ -329,8 +330,12 @@ def export(name: str, to: Path) -> None:
 
     Each finished run's eval.csv, diagnostics.csv, run.json and metrics.json go to
     TO/<task>/<algo>/seed<N>/, checked first (`ede.runs.read_run`: the run the experiment's
-    params name, finished, its files whole); each task's source.json names the experiment file,
-    the commit its runs were made at, its seeds, and report.thresholds' returns for it.
+    params name, finished, its files whole), and the held-out metrics of the embedding its
+    EDE-TD3 runs used to TO/<task>/embedding/<checksum>/. Each task's source.json names the
+    experiment file, the commit its runs were made at, its seeds, and report.thresholds' returns
+    for it. Where the task's folder already holds seeds from other experiments (an experiment
+    adding seeds to a published task), source.json keeps their parts beside this one; seeds
+    already published by another experiment are refused.
     """
     experiment_file(name)
     workspace = WORKSPACES / name
@@ -343,26 +348,58 @@ def export(name: str, to: Path) -> None:
         raise BadInput(problems[0])
     if not finished:
         raise BadInput(f"experiment {name}: no run has finished yet")
+    exported = {}  # task: its runs and its source.json's parts, all checked before any is written
     for task in params.runs.tasks:
         runs = [(algo, seed, folder, made) for (t, algo, seed), (folder, made) in finished.items()
                 if t == task]
         if not runs:  # none of this task's runs has finished yet
             click.echo(f"{task}: no run finished yet; nothing exported", err=True)
             continue
+        commits = sorted({made["code"]["commit"] for *_, made in runs})
+        part = {"experiment": experiment_file(name).as_posix(),
+                "commit": commits[0] if len(commits) == 1 else commits,
+                "seeds": list(params.runs.seeds)}
+        if task in params.report.thresholds:
+            part["thresholds"] = params.report.thresholds[task]
+        exported[task] = runs, _merged_source(layout.task_runs(task, to), part)
+    for task, (runs, source) in exported.items():
         for algo, seed, folder, _ in runs:
             target = layout.run(task, algo, seed, to)
             target.mkdir(parents=True, exist_ok=True)
             for file in PUBLISHED:
                 if (folder / file).is_file():
                     shutil.copy2(folder / file, target / file)
-        commits = sorted({made["code"]["commit"] for *_, made in runs})
-        source = {"experiment": experiment_file(name).as_posix(),
-                  "commit": commits[0] if len(commits) == 1 else commits,
-                  "seeds": list(params.runs.seeds)}
-        if task in params.report.thresholds:
-            source["thresholds"] = params.report.thresholds[task]
+        embedding = workspace / layout.embedding(params.runs.tasks[task])
+        for checksum in {made["embedding"] for algo, *_, made in runs if algo == "ede-td3"}:
+            kept = layout.published_embedding(task, checksum, to)
+            kept.mkdir(parents=True, exist_ok=True)
+            for file in EMBEDDING_METRICS:
+                shutil.copy2(embedding / file, kept / file)
         write_json(layout.task_runs(task, to) / "source.json", source)
         click.echo(f"{task}: {len(runs)} runs to {layout.task_runs(task, to)}", err=True)
+
+
+EMBEDDING_METRICS = ("encoder_metrics.json", "decoder_metrics.json")  # as pretrain writes them
+
+
+def _merged_source(folder: Path, part: dict) -> dict | list[dict]:
+    """A task folder's source.json with ``part`` (one experiment's) in it: the part alone, or
+    beside the parts of other experiments already there, replacing an earlier export of the same
+    experiment file. A seed another part already names is refused (:class:`BadInput`)."""
+    from ede_pipeline.results import read_source
+
+    if not (folder / "source.json").is_file():
+        return part
+    checked = read_source(folder).parts
+    written = json.loads((folder / "source.json").read_text())
+    kept = [(json_part, read) for json_part, read in zip(
+        written if isinstance(written, list) else [written], checked)
+        if read.experiment != part["experiment"]]
+    for _, read in kept:
+        if twice := sorted(set(read.seeds) & set(part["seeds"])):
+            raise BadInput(f"{folder / 'source.json'}: seeds {twice} are already published by "
+                           f"{read.maker()}; an experiment adds seeds the task has not")
+    return [*(json_part for json_part, _ in kept), part] if kept else part
 
 
 def _finished_runs(workspace: Path, params: Params) -> tuple[dict, list[str]]:

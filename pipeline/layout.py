@@ -26,6 +26,7 @@ __all__ = [
     "embedding",
     "encoder",
     "own_family",
+    "published_embedding",
     "rollouts",
     "run",
     "task_code",
@@ -96,3 +97,10 @@ def task_runs(task: str, runs: Path = RUNS) -> Path:
 def run(task: str, algo: str, seed: int, runs: Path = RUNS) -> Path:
     """One training run's directory in the folder of all runs."""
     return task_runs(task, runs) / algo / f"seed{seed}"
+
+
+def published_embedding(task: str, checksum: str, runs: Path = RESULTS_RUNS) -> Path:
+    """Published, the held-out metrics of an embedding a task's EDE-TD3 runs used, named by the
+    first 12 characters of its decoder's checksum (the ``embedding`` their ``run.json`` names),
+    so that each run finds its own where a task's seeds came from several experiments."""
+    return task_runs(task, runs) / "embedding" / checksum[:12]

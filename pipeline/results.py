@@ -8,7 +8,8 @@ files committed beside it.
 ``eval.csv``, ``run.json`` and ``metrics.json`` (as ``ede-pipeline train`` writes them), laid out as
 the pipeline's runs (:func:`ede_pipeline.layout.run`: the task by its full id, so
 ``ede/ReacherTurn-v0``'s runs are in ``ede/ReacherTurn-v0/``), and in each task's folder a
-``source.json`` naming what made its runs: the commit (``"commit"``, a string, or a list where its
+``source.json`` naming what made its runs (one JSON object, or a list of them, one per experiment,
+where its seeds came from several): the commit (``"commit"``, a string, or a list where its
 runs were made at several) and the experiment file (``"experiment": "experiments/NAME.yaml"``,
 as ``ede-pipeline experiment export`` writes it) or, in files written before experiments were
 files, the command (``"command"``); and, optionally, the returns whose first crossing to report
@@ -22,7 +23,9 @@ seeds with its bootstrap band, evaluations averaged in ``--bins`` bins of a run'
 report draws them) and prints, per task, in Markdown:
 
 - the budget a run, as a fraction of the paper's (``runs.budgets``; none beyond the paper), the
-  seeds, the experiment file where ``source.json`` names one and the commits (7 characters);
+  seeds, the experiment file where ``source.json`` names one and the commits (7 characters), per
+  part where there are several, and the held-out figures of each embedding the EDE-TD3 runs used
+  (``<task>/embedding/<checksum>/``, :func:`ede_pipeline.layout.published_embedding`);
 - the CPUs that made its runs (each one's model and instruction sets, as its ``run.json``'s
   ``machine`` records them, and how many runs it made; "CPU unrecorded" for runs made before);
 - two reference returns: uniform random actions' (the normalised scores' 0, as the report's) and
@@ -50,7 +53,7 @@ aggregates each task's lowest seeds, as many as the fewest, and the rest are nam
 
 ``--ablations`` holds the fidelity ablations' runs the same way, one folder per variant
 (``<variant>/<task>/<algorithm>/seed<N>/``, ``source.json`` per task, and where kept the variant's
-embedding metrics in ``<task>/embedding/``): each is printed, with its experiment file or command,
+embedding metrics in ``<task>/embedding/<checksum>/``): each is printed, with its experiment file or command,
 against the default's runs of the same task, algorithm and seeds in ``--runs``, with the bins where their intervals are disjoint; a
 variant run with both algorithms is drawn as a family is, to ``<figures>/ablation-<variant>.png``.
 
@@ -99,8 +102,8 @@ ZERO_EPISODES = 100  # episodes behind a task's zero-action return (its standard
 
 
 @dataclass(frozen=True)
-class Source:
-    """A task folder's ``source.json``: what made its runs, and what of them to report."""
+class Part:
+    """One entry of a task folder's ``source.json``: what made some of its runs."""
 
     commits: list[str]  # one, or several where its runs were made at several commits
     experiment: str | None  # the experiment file (``ede-pipeline experiment export`` names it)
@@ -110,16 +113,44 @@ class Source:
 
     def made_at(self) -> str:
         """``commit 0123456``; ``experiment `experiments/NAME.yaml`, commits 0123456, 89abcde``."""
-        commits = f"commit{'s' * (len(self.commits) > 1)} {', '.join(self.short_commits())}"
+        commits = f"commit{'s' * (len(self.commits) > 1)} {', '.join(c[:7] for c in self.commits)}"
         return commits if self.experiment is None else f"experiment `{self.experiment}`, {commits}"
-
-    def short_commits(self) -> list[str]:
-        return [commit[:7] for commit in self.commits]
 
     def maker(self) -> str:
         """``experiment `experiments/NAME.yaml``` or ``command `…```."""
         return (f"experiment `{self.experiment}`" if self.experiment is not None
                 else f"command `{self.command}`")
+
+
+@dataclass(frozen=True)
+class Source:
+    """A task folder's ``source.json``: what made its runs — one part, or one per set of its
+    seeds where they came from several experiments — and what of them to report."""
+
+    parts: list[Part]
+
+    @property
+    def seeds(self) -> list[int]:
+        return sorted({seed for part in self.parts for seed in part.seeds})
+
+    @property
+    def thresholds(self) -> list[float]:
+        return list(dict.fromkeys(t for part in self.parts for t in part.thresholds))
+
+    def short_commits(self) -> list[str]:
+        return list(dict.fromkeys(c[:7] for part in self.parts for c in part.commits))
+
+    def made_at(self) -> str:
+        """One part's :meth:`Part.made_at`; of several, each after its seeds."""
+        return self._each(Part.made_at)
+
+    def maker(self) -> str:
+        return self._each(Part.maker)
+
+    def _each(self, describe) -> str:
+        if len(self.parts) == 1:
+            return describe(self.parts[0])
+        return "; ".join(f"{seeds_named(part.seeds)} by {describe(part)}" for part in self.parts)
 
 
 @dataclass
@@ -131,7 +162,7 @@ class TaskRuns:
     curves: dict[str, list[Curve]]  # per algorithm, by seed
     budget: int  # the steps every run of the folder ran
     source: Source
-    embedding: str | None  # the held-out figures of the embedding EDE-TD3 used, where kept
+    embedding: str | None  # the held-out figures of the embeddings EDE-TD3 used, where kept
     cpus: dict[str | None, int]  # runs per CPU (with its instruction sets); None: unrecorded
 
 
@@ -142,6 +173,7 @@ def read_folder(root: Path, task: str) -> TaskRuns | None:
     curves: dict[str, list[Curve]] = {}
     budgets: set[int] = set()
     cpus: Counter[str | None] = Counter()
+    embeddings: dict[str, list[int]] = {}  # EDE-TD3's seeds by the embedding each used
     for algo in ALGO_STYLE:
         seeds = sorted(int(p.name[4:]) for p in layout.run(task, algo, 0, root).parent.glob("seed*"))
         for seed in seeds:
@@ -154,12 +186,14 @@ def read_folder(root: Path, task: str) -> TaskRuns | None:
                 curves.setdefault(algo, []).append(record.curve)
                 budgets.add(int(record.curve.steps[-1]))  # checked: the run's budget
                 cpus[cpu(run / "run.json", record.made)] += 1
+                if algo == "ede-td3":
+                    embeddings.setdefault(str(record.made.get("embedding")), []).append(seed)
     if len(budgets) > 1:
         raise BadInput(f"{folder}: runs of different budgets {sorted(budgets)}; keep one per task")
     if not curves:
         return None
     return TaskRuns(task, folder, curves, budgets.pop(), read_source(folder),
-                    embedding_figures(folder), dict(cpus))
+                    embedding_figures(root, task, embeddings), dict(cpus))
 
 
 def cpu(path: Path, made: dict) -> str | None:
@@ -186,14 +220,29 @@ def cpu_line(cpus: dict[str | None, int]) -> str:
 
 
 def read_source(folder: Path) -> Source:
-    """A task folder's ``source.json``: the commit (or commits) and the experiment file (or, in
-    files written before experiment files, the command) that made its runs, the returns whose
-    first crossing to report, and the seeds it plans."""
+    """A task folder's ``source.json``: one object, or a list of them where its seeds came from
+    several experiments, each naming the commit (or commits) and the experiment file (or, in files
+    written before experiment files, the command) that made its runs, the returns whose first
+    crossing to report, and the seeds it plans (no seed in two parts)."""
     path = folder / "source.json"
     try:
         made = json.loads(path.read_text())
     except (OSError, ValueError):
-        made = None
+        raise BadInput(f"{path}: expected JSON naming the 'commit' that made the runs beside it "
+                       "(a string, or a list of them)") from None
+    parts = [read_part(path, part) for part in (made if isinstance(made, list) else [made])]
+    if not parts:
+        raise BadInput(f"{path}: an empty list; expected what made the runs beside it")
+    seeds = [seed for part in parts for seed in part.seeds]
+    if len(seeds) != len(set(seeds)):
+        twice = sorted({s for s in seeds if seeds.count(s) > 1})
+        raise BadInput(f"{path}: seeds {twice} are named by two of its parts; expected each seed "
+                       "made by one")
+    return Source(parts)
+
+
+def read_part(path: Path, made: object) -> Part:
+    """One part of ``source.json`` (:func:`read_source`)."""
     commits = made.get("commit") if isinstance(made, dict) else None
     commits = [commits] if isinstance(commits, str) else commits
     if not isinstance(made, dict) or not isinstance(commits, list) or not commits or not all(
@@ -213,26 +262,34 @@ def read_source(folder: Path) -> Source:
     if not isinstance(seeds, list) or not all(
             isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds):
         raise BadInput(f"{path}: 'seeds' is {seeds!r}; expected a list of seeds (whole numbers >= 0)")
-    return Source(commits, experiment, command, thresholds, seeds)
+    return Part(commits, experiment, command, thresholds, seeds)
 
 
-def embedding_figures(folder: Path) -> str | None:
-    """The held-out figures of the embedding a task's EDE-TD3 runs used, where its metrics are kept
-    beside them (``<task>/embedding/{encoder,decoder}_metrics.json``, as ``pretrain`` writes them)."""
-    encoder, decoder = (folder / "embedding" / f"{part}_metrics.json" for part in ("encoder", "decoder"))
-    if not encoder.is_file():
-        return None
-    try:
-        e = json.loads(encoder.read_text())
-        parts = [f"prediction ratio {e['prediction_ratio']:.3f}", f"KL {e['kl']:.1f} nats"]
-        if decoder.is_file():
-            d = json.loads(decoder.read_text())
-            parts += [f"inverse error {d['inverse_error']:.2g}",
-                      f"{d['at_bounds']:.1%} of decoded actions at a bound"]
-    except (OSError, ValueError, KeyError, TypeError):
-        raise BadInput(f"{folder / 'embedding'}: expected pretrain's metrics, prediction_ratio and "
-                      "kl of the encoder, inverse_error and at_bounds of the decoder") from None
-    return ", ".join(parts)
+def embedding_figures(root: Path, task: str, embeddings: dict[str, list[int]]) -> str | None:
+    """The held-out figures of the embeddings a task's EDE-TD3 runs used (``embeddings``: their
+    seeds by the decoder's checksum each run.json names), where their metrics are kept beside
+    them (:func:`ede_pipeline.layout.published_embedding`: ``{encoder,decoder}_metrics.json``, as
+    ``pretrain`` writes them); of several, each after its seeds."""
+    figures = {}
+    for checksum, seeds in embeddings.items():
+        kept = layout.published_embedding(task, checksum, root)
+        encoder, decoder = (kept / f"{part}_metrics.json" for part in ("encoder", "decoder"))
+        if not encoder.is_file():
+            continue
+        try:
+            e = json.loads(encoder.read_text())
+            parts = [f"prediction ratio {e['prediction_ratio']:.3f}", f"KL {e['kl']:.1f} nats"]
+            if decoder.is_file():
+                d = json.loads(decoder.read_text())
+                parts += [f"inverse error {d['inverse_error']:.2g}",
+                          f"{d['at_bounds']:.1%} of decoded actions at a bound"]
+        except (OSError, ValueError, KeyError, TypeError):
+            raise BadInput(f"{kept}: expected pretrain's metrics, prediction_ratio and kl of the "
+                           "encoder, inverse_error and at_bounds of the decoder") from None
+        figures[seeds_named(sorted(seeds))] = ", ".join(parts)
+    if len(figures) > 1:
+        return "; ".join(f"{seeds}: {text}" for seeds, text in figures.items())
+    return next(iter(figures.values()), None)
 
 
 def run_task(folder: Path) -> str | None:
@@ -278,11 +335,16 @@ def read_runs(runs: Path, params) -> dict[str, list[TaskRuns]]:
     return families
 
 
-def seed_list(curves: list[Curve]) -> str:
-    seeds = [c.seed for c in curves]
+def seed_list(seeds: list[int]) -> str:
+    """``0–3`` for three or more consecutive seeds, else ``4, 6``."""
     if seeds == list(range(seeds[0], seeds[-1] + 1)) and len(seeds) > 2:
         return f"{seeds[0]}–{seeds[-1]}"
     return ", ".join(map(str, seeds))
+
+
+def seeds_named(seeds: list[int]) -> str:
+    """``seed 4``, ``seeds 0–3``."""
+    return f"seed{'s' * (len(seeds) > 1)} {seed_list(seeds)}"
 
 
 def spans(steps: np.ndarray, width: float) -> str:
@@ -354,7 +416,8 @@ def task_section(found: TaskRuns, family: str, source: str, paper_budget: int | 
         role = "the family's source task" if found.task == source else "transferred"
         origin = (f"{family} family, embedding learned on {source} ({role}). {budget:,} steps a "
                   f"run, {budget / paper_budget:.1%} of the paper's {paper_budget:,}")
-    arms = {ALGO_STYLE[a][0]: (a, runs, seed_list(runs)) for a, runs in found.curves.items()}
+    arms = {ALGO_STYLE[a][0]: (a, runs, seed_list([c.seed for c in runs]))
+            for a, runs in found.curves.items()}
     table, bands = summary_table(found.task, "algorithm", "seeds", arms, found.source.thresholds,
                                  width, params)
     lines = [f"### {found.task}", "",
@@ -458,7 +521,7 @@ def ablation_sections(variant: str, ours: TaskRuns, theirs: TaskRuns, bins: int,
         table, bands = summary_table(ours.task, "runs", "commit; embedding (held out)", arms,
                                      ours.source.thresholds, width, params)
         lines = [f"### {variant}: {ours.task}, {ALGO_STYLE[algo][0]}", "",
-                 f"{ours.budget:,} steps a run, seeds {seed_list(runs)} of each; the variant's "
+                 f"{ours.budget:,} steps a run, seeds {seed_list([c.seed for c in runs])} of each; the variant's "
                  f"{ours.source.maker()}; curves binned per {width:,.0f} steps.",
                  "", *table, "",
                  *disjoint_bins(arms, bands, (variant, "default"), width, params.report.confidence,

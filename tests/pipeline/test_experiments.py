@@ -6,6 +6,8 @@ import json
 import subprocess
 from pathlib import Path
 
+from typing import Any
+
 import pytest
 import yaml
 from click.testing import CliRunner
@@ -131,34 +133,54 @@ def test_every_published_run_was_made_with_its_experiments_params(
     monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A task folder of docs/results/ whose source.json names an experiment file holds runs of
-    exactly that file's params (its runs' run.json identities), so the file reproduces them."""
+    exactly that file's params (its runs' run.json identities), so the file reproduces them;
+    where its seeds came from several experiments, each part's seeds of that part's file."""
     from ede.config import Params
-    from ede.runs import RunSpec, identity_difference
     from ede_pipeline.experiments import experiment_params
     from tests.support import REPO
 
     monkeypatch.chdir(REPO)
     checked = 0
     for source in sorted((REPO / "docs" / "results").rglob("source.json")):
-        made = json.loads(source.read_text())
-        if "experiment" not in made:
-            continue
-        params = Params.model_validate(experiment_params(Path(made["experiment"]).stem))
-        assert made["seeds"] == params.runs.seeds, source
-        for record in sorted(source.parent.glob("*/seed*/run.json")):
-            run = json.loads(record.read_text())
+        parts = json.loads(source.read_text())
+        parts = parts if isinstance(parts, list) else [parts]
+        named = {seed for made in parts for seed in made["seeds"]}
+        ran = {json.loads(r.read_text())["seed"] for r in source.parent.glob("*/seed*/run.json")}
+        assert ran <= named, (source, sorted(ran - named))  # every run is some part's
+        for made in parts:
+            if "experiment" not in made:
+                continue
+            params = Params.model_validate(experiment_params(Path(made["experiment"]).stem))
+            assert made["seeds"] == params.runs.seeds, source
+            checked += _check_runs(source.parent, params, made["seeds"])
+    assert checked >= 80  # the 80 runs published when this test was written, and any since
+
+
+def _check_runs(folder: Path, params, seeds: list[int]) -> int:
+    """Each run of ``seeds`` in ``folder`` has the identity ``params`` give it; how many."""
+    from ede.runs import RunSpec, identity_difference
+
+    checked = 0
+    for record in sorted(folder.glob("*/seed*/run.json")):
+        run = json.loads(record.read_text())
+        if run["seed"] in seeds:
             spec = RunSpec(run["task"], run["algo"], run["seed"], params.runs.budgets[run["task"]],
                            params.td3, params.ede_td3)
             expected = {k: v for k, v in spec.identity().items() if k != "embedding"}
             assert identity_difference(run, expected) is None, (record, identity_difference(run, expected))
-            assert run["algo"] in params.runs.algos and run["seed"] in params.runs.seeds, record
+            assert run["algo"] in params.runs.algos, record
             checked += 1
-    assert checked >= 80  # the 80 runs published when this test was written, and any since
+    return checked
 
 
-def test_export_publishes_the_finished_runs_of_each_task_and_skips_a_task_with_none(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def finished_workspace(root: Path, name: str, seeds: list[int], algos: list[str],
+                       tasks: tuple[str, ...] = ("ede/ReacherVertical-v0",),
+                       finished: tuple[str, ...] = ("ede/ReacherVertical-v0",),
+                       embedding: str = "e0" * 32) -> Path:
+    """``experiments/NAME.yaml`` and its working copy as ``experiment run`` leaves it: the runs
+    of ``seeds`` finished on the ``finished`` tasks (none yet on the rest of ``tasks``), their
+    EDE-TD3 runs made with the embedding of checksum ``embedding``, whose metrics are the reacher
+    family's."""
     import torch
 
     from ede.config import load_params
@@ -166,26 +188,42 @@ def test_export_publishes_the_finished_runs_of_each_task_and_skips_a_task_with_n
     from ede_pipeline import layout
     from tests.support import REPO
 
-    monkeypatch.chdir(tmp_path)
-    (tmp_path / "experiments").mkdir()
-    (tmp_path / "experiments" / "two-tasks.yaml").write_text("# two tasks\n")
-    workspace = tmp_path / ".dvc" / "tmp" / "experiments" / "two-tasks"
+    (root / "experiments").mkdir(exist_ok=True)
+    (root / "experiments" / f"{name}.yaml").write_text(f"# {name}\n")
+    workspace = root / ".dvc" / "tmp" / "experiments" / name
     workspace.mkdir(parents=True)
     params = yaml.safe_load((REPO / "params.yaml").read_text())
-    params["runs"].update(tasks={"ede/ReacherVertical-v0": "reacher", "ede/ReacherTurn-v0": "reacher"},
-                          algos=["td3"], seeds=[0, 1])
+    params["runs"].update(tasks={task: "reacher" for task in tasks}, algos=algos, seeds=seeds)
     params["report"]["thresholds"] = {"ede/ReacherVertical-v0": [-15, -10]}
     (workspace / "params.yaml").write_text(yaml.safe_dump(params))
     loaded = load_params(workspace / "params.yaml")
-    budget = loaded.runs.budgets["ede/ReacherVertical-v0"]
-    for seed in (0, 1):  # ReacherVertical's two runs finished; ReacherTurn's none
-        out = workspace / layout.run("ede/ReacherVertical-v0", "td3", seed)
+    metrics = workspace / layout.embedding("reacher")
+    metrics.mkdir(parents=True)
+    for part in ("encoder", "decoder"):
+        (metrics / f"{part}_metrics.json").write_text(json.dumps({"of": [part, embedding]}))
+    for task, algo, seed in ((t, a, s) for t in finished for a in algos for s in seeds):
+        out = workspace / layout.run(task, algo, seed)
         out.mkdir(parents=True)
+        budget = loaded.runs.budgets[task]
         write_curves(out, [{"step": s, "episode": 0, "mean_return": -9.0, "std_return": 0.0,
                             "wall_seconds": 0.0} for s in (0, budget)], [])
-        spec = RunSpec("ede/ReacherVertical-v0", "td3", seed, budget, loaded.td3, loaded.ede_td3)
+        spec = RunSpec(task, algo, seed, budget, loaded.td3, loaded.ede_td3,
+                       embedding if algo == "ede-td3" else "")
         write_finished(out, spec, {"final_return": -9.0}, torch.device("cpu"))
-    result = CliRunner().invoke(main, ["experiment", "export", "two-tasks", "--to", "published"])
+    return workspace
+
+
+def export(name: str) -> Any:
+    return CliRunner().invoke(main, ["experiment", "export", name, "--to", "published"])
+
+
+def test_export_publishes_the_finished_runs_of_each_task_and_skips_a_task_with_none(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    finished_workspace(tmp_path, "two-tasks", [0, 1], ["td3"],
+                       tasks=("ede/ReacherVertical-v0", "ede/ReacherTurn-v0"))
+    result = export("two-tasks")
     assert result.exit_code == 0, result.output
     assert "ede/ReacherTurn-v0: no run finished yet; nothing exported" in result.stderr
     source = json.loads((tmp_path / "published/ede/ReacherVertical-v0/source.json").read_text())
@@ -193,4 +231,41 @@ def test_export_publishes_the_finished_runs_of_each_task_and_skips_a_task_with_n
     assert source["thresholds"] == [-15, -10]
     assert sorted(p.name for p in (tmp_path / "published/ede/ReacherVertical-v0/td3").iterdir()) \
         == ["seed0", "seed1"]
+    assert not (tmp_path / "published/ede/ReacherVertical-v0/embedding").exists()  # no EDE-TD3
     assert not (tmp_path / "published/ede/ReacherTurn-v0").exists()
+
+
+def test_an_experiment_adding_seeds_exports_beside_the_published_ones(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Seeds 0–1 from one experiment, 2–3 from another with its own embedding: one task folder,
+    its source.json a part per experiment, each embedding's metrics under its checksum; the
+    second exported again replaces its own part; an experiment of seeds already published is
+    refused with one line, and nothing is written."""
+    from ede_pipeline import layout
+    from ede_pipeline.results import read_source
+
+    monkeypatch.chdir(tmp_path)
+    task, first, second = "ede/ReacherVertical-v0", "a0" * 32, "b1" * 32
+    finished_workspace(tmp_path, "first", [0, 1], ["td3", "ede-td3"], embedding=first)
+    finished_workspace(tmp_path, "more", [2, 3], ["td3", "ede-td3"], embedding=second)
+    finished_workspace(tmp_path, "again", [1, 2], ["td3", "ede-td3"])
+    for name in ("first", "more", "more"):
+        result = export(name)
+        assert result.exit_code == 0, result.output
+    folder = layout.task_runs(task, Path("published"))
+    parts = json.loads((folder / "source.json").read_text())
+    assert [(p["experiment"], p["seeds"]) for p in parts] == [
+        ("experiments/first.yaml", [0, 1]), ("experiments/more.yaml", [2, 3])]
+    assert read_source(folder).seeds == [0, 1, 2, 3]
+    assert sorted(p.name for p in (folder / "ede-td3").iterdir()) == [f"seed{s}" for s in range(4)]
+    for checksum in (first, second):
+        kept = layout.published_embedding(task, checksum, Path("published"))
+        assert json.loads((kept / "decoder_metrics.json").read_text()) == {"of": ["decoder", checksum]}
+    before = {p: p.read_bytes() for p in Path("published").rglob("*") if p.is_file()}
+    result = export("again")
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert result.stderr.strip().endswith("source.json: seeds [1] are already published by "
+                                          "experiment `experiments/first.yaml`; an experiment "
+                                          "adds seeds the task has not")
+    assert {p: p.read_bytes() for p in Path("published").rglob("*") if p.is_file()} == before

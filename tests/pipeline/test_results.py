@@ -22,8 +22,11 @@ BUDGET = 20_000
 SOURCE = {"commit": "0123456789ab", "command": "experiment.py --seeds 0-3"}
 
 
+EMBEDDING = "5e" * 32  # the decoder checksum an EDE-TD3 run's run.json names, unless told
+
+
 def write_run(runs: Path, algo: str, seed: int, returns: np.ndarray, budget: int = BUDGET,
-              task: str = TASK, machine: dict | None = None) -> None:
+              task: str = TASK, machine: dict | None = None, embedding: str = EMBEDDING) -> None:
     """A finished run in the pipeline's layout (``runs/<task id>/<algo>/seed<N>/``), and its task's
     ``source.json`` where it has none yet."""
     folder = layout.run(task, algo, seed, runs)
@@ -34,7 +37,8 @@ def write_run(runs: Path, algo: str, seed: int, returns: np.ndarray, budget: int
     rows = [f"{int(s)},{i},{r},1.0,{i}" for i, (s, r) in enumerate(zip(steps, returns))]
     (folder / "eval.csv").write_text("step,episode,mean_return,std_return,wall_seconds\n"
                                      + "\n".join(rows) + "\n")
-    made = {"task": task, "algo": algo, "seed": seed, "budget": budget}
+    made = {"task": task, "algo": algo, "seed": seed, "budget": budget,
+            "embedding": embedding if algo == "ede-td3" else ""}
     if machine is not None:  # as run.json records it since 2026-12; the committed runs have none
         made["machine"] = machine
     (folder / "run.json").write_text(json.dumps(made))
@@ -210,8 +214,8 @@ def test_an_ablation_is_set_against_the_defaults_runs_of_the_same_seeds(tmp_path
         write_run(ablations / "fast", "ede-td3", seed, -200 + 150 * np.sqrt(x) + seed)
     write_source(ablations / "fast", commit="fedcba987654", command="experiment.py --variant fast:x=1",
                  thresholds=[-150])
-    embedding = layout.task_runs(TASK, ablations / "fast") / "embedding"
-    embedding.mkdir()
+    embedding = layout.published_embedding(TASK, EMBEDDING, ablations / "fast")
+    embedding.mkdir(parents=True)
     (embedding / "encoder_metrics.json").write_text(json.dumps({"prediction_ratio": 0.7021, "kl": 7.94}))
     for algo in ("td3", "ede-td3"):  # a variant of both algorithms, drawn as a family is
         write_run(ablations / "both", algo, 0, -200 + 20 * x)
@@ -254,6 +258,37 @@ def test_a_source_written_by_experiment_export_names_its_file_and_commits(tmp_pa
     assert "seeds 0 of each; the variant's experiment `experiments/fast.yaml`; curves" in section
     rows = {line.split(" | ")[0]: line.split(" | ") for line in section.splitlines() if line.startswith("| ")}
     assert rows["| default"][1] == "0123456, fedcba9; —" and rows["| fast"][1] == "fedcba9; —"
+
+
+def test_a_task_whose_seeds_came_from_two_experiments_names_each_and_its_embedding(
+        tmp_path: Path) -> None:
+    """Seeds added by a second experiment (``experiment export`` merges its part into the task's
+    source.json): the task names which seeds each part made, and the held-out figures of each
+    embedding its EDE-TD3 seeds used, found by the checksum their run.json names."""
+    runs = tmp_path / "runs"
+    other = "a1" * 32
+    for seed in range(4):
+        write_run(runs, "td3", seed, np.linspace(-200, -100, 21))
+        write_run(runs, "ede-td3", seed, np.linspace(-200, -90, 21),
+                  embedding=EMBEDDING if seed < 2 else other)
+    parts = [{"experiment": "experiments/turn.yaml", "commit": "0123456789ab", "seeds": [0, 1],
+              "thresholds": [-150]},
+             {"command": "experiment.py --seeds 2-3", "commit": "fedcba987654", "seeds": [2, 3],
+              "thresholds": [-120, -150]}]
+    (layout.task_runs(TASK, runs) / "source.json").write_text(json.dumps(parts))
+    for checksum, ratio in ((EMBEDDING, 0.125), (other, 0.25)):
+        kept = layout.published_embedding(TASK, checksum, runs)
+        kept.mkdir(parents=True)
+        (kept / "encoder_metrics.json").write_text(json.dumps({"prediction_ratio": ratio, "kl": 8.0}))
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 0, done.stderr
+    table = task_table(done.stdout, TASK)
+    assert ("seeds 0, 1 by experiment `experiments/turn.yaml`, commit 0123456; seeds 2, 3 by "
+            "commit fedcba9; curves binned") in table
+    assert ("Its embedding, held out: seeds 0, 1: prediction ratio 0.125, KL 8.0 nats; seeds 2, 3: "
+            "prediction ratio 0.250, KL 8.0 nats.") in table
+    header = next(line for line in table.splitlines() if line.startswith("| algorithm"))
+    assert header.count("reach -150 |") == 1 and "reach -120 |" in header  # each part's, once
 
 
 def test_each_task_names_the_cpus_that_made_its_runs(tmp_path: Path) -> None:
@@ -303,8 +338,9 @@ def bad_input_cases() -> dict[str, tuple]:
         return lambda runs: (layout.task_runs(TASK, runs) / "source.json").write_text(json.dumps(value))
 
     def embedding(runs: Path) -> None:
-        (layout.task_runs(TASK, runs) / "embedding").mkdir()
-        (layout.task_runs(TASK, runs) / "embedding" / "encoder_metrics.json").write_text("{}")
+        kept = layout.published_embedding(TASK, EMBEDDING, runs)
+        kept.mkdir(parents=True)
+        (kept / "encoder_metrics.json").write_text("{}")
 
     def unknown_task(runs: Path) -> None:
         for algo in ("td3", "ede-td3"):
@@ -333,7 +369,11 @@ def bad_input_cases() -> dict[str, tuple]:
                        "source.json: 'thresholds' is '150'; expected a list of returns"),
         "seeds": (source({**SOURCE, "seeds": [0, -1]}),
                   "source.json: 'seeds' is [0, -1]; expected a list of seeds (whole numbers >= 0)"),
-        "embedding": (embedding, "embedding: expected pretrain's metrics"),
+        "seed twice": (source([{**SOURCE, "seeds": [0, 1]}, {**SOURCE, "seeds": [1, 2]}]),
+                       "source.json: seeds [1] are named by two of its parts; expected each seed "
+                       "made by one"),
+        "no parts": (source([]), "source.json: an empty list; expected what made the runs"),
+        "embedding": (embedding, f"embedding/{EMBEDDING[:12]}: expected pretrain's metrics"),
         "unknown task": (unknown_task, "HalfCheetah-v99: cannot be made to measure its reference returns"),
         "misplaced": (misplaced, "ReacherTurn-v1: its runs are of ede/ReacherTurn-v0; keep them in "),
     }
