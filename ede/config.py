@@ -155,13 +155,17 @@ class FamilyConfig(_Section):
 
 
 class CollectConfig(_Section):
-    """Stage 1: uniform random actions on a family's source task."""
+    """Stage 1: random actions on a family's source task (uniform, as the paper's)."""
 
     steps: PositiveInt = Field(100_000, description="environment steps to record")
     num_envs: PositiveInt | None = Field(
         None, description="parallel sub-environments; null means the number of cores"
     )
     seed: Seed = 0
+    saturated_episodes: float = Field(
+        0.0, ge=0, le=1, description="share of episodes whose actions are bang-bang (each "
+        "component at its low or high bound, equally likely) instead of uniform; 0 is the "
+        "paper's uniform random data (beyond the paper: docs/results.md, HalfCheetah-v5)")
 
 
 class EmbeddingConfig(_Section):

@@ -7,7 +7,7 @@ array       shape    meaning
 =========== ======== ==========================================================================
 ``obs``     (N, O)   the observation the action was chosen from
 ``state``   (N, S)   the state at that moment, which the embedding learns from (see below)
-``action``  (N, A)   the uniform random action taken
+``action``  (N, A)   the random action taken (uniform, or saturated: see :func:`collect`)
 ``reward``  (N,)     the reward it earned
 ``episode`` (N,)     global episode index; episodes are contiguous and in order
 ``t``       (N,)     step within the episode, 0, 1, ...
@@ -119,6 +119,7 @@ class _SubEnvJob:
     index: int  # which sub-environment of the whole collection
     seed: int
     quota: int  # steps this sub-environment records, rounded up to whole episodes
+    saturated: float = 0.0  # the chance that an episode's actions are saturated (:func:`collect`)
 
 
 def _quotas(steps: int, num_envs: int) -> list[int]:
@@ -127,25 +128,40 @@ def _quotas(steps: int, num_envs: int) -> list[int]:
 
 
 class _ActionStream:
-    """Uniform random actions of one sub-environment, drawn in blocks.
+    """Random actions of one sub-environment, drawn in blocks.
 
     A numpy ``Generator`` fills ``uniform(size=(n, A))`` from the same sequence of draws as ``n``
-    calls of size ``A``, so the blocks change the speed, not the actions.
+    calls of size ``A``, so the blocks change the speed, not the actions. In a saturated episode
+    (:meth:`new_episode`) each draw is snapped to the nearer bound of its component: a corner of
+    the box, each component at its low or high bound with equal chance. Which episodes are
+    saturated is drawn from a generator of its own, so with ``saturated`` 0 the actions are those
+    of uniform draws alone, draw for draw.
     """
 
     BLOCK = 256
 
-    def __init__(self, rng: np.random.Generator, low: np.ndarray, high: np.ndarray, dtype: Any):
+    def __init__(self, rng: np.random.Generator, low: np.ndarray, high: np.ndarray, dtype: Any,
+                 saturated: float = 0.0, episodes: np.random.Generator | None = None):
         self._rng, self._low, self._high, self._dtype = rng, low, high, dtype
         self._block = np.empty((0, low.size), dtype=dtype)
         self._next = 0
+        self._saturated, self._episodes, self._corners = saturated, episodes, False
+
+    def new_episode(self) -> None:
+        """The next action starts an episode: draw whether its actions are saturated."""
+        if self._saturated > 0:
+            self._corners = bool(self._episodes.random() < self._saturated)
 
     def __call__(self) -> np.ndarray:
         if self._next == len(self._block):
             draws = self._rng.uniform(self._low, self._high, size=(self.BLOCK, self._low.size))
             self._block, self._next = draws.astype(self._dtype), 0
         self._next += 1
-        return self._block[self._next - 1]
+        action = self._block[self._next - 1]
+        if self._corners:
+            middle = (self._low + self._high) / 2
+            action = np.where(action < middle, self._low, self._high).astype(self._dtype)
+        return action
 
 
 class _NoInfo(gymnasium.Wrapper):
@@ -182,9 +198,12 @@ def _run_sub_envs(
     assert isinstance(space, gymnasium.spaces.Box)
     low, high = space.low.astype(np.float64), space.high.astype(np.float64)
     streams = [
-        _ActionStream(np.random.default_rng([job.seed, job.index, 1]), low, high, space.dtype)
+        _ActionStream(np.random.default_rng([job.seed, job.index, 1]), low, high, space.dtype,
+                      job.saturated, np.random.default_rng([job.seed, job.index, 2]))
         for job in jobs
     ]
+    for stream in streams:
+        stream.new_episode()
     idle = np.zeros(space.shape, dtype=space.dtype)
     obs, _ = vec.reset(seed=[job.seed + job.index for job in jobs])
 
@@ -211,6 +230,7 @@ def _run_sub_envs(
                 episodes[j].append({key: np.asarray(rows) for key, rows in episode.items()})
                 recorded[j] += len(episode["reward"])
                 current[j] = _empty_episode()
+                streams[j].new_episode()
                 if progress is not None:
                     progress(len(episode["reward"]))
         resetting = terminated | truncated
@@ -234,29 +254,36 @@ def collect(
     seed: int,
     workers: int | None = None,
     progress: Callable[[int], None] | None = None,
+    saturated: float = 0.0,
 ) -> dict[str, np.ndarray]:
-    """Step ``env_id`` with uniform random actions for at least ``steps`` steps.
+    """Step ``env_id`` with random actions for at least ``steps`` steps: uniform in the action
+    box (the paper's), or in a ``saturated`` share of the episodes (chosen at random, episode by
+    episode) bang-bang, every component at its low or high bound, so that the embedding also
+    learns what sequences at the box's corners do (``collect.saturated_episodes``).
 
     ``num_envs`` sub-environments (sub-environment ``i`` reset with seed ``seed + i``) each record
     an equal share of the steps, in whole episodes; they run in ``workers`` processes (default: one
     per core, at most ``num_envs``), each process stepping its group with gymnasium's
     ``SyncVectorEnv``, so no step waits on inter-process traffic. The result depends only on
-    ``env_id``, ``steps``, ``num_envs`` and ``seed``, never on ``workers``.
+    ``env_id``, ``steps``, ``num_envs``, ``seed`` and ``saturated``, never on ``workers``.
 
     Returns:
         The row arrays of :data:`ARRAYS`, episodes ordered by sub-environment, then by time.
 
     Raises:
-        ValueError: non-positive ``steps`` or ``num_envs``, or a task ede cannot use
-            (:func:`ede.tasks.unusable`).
+        ValueError: non-positive ``steps`` or ``num_envs``, ``saturated`` outside [0, 1], or a
+            task ede cannot use (:func:`ede.tasks.unusable`).
     """
     if steps <= 0 or num_envs <= 0:
         raise ValueError(f"steps and num_envs must be positive, got {steps} and {num_envs}")
+    if not 0 <= saturated <= 1:
+        raise ValueError(f"saturated is a share of episodes in [0, 1], got {saturated}")
     reason = unusable(env_id)
     if reason is not None:
         raise ValueError(f"{env_id} cannot be used: {reason}")
     jobs = [
-        _SubEnvJob(env_id, i, seed, quota) for i, quota in enumerate(_quotas(steps, num_envs))
+        _SubEnvJob(env_id, i, seed, quota, saturated)
+        for i, quota in enumerate(_quotas(steps, num_envs))
     ]
     workers = max(1, min(workers or os.cpu_count() or 1, num_envs))
     groups = [jobs[w::workers] for w in range(workers)]

@@ -29,14 +29,15 @@ from ede_pipeline.progress import progress
 @click.option("--workers", type=click.IntRange(min=1), help="Processes  [default: one per core]")
 @params_option
 def collect(params: Params, family: str, out: Path | None, workers: int | None) -> None:
-    """Stage 1: uniform random steps of a family's source task into a Zarr store."""
+    """Stage 1: random steps of a family's source task into a Zarr store."""
     check_family(params, family)
     out = out or layout.rollouts(family)
     env_id = params.families[family].source
     config = params.collect
     num_envs = config.num_envs or default_num_envs(config.steps, episode_length(env_id))
     with holding((out, ROLLOUTS)), progress(config.steps, f"collect {family}") as advance:
-        arrays = collect_steps(env_id, config.steps, num_envs, config.seed, workers, advance)
+        arrays = collect_steps(env_id, config.steps, num_envs, config.seed, workers, advance,
+                               config.saturated_episodes)
         write_store(out, arrays, store_attrs(params, family, num_envs, arrays))
     click.echo(f"{out}: {len(arrays['reward'])} steps, {int(arrays['episode'][-1]) + 1} episodes")
 

@@ -74,6 +74,7 @@ def test_defaults_in_the_model_match_the_committed_file() -> None:
         (lambda p: p["families"]["point"].update(source="CartPole-v1"),
          "families.point.source: got 'CartPole-v1'; not usable: its actions are Discrete(2)"),
         (lambda p: p["td3"].update(discount=1.5), "td3.discount: got 1.5"),
+        (lambda p: p["collect"].update(saturated_episodes=1.5), "collect.saturated_episodes: got 1.5"),
         (lambda p: p["runs"]["budgets"].pop("ede/Striker-v0"), "no budget for ede/Striker-v0"),
         (lambda p: p["families"].pop("sevendof"),
          "runs.tasks.ede/Pusher-v0: got 'sevendof'; expected a family of `families`"),

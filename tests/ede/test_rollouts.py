@@ -124,6 +124,31 @@ def test_episodes_stay_whole_when_steps_do_not_divide() -> None:
     np.testing.assert_array_equal(np.bincount(arrays["episode"]), [100] * 4)
 
 
+def test_saturated_episodes_are_bang_bang_and_chosen_episode_by_episode() -> None:
+    """``collect.saturated_episodes``: an episode's actions are all at the box's corners (each
+    uniform draw snapped to the nearer bound) or all uniform, which ones drawn apart from the
+    actions, so that the other episodes keep the uniform draws they have with none saturated."""
+    env = make("ede/Point-v0")
+    low, high = env.action_space.low, env.action_space.high
+    env.close()
+    uniform = collect("ede/Point-v0", 2_000, 2, seed=0, workers=1)
+    mixed = collect("ede/Point-v0", 2_000, 2, seed=0, workers=1, saturated=0.5)
+    np.testing.assert_array_equal(mixed["action"],  # the worker count changes nothing
+                                  collect("ede/Point-v0", 2_000, 2, 0, 2, saturated=0.5)["action"])
+    cornered = np.all((mixed["action"] == low) | (mixed["action"] == high), axis=1)
+    episodes = [cornered[mixed["episode"] == e] for e in range(mixed["episode"][-1] + 1)]
+    assert all(e.all() or not e.any() for e in episodes)  # whole episodes, one kind each
+    saturated = np.concatenate([np.full(len(e), e.all()) for e in episodes])
+    assert 0 < sum(e.all() for e in episodes) < len(episodes)  # 20 episodes at 0.5: some of each
+    snapped = np.where(uniform["action"] < (low + high) / 2, low, high)
+    np.testing.assert_array_equal(mixed["action"][saturated], snapped[saturated])
+    np.testing.assert_array_equal(mixed["action"][~saturated], uniform["action"][~saturated])
+    everything = collect("ede/Point-v0", 200, 1, seed=0, workers=1, saturated=1.0)["action"]
+    assert np.all((everything == low) | (everything == high))
+    with pytest.raises(ValueError, match="saturated is a share of episodes in \\[0, 1\\], got 1.5"):
+        collect("ede/Point-v0", 200, 1, seed=0, workers=1, saturated=1.5)
+
+
 @pytest.mark.parametrize("k", [1, 2, 4])
 def test_windows_never_cross_an_episode_end_and_every_start_is_reachable(
     tmp_path: Path, k: int
