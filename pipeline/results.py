@@ -187,7 +187,7 @@ def read_folder(root: Path, task: str) -> TaskRuns | None:
                 budgets.add(int(record.curve.steps[-1]))  # checked: the run's budget
                 cpus[cpu(run / "run.json", record.made)] += 1
                 if algo == "ede-td3":
-                    embeddings.setdefault(str(record.made.get("embedding")), []).append(seed)
+                    embeddings.setdefault(str(record.made.get("embedding", "")), []).append(seed)
     if len(budgets) > 1:
         raise BadInput(f"{folder}: runs of different budgets {sorted(budgets)}; keep one per task")
     if not curves:
