@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["INSTRUCTION_SETS", "SOFTWARE", "code_version", "describe_software", "machine",
+__all__ = ["CODE", "INSTRUCTION_SETS", "SOFTWARE", "code_version", "describe_software", "machine",
            "software_versions"]
 
 # Python, the array and learning libraries, and the simulator. Each is pinned by
@@ -47,12 +47,16 @@ COMMIT_ENV = "EDE_COMMIT"  # the commit an installed copy (the image) was built 
 INSTRUCTION_SETS = ("avx2", "avx512f", "avx512_bf16", "amx_tile", "amx_bf16")
 
 
+CODE = ("ede", "envs", "pipeline")  # the packages' folders (pyproject.toml's package-dir)
+
+
 @cache
 def code_version() -> dict[str, Any]:
     """The code that runs: ``{"commit": …, "modified": …}``.
 
-    From git where the ``ede`` package is imported from a checkout (an editable install):
-    ``modified`` says whether a tracked file differed from the commit. Elsewhere (an installed
+    From git where the ``ede`` package is imported from a checkout (an editable install, or an
+    experiment's working copy): ``modified`` says whether a tracked file of the code (:data:`CODE`;
+    not params.yaml or dvc.lock, which a run records apart) differed from the commit. Elsewhere (an installed
     copy, as in the image) the commit is ``$EDE_COMMIT`` when set at build time, ``modified``
     unknown (null); with neither, both are null.
     """
@@ -67,7 +71,7 @@ def code_version() -> dict[str, Any]:
         # The checkout's own top level: not a venv's site-packages inside some checkout.
         if git("rev-parse", "--show-toplevel") == str(root):
             commit, status = git("rev-parse", "HEAD"), git("status", "--porcelain",
-                                                          "--untracked-files=no")
+                                                          "--untracked-files=no", "--", *CODE)
             if commit is not None and status is not None:
                 return {"commit": commit, "modified": bool(status)}
     except (OSError, subprocess.SubprocessError):  # no git, or it hung

@@ -198,9 +198,9 @@ def _checkout_files() -> list[str]:
 
 def prepare_workspace(name: str, params: dict[str, Any]) -> Path:
     """The experiment's working copy, made or brought up to date: a git worktree at this
-    checkout's commit holding this checkout's files as they are (the code that runs: the
-    installed package is this checkout) and the experiment's params, its DVC cache this
-    checkout's. Its ``data/`` (outputs and checkpoints) and ``dvc.lock`` are kept."""
+    checkout's commit holding this checkout's files as they are (the code that runs there,
+    :func:`_tool`) and the experiment's params, its DVC cache this checkout's. Its ``data/``
+    (outputs and checkpoints) and ``dvc.lock`` are kept."""
     workspace = WORKSPACES / name
     head = _git("rev-parse", "HEAD").strip()
     if not (workspace / ".git").exists():
@@ -241,11 +241,32 @@ def _shared_config() -> str:
     return "".join(lines)
 
 
+def _code_path(workspace: Path) -> Path:
+    """A folder that puts the working copy's packages first on ``PYTHONPATH``: a link per
+    package to its folder there (``ede_pipeline`` is ``pipeline/``, as ``pyproject.toml``'s
+    ``package-dir`` maps it). The tools run the copy's code, frozen when the experiment was
+    (re)started, not this checkout's as it is edited meanwhile; and its ``run.json`` files name
+    the copy's commit (:func:`ede.provenance.code_version`)."""
+    import tomllib
+
+    packages = tomllib.loads(Path("pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+    code = workspace / ".dvc" / "tmp" / "python"
+    code.mkdir(parents=True, exist_ok=True)
+    for package, folder in packages.items():
+        link = code / package
+        if not link.is_symlink():
+            link.symlink_to(Path("..", "..", "..", folder))
+    return code.resolve()
+
+
 def _tool(workspace: Path, *argv: str) -> int:
-    """Run one of this environment's tools (``ede-pipeline``, ``dvc``) in ``workspace``, its
-    output to ours; a signal that stops us stops it first."""
+    """Run one of this environment's tools (``ede-pipeline``, ``dvc``) in ``workspace`` with its
+    code (:func:`_code_path`), its output to ours; a signal that stops us stops it first."""
     bin_dir = Path(sys.executable).parent
-    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}"}
+    python_path = os.pathsep.join(filter(None, [str(_code_path(workspace)),
+                                                os.environ.get("PYTHONPATH")]))
+    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}",
+           "PYTHONPATH": python_path}
     child = subprocess.Popen([str(bin_dir / argv[0]), *argv[1:]], cwd=workspace, env=env)
     before = signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     try:

@@ -269,3 +269,39 @@ def test_an_experiment_adding_seeds_exports_beside_the_published_ones(
                                           "experiment `experiments/first.yaml`; an experiment "
                                           "adds seeds the task has not")
     assert {p: p.read_bytes() for p in Path("published").rglob("*") if p.is_file()} == before
+
+
+def test_an_experiments_tools_run_the_code_of_its_working_copy(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """The sweep, DVC and the runs they start import the working copy's packages, not this
+    checkout's (edited meanwhile), and run.json names the copy's commit; its params.yaml,
+    changed by the experiment, does not count as modified code."""
+    import shutil
+
+    from ede_pipeline.experiments import _tool
+    from tests.support import REPO
+
+    workspace = tmp_path / "copy"
+    for folder in ("ede", "pipeline", "envs"):
+        shutil.copytree(REPO / folder, workspace / folder,
+                        ignore=shutil.ignore_patterns("__pycache__"))
+    (workspace / "params.yaml").write_text("td3: {lr: 0.001}\n")
+    for args in (["init", "-q"], ["add", "-A"],
+                 ["-c", "user.email=t@example.org", "-c", "user.name=t", "commit", "-qm", "copy"]):
+        git(workspace, *args)
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=workspace, capture_output=True,
+                          text=True, check=True).stdout.strip()
+    (workspace / "params.yaml").write_text("td3: {lr: 0.0003}\n")  # the experiment's params
+    monkeypatch.chdir(REPO)  # where `experiment run` runs: pyproject.toml names the packages
+    show = ("import json, ede, ede_envs, ede_pipeline; from ede.provenance import code_version; "
+            "print(json.dumps([[m.__file__ for m in (ede, ede_envs, ede_pipeline)], code_version()]))")
+    capfd.readouterr()
+    assert _tool(workspace, "python", "-c", show) == 0
+    files, code = json.loads(capfd.readouterr().out.strip().splitlines()[-1])
+    assert [Path(f).resolve().parent for f in files] == [
+        (workspace / folder).resolve() for folder in ("ede", "envs", "pipeline")]
+    assert code == {"commit": head, "modified": False}
+    (workspace / "ede" / "nets.py").write_text("# edited\n", encoding="utf-8")
+    assert _tool(workspace, "python", "-c", show) == 0
+    assert json.loads(capfd.readouterr().out.strip().splitlines()[-1])[1]["modified"] is True
