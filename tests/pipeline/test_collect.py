@@ -36,7 +36,8 @@ def test_collect_writes_a_store_the_reader_accepts(tmp_path: Path, write_params)
     assert len(rollouts) == 400 and rollouts.num_episodes == 4
     attrs = rollouts.attrs
     assert (attrs["family"], attrs["seed"], attrs["num_envs"]) == ("reacher", 0, 2)
-    assert attrs["params"]["collect"] == {"steps": 400, "num_envs": 2, "seed": 0}
+    assert attrs["params"]["collect"] == {"steps": 400, "num_envs": 2, "seed": 0,
+                                          "saturated_episodes": 0.0}
     assert attrs["spaces"]["action_low"] == [-1.0, -1.0]
     assert attrs["state_source"] == "physics"
     assert len(attrs["fingerprint"]) == 64
