@@ -24,6 +24,7 @@ Prints one Markdown row a candidate. Pass NAMEs to make and measure only those.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import subprocess
 import sys
@@ -60,7 +61,7 @@ def make_embedding(name: str, base: dict, family: str, out: Path) -> Path:
     embedding = root / "families" / family / "embedding"
     if (embedding / "decoder_metrics.json").is_file():
         return root
-    params = json.loads(json.dumps(base))  # a deep copy
+    params = copy.deepcopy(base)
     for section, keys in CANDIDATES[name].items():
         params[section].update(keys)
     embedding.mkdir(parents=True, exist_ok=True)

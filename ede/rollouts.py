@@ -146,6 +146,7 @@ class _ActionStream:
         self._block = np.empty((0, low.size), dtype=dtype)
         self._next = 0
         self._saturated, self._episodes, self._corners = saturated, episodes, False
+        self._middle = (low + high) / 2  # a saturated episode's draws snap to the nearer bound
 
     def new_episode(self) -> None:
         """The next action starts an episode: draw whether its actions are saturated."""
@@ -159,8 +160,7 @@ class _ActionStream:
         self._next += 1
         action = self._block[self._next - 1]
         if self._corners:
-            middle = (self._low + self._high) / 2
-            action = np.where(action < middle, self._low, self._high).astype(self._dtype)
+            action = np.where(action < self._middle, self._low, self._high).astype(self._dtype)
         return action
 
 
