@@ -53,8 +53,8 @@ RUN python3 /tmp/lock/lock.py select /tmp/lock/requirements.lock --without torch
     && pip install --require-hashes --no-deps -r /tmp/lock/rest.lock \
     && rm -rf /tmp/lock
 
-# The code (a regular install, with the ede_envs start-up hook) and the batch-job script.
-COPY pyproject.toml setup.py README.md /tmp/ede/
+# The code (a regular install) and the batch-job script.
+COPY pyproject.toml README.md /tmp/ede/
 COPY ede /tmp/ede/ede
 COPY envs /tmp/ede/envs
 COPY pipeline /tmp/ede/pipeline

@@ -1,5 +1,5 @@
 # The two commands of the README: `make repro` and `make test`. Both create .venv when missing
-# and (re)install the project into it when requirements.lock, pyproject.toml or setup.py changed;
+# and (re)install the project into it when requirements.lock or pyproject.toml changed;
 # `make lock` refreshes requirements.lock from pyproject.toml.
 
 PYTHON ?= python3
@@ -30,7 +30,7 @@ export PATH := $(abspath $(BIN)):$(PATH)
 
 install: $(STAMP)
 
-$(STAMP): $(LOCK) pyproject.toml setup.py scripts/lock.py
+$(STAMP): $(LOCK) pyproject.toml scripts/lock.py
 	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 11))' \
 		|| { echo "error: $(PYTHON) is older than 3.11; set PYTHON=python3.11 or newer" >&2; exit 2; }
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)

@@ -1,17 +1,23 @@
 """The EDE tasks as gymnasium environments, registered under the ``ede/`` namespace. Which tasks
 form a family (share a robot, and so an embedding) is the experiment's business: ``params.yaml``.
 
-Installing the distribution registers the tasks in every interpreter as soon as gymnasium is
-imported, with no import of ours (see :mod:`ede_envs._autoregister`), so
-``gymnasium.make("ede/ReacherTurn-v0")`` just works. This module stays free of heavy imports: it
-runs at interpreter start.
+Importing the package registers the tasks, as gymnasium's other task packages do (ale-py,
+gymnasium-robotics)::
+
+    import gymnasium as gym
+    import ede_envs
+
+    gym.register_envs(ede_envs)  # a no-op that keeps linters from calling the import unused
+    env = gym.make("ede/ReacherTurn-v0")
+
+or, with no import at all, ``gym.make("ede_envs:ede/ReacherTurn-v0")``: gymnasium imports the
+module named before the colon first. Registration imports gymnasium's registry, not MuJoCo: a
+task's module loads when the task is made.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-
-from ede_envs import _autoregister
 
 __all__ = ["TASKS", "Task", "register_envs"]
 
@@ -50,4 +56,4 @@ def register_envs() -> None:
         )
 
 
-_autoregister.install(register_envs)
+register_envs()

@@ -7,7 +7,7 @@ of ``ede``. The code of ``envs/`` runs through gymnasium's entry points, one tas
 stage covers it by depending on the record of each task it steps
 (``data/families/<family>/code/<task>.json``, written by the ``task_code`` stage, which itself
 depends on all of ``envs/``, or a folder that holds it). Importing
-``ede_envs`` only registers the tasks (``envs/__init__.py``, ``envs/_autoregister.py``): that
+``ede_envs`` only registers the tasks (``envs/__init__.py``): that
 changes nothing a stage computes unless it makes a task, and a task's record holds its registration.
 """
 
@@ -21,7 +21,7 @@ from ede_pipeline.closure import closure, imports_of, package_dirs
 
 DIRS = package_dirs()
 ENVS = DIRS["ede_envs"]
-REGISTRATION = {ENVS / "__init__.py", ENVS / "_autoregister.py"}
+REGISTRATION = {ENVS / "__init__.py"}
 STAGE_MODULES = {
     "task_code": "ede_pipeline.task_code",
     "collect": "ede_pipeline.collect",

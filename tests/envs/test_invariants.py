@@ -113,17 +113,39 @@ def test_renders_headless_to_a_picture(task: str) -> None:
     assert frame.std() > 5, "the frame is blank"
 
 
-def test_tasks_are_registered_in_a_fresh_interpreter_without_importing_us() -> None:
-    code = (
-        "import sys, gymnasium\n"
-        "env = gymnasium.make('ede/ReacherTurn-v0')\n"
-        "print(type(env.unwrapped).__module__)\n"
-    )
+def _fresh_python(code: str) -> str:
+    """What ``code`` prints in a new interpreter of this environment."""
     result = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, env=os.environ, check=False
     )
     assert result.returncode == 0, result.stderr
-    assert result.stdout.strip() == "ede_envs.reacher_turn"
+    return result.stdout.strip()
+
+
+def test_a_fresh_interpreter_does_not_import_us_unless_asked() -> None:
+    code = (
+        "import sys, gymnasium\n"
+        "print('ede_envs' in sys.modules, 'ede/ReacherTurn-v0' in gymnasium.registry)\n"
+    )
+    assert _fresh_python(code) == "False False"
+
+
+def test_importing_the_package_registers_the_tasks() -> None:
+    code = (
+        "import gymnasium as gym\n"
+        "import ede_envs\n"
+        "gym.register_envs(ede_envs)\n"
+        "print(type(gym.make('ede/ReacherTurn-v0').unwrapped).__module__)\n"
+    )
+    assert _fresh_python(code) == "ede_envs.reacher_turn"
+
+
+def test_a_task_is_made_by_module_and_id_with_no_import() -> None:
+    code = (
+        "import gymnasium\n"
+        "print(type(gymnasium.make('ede_envs:ede/ReacherTurn-v0').unwrapped).__module__)\n"
+    )
+    assert _fresh_python(code) == "ede_envs.reacher_turn"
 
 
 def test_registration_is_idempotent() -> None:

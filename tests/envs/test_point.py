@@ -6,9 +6,11 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import ede_envs  # noqa: F401  (registers the ede/ tasks)
+import ede_envs
 from ede_envs.point import STEP_SIZE
 from ede_envs.point_mass import ARENA_HALF_WIDTH
+
+gym.register_envs(ede_envs)
 
 K = 4  # the paper's number of actions per EDE action
 

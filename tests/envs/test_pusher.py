@@ -5,6 +5,10 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 
+import ede_envs
+
+gym.register_envs(ede_envs)
+
 
 def test_pusher_v0_is_pusher_v5_with_fixed_order_norms() -> None:
     ours, theirs = gym.make("ede/Pusher-v0"), gym.make("Pusher-v5")
