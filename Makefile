@@ -26,7 +26,7 @@ PYTEST_ARGS ?=
 # Stages call `ede-pipeline` and `dvc` by name.
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: install lock repro quick experiment experiments test container-test clean-venv
+.PHONY: install lock repro quick experiment experiments lint test container-test clean-venv
 
 install: $(STAMP)
 
@@ -89,7 +89,13 @@ experiment: install
 experiments: install
 	$(BIN)/ede-pipeline experiment show
 
-test: install
+# What every change must pass before its tests: ruff's lint and format check (the rules are
+# pyproject.toml's [tool.ruff]). `ruff check --fix .` and `ruff format .` mend most findings.
+lint: install
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+test: lint
 	$(BIN)/pytest $(PYTEST_ARGS)
 
 # The image, built with podman and run for real (README.md, "Batch jobs"); needs root, installs

@@ -55,8 +55,10 @@ def main() -> None:
     print(f"task {args.task}, {args.steps} steps, {cores} cores")
     print(f"plain env.step loop        {plain:9.0f} steps/s   1.00x")
     print(f"collect, 1 process         {one:9.0f} steps/s   {one / plain:.2f}x per core")
-    print(f"collect, {cores} processes        {many:9.0f} steps/s   {many / cores / plain:.2f}x per core"
-          f" ({many / plain:.2f}x total)")
+    print(
+        f"collect, {cores} processes        {many:9.0f} steps/s   {many / cores / plain:.2f}x per core"
+        f" ({many / plain:.2f}x total)"
+    )
 
 
 if __name__ == "__main__":

@@ -28,7 +28,9 @@ from ede.rollouts import Rollouts, collect, write_store
 def reference_epoch(rollouts: Rollouts, k: int, hidden: list[int], batch_size: int) -> float:
     """Seconds for one pass of a bare MLP regression over the same windows."""
     state, actions, later = rollouts.windows(rollouts.window_starts(k), k)
-    x = torch.as_tensor(np.concatenate([state, actions.reshape(len(state), -1)], 1), dtype=torch.float32)
+    x = torch.as_tensor(
+        np.concatenate([state, actions.reshape(len(state), -1)], 1), dtype=torch.float32
+    )
     y = torch.as_tensor(later - state, dtype=torch.float32)
     net = mlp(x.shape[1], hidden, y.shape[1], torch.nn.SELU)
     optimizer = torch.optim.Adam(net.parameters(), lr=1e-4)
@@ -54,8 +56,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         arrays = collect(source, params.collect.steps, 2, params.collect.seed)
         attrs = {"env_id": source, "family": args.family}
-        write_store(Path(tmp) / "r.zarr", arrays, attrs | {"seed": 0, "num_envs": 2, "steps": 0,
-                                                             "spaces": {}, "params": {}})
+        write_store(
+            Path(tmp) / "r.zarr",
+            arrays,
+            attrs | {"seed": 0, "num_envs": 2, "steps": 0, "spaces": {}, "params": {}},
+        )
         rollouts = Rollouts.open(Path(tmp) / "r.zarr")
     k = params.embedding.k
     reference = reference_epoch(rollouts, k, params.embedding.hidden, params.embedding.batch_size)
@@ -72,16 +77,24 @@ def main() -> None:
     e, d = encoded.metrics, decoded.metrics
     print(f"{args.family} ({source}), {len(rollouts)} steps, {args.threads} thread(s)")
     print(f"reference: one epoch of a bare MLP  {reference:7.1f} s")
-    print(f"encoder + predictor ({params.embedding.epochs} epochs)  {encoder_s:7.1f} s  "
-          f"= {encoder_s / reference / params.embedding.epochs:.2f}x the reference per epoch")
-    print(f"decoder ({params.decoder.epochs} epochs)             {decoder_s:7.1f} s  "
-          f"= {decoder_s / reference / params.decoder.epochs:.2f}x the reference per epoch")
+    print(
+        f"encoder + predictor ({params.embedding.epochs} epochs)  {encoder_s:7.1f} s  "
+        f"= {encoder_s / reference / params.embedding.epochs:.2f}x the reference per epoch"
+    )
+    print(
+        f"decoder ({params.decoder.epochs} epochs)             {decoder_s:7.1f} s  "
+        f"= {decoder_s / reference / params.decoder.epochs:.2f}x the reference per epoch"
+    )
     print(f"total                             {encoder_s + decoder_s:7.1f} s (goal < 120 s)")
-    print(f"held-out prediction MSE {e['prediction_mse']:.4f}, mean-change baseline "
-          f"{e['mean_change_mse']:.4f}: ratio {e['prediction_ratio']:.3f} (goal < 0.2)")
+    print(
+        f"held-out prediction MSE {e['prediction_mse']:.4f}, mean-change baseline "
+        f"{e['mean_change_mse']:.4f}: ratio {e['prediction_ratio']:.3f} (goal < 0.2)"
+    )
     print(f"raw k actions, no bottleneck: ratio {e['raw_prediction_ratio']:.3f}; KL {e['kl']:.2f}")
-    print(f"decoder inverse error {d['inverse_error']:.4f} of the code variance; "
-          f"{100 * d['at_bounds']:.1f}% of actions at a bound; |z| bound {d['bound']:.2f}")
+    print(
+        f"decoder inverse error {d['inverse_error']:.4f} of the code variance; "
+        f"{100 * d['at_bounds']:.1f}% of actions at a bound; |z| bound {d['bound']:.2f}"
+    )
 
 
 if __name__ == "__main__":

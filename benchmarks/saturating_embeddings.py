@@ -32,12 +32,12 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from through_embedding import at_bound, episode, load_actor
 
 from ede.artifacts import load_action_embedding
 from ede.tasks import make
 from ede.training import EVAL_SEED_OFFSET
 from ede_pipeline.experiments import experiment_params
-from through_embedding import at_bound, episode, load_actor
 
 # name: the keys it changes against the experiment's params, and why it could help.
 CANDIDATES: dict[str, dict[str, dict]] = {
@@ -50,8 +50,11 @@ CANDIDATES: dict[str, dict[str, dict]] = {
     "sat50-lam1e-6": {"collect": {"saturated_episodes": 0.5}, "decoder": {"lam": 1.0e-6}},
     "sat50-dim12": {"collect": {"saturated_episodes": 0.5}, "embedding": {"dim": 12}},
     "sat50-dim24": {"collect": {"saturated_episodes": 0.5}, "embedding": {"dim": 24}},
-    "sat50-dim12-lam1e-6": {"collect": {"saturated_episodes": 0.5}, "embedding": {"dim": 12},
-                            "decoder": {"lam": 1.0e-6}},
+    "sat50-dim12-lam1e-6": {
+        "collect": {"saturated_episodes": 0.5},
+        "embedding": {"dim": 12},
+        "decoder": {"lam": 1.0e-6},
+    },
 }
 
 
@@ -71,12 +74,32 @@ def make_embedding(name: str, base: dict, family: str, out: Path) -> Path:
     common = ["--family", family, "--params", str(root / "params.yaml")]
     for command in (
         ["collect", "--out", str(rollouts), "--workers", "1"],
-        ["pretrain", "encoder", "--rollouts", str(rollouts), "--out", str(embedding / "encoder"),
-         "--metrics", str(embedding / "encoder_metrics.json"),
-         "--plots", str(embedding / "encoder_history.csv")],
-        ["pretrain", "decoder", "--rollouts", str(rollouts), "--encoder", str(embedding / "encoder"),
-         "--out", str(embedding / "decoder"), "--metrics", str(embedding / "decoder_metrics.json"),
-         "--plots", str(embedding / "decoder_history.csv")],
+        [
+            "pretrain",
+            "encoder",
+            "--rollouts",
+            str(rollouts),
+            "--out",
+            str(embedding / "encoder"),
+            "--metrics",
+            str(embedding / "encoder_metrics.json"),
+            "--plots",
+            str(embedding / "encoder_history.csv"),
+        ],
+        [
+            "pretrain",
+            "decoder",
+            "--rollouts",
+            str(rollouts),
+            "--encoder",
+            str(embedding / "encoder"),
+            "--out",
+            str(embedding / "decoder"),
+            "--metrics",
+            str(embedding / "decoder_metrics.json"),
+            "--plots",
+            str(embedding / "decoder_history.csv"),
+        ],
     ):
         subprocess.run([*tool, *command, *common], check=True, stdout=subprocess.DEVNULL)
     return root
@@ -84,8 +107,12 @@ def make_embedding(name: str, base: dict, family: str, out: Path) -> Path:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--policies", type=Path, required=True,
-                        help="a train stage's data/ folder holding TD3's final policies")
+    parser.add_argument(
+        "--policies",
+        type=Path,
+        required=True,
+        help="a train stage's data/ folder holding TD3's final policies",
+    )
     parser.add_argument("--out", type=Path, required=True, help="where the candidates are made")
     parser.add_argument("--experiment", default="halfcheetah")
     parser.add_argument("--episodes", type=int, default=5)
@@ -94,9 +121,11 @@ def main() -> None:
     if unknown := [n for n in args.names if n not in CANDIDATES]:
         sys.exit(f"unknown candidates {unknown}; expected some of: {', '.join(CANDIDATES)}")
     base = experiment_params(args.experiment)
-    (task, family), = base["runs"]["tasks"].items()
-    runs = sorted(p.parent.parent for p in
-                  (args.policies / "runs" / task / "td3").glob("seed*/policy/policy.json"))
+    ((task, family),) = base["runs"]["tasks"].items()
+    runs = sorted(
+        p.parent.parent
+        for p in (args.policies / "runs" / task / "td3").glob("seed*/policy/policy.json")
+    )
     if not runs:
         sys.exit(f"{args.policies}: no runs/{task}/td3/seed<N>/policy/ (a train stage's layout)")
     env = make(task)
@@ -108,10 +137,15 @@ def main() -> None:
         mu = load_actor(run / "policy", env.observation_space.shape[0])
         as_is = np.mean([episode(env, mu, s, None)[0] for s in starts])
         policies.append((seed, mu, starts, as_is))
-    print(f"{task}: TD3 seeds {', '.join(str(s) for s, *_ in policies)} as is: "
-          + ", ".join(f"{r:.1f}" for *_, r in policies) + f" ({args.episodes} episodes each)\n")
-    print("| candidate | prediction ratio (raw actions) | KL | inverse error | decoded at a bound "
-          "| through the embedding, per TD3 seed (at a bound) |")
+    print(
+        f"{task}: TD3 seeds {', '.join(str(s) for s, *_ in policies)} as is: "
+        + ", ".join(f"{r:.1f}" for *_, r in policies)
+        + f" ({args.episodes} episodes each)\n"
+    )
+    print(
+        "| candidate | prediction ratio (raw actions) | KL | inverse error | decoded at a bound "
+        "| through the embedding, per TD3 seed (at a bound) |"
+    )
     print("|---|---|---|---|---|---|")
     for name in args.names or CANDIDATES:
         embedding = make_embedding(name, base, family, args.out) / "families" / family / "embedding"
@@ -122,10 +156,16 @@ def main() -> None:
         for _, mu, starts, _ in policies:
             done = [episode(env, mu, s, through) for s in starts]
             acts = np.concatenate([a for _, a, _ in done])
-            cells.append(f"{np.mean([r for r, _, _ in done]):.1f} ({at_bound(acts, low, high):.0%})")
-        print(f"| {name} | {e['prediction_ratio']:.3f} ({e['raw_prediction_ratio']:.3f}) "
-              f"| {e['kl']:.1f} | {d['inverse_error']:.2g} | {d['at_bounds']:.1%} | "
-              + "; ".join(cells) + " |", flush=True)
+            cells.append(
+                f"{np.mean([r for r, _, _ in done]):.1f} ({at_bound(acts, low, high):.0%})"
+            )
+        print(
+            f"| {name} | {e['prediction_ratio']:.3f} ({e['raw_prediction_ratio']:.3f}) "
+            f"| {e['kl']:.1f} | {d['inverse_error']:.2g} | {d['at_bounds']:.1%} | "
+            + "; ".join(cells)
+            + " |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

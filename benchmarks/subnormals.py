@@ -37,8 +37,9 @@ def subnormal_share(optimizer: Adam, moment: str) -> float:
     return ((values > 0) & (values < SMALLEST_NORMAL)).float().mean().item()
 
 
-def updates_per_second(agent: Agent, batches: list[tuple[ReplayBatch, torch.Tensor]],
-                       flush: bool) -> float:
+def updates_per_second(
+    agent: Agent, batches: list[tuple[ReplayBatch, torch.Tensor]], flush: bool
+) -> float:
     agent = copy.deepcopy(agent)
     due = np.ones(1, dtype=bool)
     with flush_denormals() if flush else nullcontext():
@@ -55,19 +56,27 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=1_000, help="updates timed per round")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    config = TD3Config(hidden=[400, 300], batch_size=100, update_schedule="step",
-                       buffer_size=args.steps)
-    group = _Group([RunSpec(args.task, "td3", 0, args.steps, config, EdeTD3Config())], None,
-                   torch.device("cpu"))
+    config = TD3Config(
+        hidden=[400, 300], batch_size=100, update_schedule="step", buffer_size=args.steps
+    )
+    group = _Group(
+        [RunSpec(args.task, "td3", 0, args.steps, config, EdeTD3Config())],
+        None,
+        torch.device("cpu"),
+    )
     start = time.perf_counter()
     while group.advance():
         pass
-    print(f"{args.task}: {args.steps} steps of TD3 (400-300, batch 100) without flushing in "
-          f"{time.perf_counter() - start:.0f} s")
+    print(
+        f"{args.task}: {args.steps} steps of TD3 (400-300, batch 100) without flushing in "
+        f"{time.perf_counter() - start:.0f} s"
+    )
     agent = group.agent
     for name, optimizer in (("critic", agent.critic_adam), ("actor", agent.actor_adam)):
-        print(f"  {name} Adam moments subnormal: first {subnormal_share(optimizer, 'exp_avg'):.1%}, "
-              f"second {subnormal_share(optimizer, 'exp_avg_sq'):.1%}")
+        print(
+            f"  {name} Adam moments subnormal: first {subnormal_share(optimizer, 'exp_avg'):.1%}, "
+            f"second {subnormal_share(optimizer, 'exp_avg_sq'):.1%}"
+        )
     everyone = np.ones(1, dtype=bool)
     batches = [agent.draw(group.buffer, everyone) for _ in range(args.updates)]
     rates = {False: [], True: []}

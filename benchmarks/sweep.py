@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout: its tests' support
-from tests.support import BIN, run, scratch_copy  # noqa: E402
+from tests.support import BIN, run, scratch_copy
 
 TASK = "ede/ReacherVertical-v0"
 
@@ -39,10 +39,18 @@ def small_params(steps: int) -> Callable[[dict[str, Any]], None]:
         small = {"hidden": [64, 64], "epochs": 1, "batch_size": 64}
         params["embedding"].update(small)
         params["decoder"].update(small)
-        params["td3"].update(hidden=[64, 64], start_steps=500, eval_every=steps // 4,
-                             eval_episodes=2, checkpoint_every=10 * steps)
-        params["runs"].update(tasks={TASK: "reacher"}, seeds=[0, 1],
-                              budgets={task: steps for task in params["runs"]["budgets"]})
+        params["td3"].update(
+            hidden=[64, 64],
+            start_steps=500,
+            eval_every=steps // 4,
+            eval_episodes=2,
+            checkpoint_every=10 * steps,
+        )
+        params["runs"].update(
+            tasks={TASK: "reacher"},
+            seeds=[0, 1],
+            budgets={task: steps for task in params["runs"]["budgets"]},
+        )
 
     return edit
 
@@ -61,7 +69,9 @@ def returns(copy: Path) -> dict[str, list[str]]:
     found = {}
     for path in sorted((copy / "data/runs").rglob("eval.csv")):
         with path.open() as file:
-            found[str(path.relative_to(copy))] = [row["mean_return"] for row in csv.DictReader(file)]
+            found[str(path.relative_to(copy))] = [
+                row["mean_return"] for row in csv.DictReader(file)
+            ]
     return found
 
 
@@ -78,15 +88,18 @@ def main() -> None:
         shutil.copytree(base, repro, symlinks=True)
         shutil.copytree(base, swept, symlinks=True)
         sequential = timed(repro, BIN / "dvc", "repro", "train")
-        parallel = timed(swept, BIN / "ede-pipeline", "sweep", "train",
-                         "--jobs", str(args.jobs))
+        parallel = timed(swept, BIN / "ede-pipeline", "sweep", "train", "--jobs", str(args.jobs))
         if returns(repro) != returns(swept) or len(returns(swept)) != 4:
             sys.exit("the sweep's returns differ from dvc repro's")
-    print(f"4 train runs of {args.steps} steps ({TASK}, td3 and ede-td3, seeds 0 and 1), "
-          f"{os.cpu_count()} cores")
+    print(
+        f"4 train runs of {args.steps} steps ({TASK}, td3 and ede-td3, seeds 0 and 1), "
+        f"{os.cpu_count()} cores"
+    )
     print(f"dvc repro train              {sequential:7.1f} s   1.00x")
-    print(f"ede-pipeline sweep --jobs {args.jobs}           {parallel:7.1f} s   "
-          f"{sequential / parallel:.2f}x")
+    print(
+        f"ede-pipeline sweep --jobs {args.jobs}           {parallel:7.1f} s   "
+        f"{sequential / parallel:.2f}x"
+    )
 
 
 if __name__ == "__main__":

@@ -66,17 +66,38 @@ def sb3_model(seed: int):
     from stable_baselines3 import TD3
     from stable_baselines3.common.noise import NormalActionNoise
 
-    return TD3("MlpPolicy", gymnasium.make(TASK), learning_rate=1e-3, buffer_size=1_000_000,
-               learning_starts=START, batch_size=100, tau=0.005, gamma=0.99, train_freq=1,
-               gradient_steps=1, action_noise=NormalActionNoise(np.zeros(2), 0.1 * np.ones(2)),
-               policy_delay=2, target_policy_noise=0.2, target_noise_clip=0.5,
-               policy_kwargs={"net_arch": [400, 300]}, seed=seed, device="cpu", verbose=0)
+    return TD3(
+        "MlpPolicy",
+        gymnasium.make(TASK),
+        learning_rate=1e-3,
+        buffer_size=1_000_000,
+        learning_starts=START,
+        batch_size=100,
+        tau=0.005,
+        gamma=0.99,
+        train_freq=1,
+        gradient_steps=1,
+        action_noise=NormalActionNoise(np.zeros(2), 0.1 * np.ones(2)),
+        policy_delay=2,
+        target_policy_noise=0.2,
+        target_noise_clip=0.5,
+        policy_kwargs={"net_arch": [400, 300]},
+        seed=seed,
+        device="cpu",
+        verbose=0,
+    )
 
 
 def ours_config() -> TD3Config:
-    return TD3Config(hidden=[400, 300], batch_size=100, start_steps=START, eval_every=EVAL_EVERY,
-                     eval_episodes=EVAL_EPISODES, checkpoint_every=5_000,
-                     update_schedule="step")  # SB3 updates after every step (train_freq=1)
+    return TD3Config(
+        hidden=[400, 300],
+        batch_size=100,
+        start_steps=START,
+        eval_every=EVAL_EVERY,
+        eval_episodes=EVAL_EPISODES,
+        checkpoint_every=5_000,
+        update_schedule="step",
+    )  # SB3 updates after every step (train_freq=1)
 
 
 def run_sb3(seed: int, steps: int) -> list[tuple[int, float]]:
@@ -113,14 +134,21 @@ def untrained(seeds: list[int], confidence: float = 0.95) -> None:
     for seed in seeds:
         scores["sb3"].append(evaluate_sb3(sb3_model(seed), seed))
         agent = Agent(obs_size, adapter, ours_config(), torch.device("cpu"), [seed])
-        returns = evaluate(env, lambda obs: agent.act(0, obs, explore=False), adapter,
-                           EVAL_EPISODES, EVAL_SEED_OFFSET * (seed + 1))
+        returns = evaluate(
+            env,
+            lambda obs, agent=agent: agent.act(0, obs, explore=False),
+            adapter,
+            EVAL_EPISODES,
+            EVAL_SEED_OFFSET * (seed + 1),
+        )
         scores["ours"].append(float(returns.mean()))
     rng = np.random.default_rng(0)
     for name, values in scores.items():
-        print(f"untrained policy, {name} ({len(seeds)} seeds): "
-              f"{bootstrap_mean(np.array(values), confidence, 2_000, rng)}, "
-              f"standard deviation over seeds {np.std(values, ddof=1):.2f}")
+        print(
+            f"untrained policy, {name} ({len(seeds)} seeds): "
+            f"{bootstrap_mean(np.array(values), confidence, 2_000, rng)}, "
+            f"standard deviation over seeds {np.std(values, ddof=1):.2f}"
+        )
 
 
 def summarise(out: Path, confidence: float = 0.95) -> None:
@@ -132,7 +160,10 @@ def summarise(out: Path, confidence: float = 0.95) -> None:
     rng = np.random.default_rng(0)
     steps = sorted(set.intersection(*(s for s, _ in curves.values())))
     print(f"{TASK}: mean evaluation return over seeds [{100 * confidence:.0f}% bootstrap band]")
-    print("step    " + "".join(f"{name} ({len(runs)} seeds)".ljust(34) for name, (_, runs) in curves.items()))
+    print(
+        "step    "
+        + "".join(f"{name} ({len(runs)} seeds)".ljust(34) for name, (_, runs) in curves.items())
+    )
     outside = []
     for step in steps:
         cells, bands = [], {}
@@ -146,47 +177,72 @@ def summarise(out: Path, confidence: float = 0.95) -> None:
             mean, (low, high) = bands["ours"][0], (bands["sb3"][1].low, bands["sb3"][1].high)
             if not low - 1e-9 <= mean <= high + 1e-9:
                 outside.append((step, "above" if mean > high else "below"))
-    print(f"our mean outside stable-baselines3's band at {len(outside)} of {len(steps)} evaluations:",
-          ", ".join(f"{s} ({side})" for s, side in outside) or "none")
+    print(
+        f"our mean outside stable-baselines3's band at {len(outside)} of {len(steps)} evaluations:",
+        ", ".join(f"{s} ({side})" for s, side in outside) or "none",
+    )
     if {"ours", "sb3"} <= curves.keys():
         difference(curves, steps, confidence, rng)
 
 
-def difference(curves: dict, steps: list[int], confidence: float, rng: np.random.Generator,
-               samples: int = 2_000) -> None:
+def difference(
+    curves: dict,
+    steps: list[int],
+    confidence: float,
+    rng: np.random.Generator,
+    samples: int = 2_000,
+) -> None:
     """Ours minus SB3: the area under the curve (mean return over the run) of each, and per
     evaluation and over the run the difference of the means with a bootstrap interval that
     resamples each learner's seeds independently."""
-    values = {name: np.array([[dict(map(tuple, run["curve"]))[step] for step in steps] for run in runs])
-              for name, (_, runs) in curves.items()}  # (seeds, evaluations)
+    values = {
+        name: np.array([[dict(map(tuple, run["curve"]))[step] for step in steps] for run in runs])
+        for name, (_, runs) in curves.items()
+    }  # (seeds, evaluations)
     tail = (1 - confidence) / 2
     learning = np.array(steps) > START  # from the first evaluation after an update on
-    for label, kept in (("over the run", slice(None)),
-                        (f"from {steps[int(np.argmax(learning))]:,} steps on (trained policies)",
-                         learning)):
+    for label, kept in (
+        ("over the run", slice(None)),
+        (f"from {steps[int(np.argmax(learning))]:,} steps on (trained policies)", learning),
+    ):
         part = np.array(steps)[kept]
-        auc = {name: np.array([area_under_curve(part, row[kept]) for row in v])
-               for name, v in values.items()}
+        auc = {
+            name: np.array([area_under_curve(part, row[kept]) for row in v])
+            for name, v in values.items()
+        }
         for name in ("sb3", "ours"):
-            print(f"area under the curve {label}, {name}: "
-                  f"{bootstrap_mean(auc[name], confidence, samples, rng)}")
-        aucs = {name: a[rng.integers(len(a), size=(samples, len(a)))].mean(axis=1)
-                for name, a in auc.items()}
+            print(
+                f"area under the curve {label}, {name}: "
+                f"{bootstrap_mean(auc[name], confidence, samples, rng)}"
+            )
+        aucs = {
+            name: a[rng.integers(len(a), size=(samples, len(a)))].mean(axis=1)
+            for name, a in auc.items()
+        }
         low, high = np.quantile(aucs["ours"] - aucs["sb3"], [tail, 1 - tail])
-        print(f"area under the curve {label}, ours - sb3: "
-              f"{auc['ours'].mean() - auc['sb3'].mean():+.2f} [{low:+.2f}, {high:+.2f}]")
-    draws = {name: v[rng.integers(len(v), size=(samples, len(v)))].mean(axis=1)
-             for name, v in values.items()}  # (samples, evaluations)
+        print(
+            f"area under the curve {label}, ours - sb3: "
+            f"{auc['ours'].mean() - auc['sb3'].mean():+.2f} [{low:+.2f}, {high:+.2f}]"
+        )
+    draws = {
+        name: v[rng.integers(len(v), size=(samples, len(v)))].mean(axis=1)
+        for name, v in values.items()
+    }  # (samples, evaluations)
     gaps = draws["ours"] - draws["sb3"]
     lows, highs = np.quantile(gaps, [tail, 1 - tail], axis=0)
     means = values["ours"].mean(axis=0) - values["sb3"].mean(axis=0)
     print("difference of the means per evaluation, ours - sb3 [interval]:")
-    for step, mean, lo, hi in zip(steps, means, lows, highs):
+    for step, mean, lo, hi in zip(steps, means, lows, highs, strict=True):
         print(f"  {step:<8d}{mean:+6.2f} [{lo:+6.2f}, {hi:+6.2f}]")
-    apart = [(step, "above" if lo > 0 else "below") for step, lo, hi in zip(steps, lows, highs)
-             if lo > 0 or hi < 0]
-    print(f"difference of the means excludes 0 at {len(apart)} of {len(steps)} evaluations:",
-          ", ".join(f"{s} ({side})" for s, side in apart) or "none")
+    apart = [
+        (step, "above" if lo > 0 else "below")
+        for step, lo, hi in zip(steps, lows, highs, strict=True)
+        if lo > 0 or hi < 0
+    ]
+    print(
+        f"difference of the means excludes 0 at {len(apart)} of {len(steps)} evaluations:",
+        ", ".join(f"{s} ({side})" for s, side in apart) or "none",
+    )
 
 
 def main() -> None:
@@ -207,7 +263,9 @@ def main() -> None:
         return
     torch.set_num_threads(1)
     first, _, last = args.seeds.partition("-")
-    seeds = list(range(int(first), int(last) + 1)) if last else [int(s) for s in args.seeds.split(",")]
+    seeds = (
+        list(range(int(first), int(last) + 1)) if last else [int(s) for s in args.seeds.split(",")]
+    )
     if args.command == "untrained":
         untrained(seeds)
         return
@@ -217,11 +275,26 @@ def main() -> None:
         if result.exists():
             continue
         start = time.perf_counter()
-        curve = run_sb3(seed, args.steps) if args.learner == "sb3" else run_ours(seed, args.steps, args.out)
-        result.write_text(json.dumps({"learner": args.learner, "seed": seed, "steps": args.steps,
-                                      "seconds": time.perf_counter() - start, "curve": curve}))
-        print(f"{args.learner} seed {seed}: final {curve[-1][1]:.2f} in {time.perf_counter() - start:.0f}s",
-              flush=True)
+        curve = (
+            run_sb3(seed, args.steps)
+            if args.learner == "sb3"
+            else run_ours(seed, args.steps, args.out)
+        )
+        result.write_text(
+            json.dumps(
+                {
+                    "learner": args.learner,
+                    "seed": seed,
+                    "steps": args.steps,
+                    "seconds": time.perf_counter() - start,
+                    "curve": curve,
+                }
+            )
+        )
+        print(
+            f"{args.learner} seed {seed}: final {curve[-1][1]:.2f} in {time.perf_counter() - start:.0f}s",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

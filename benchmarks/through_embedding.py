@@ -48,18 +48,23 @@ def load_actor(policy: Path, obs_size: int):
     meta = json.loads((policy / "policy.json").read_text())
     state = load_file(policy / "policy.safetensors")
     net = mlp(obs_size, meta["hidden"], meta["code_size"])
-    net.load_state_dict({k.removeprefix("net."): v for k, v in state.items() if k.startswith("net.")})
+    net.load_state_dict(
+        {k.removeprefix("net."): v for k, v in state.items() if k.startswith("net.")}
+    )
     centre, half_range = state["centre"], state["half_range"]
 
     @torch.no_grad()
     def mu(obs: np.ndarray) -> np.ndarray:
-        return (centre + half_range * torch.tanh(net(torch.as_tensor(obs, dtype=torch.float32)))).numpy()
+        return (
+            centre + half_range * torch.tanh(net(torch.as_tensor(obs, dtype=torch.float32)))
+        ).numpy()
 
     return mu
 
 
-def episode(env: gymnasium.Env, mu, seed: int,
-            embedding: ActionEmbedding | None) -> tuple[float, np.ndarray, list[bool]]:
+def episode(
+    env: gymnasium.Env, mu, seed: int, embedding: ActionEmbedding | None
+) -> tuple[float, np.ndarray, list[bool]]:
     """One episode's return and executed actions, and per window whether its code lay outside
     the box EDE-TD3 acts in (clipped); through ``embedding`` when one is given."""
     sim = env.unwrapped
@@ -102,18 +107,25 @@ def main() -> None:
     args = parser.parse_args()
     family = args.family or layout.own_family(args.task, {})
     found = args.data / "families" / family / "embedding"
-    runs = sorted(p.parent.parent for p in
-                  (args.data / "runs" / args.task / "td3").glob("seed*/policy/policy.json"))
+    runs = sorted(
+        p.parent.parent
+        for p in (args.data / "runs" / args.task / "td3").glob("seed*/policy/policy.json")
+    )
     if not (found / "decoder").is_dir() or not runs:
-        print(f"{args.data}: expected families/{family}/embedding/ and runs/{args.task}/td3/"
-              "seed<N>/policy/ (a train stage's layout)", file=sys.stderr)
+        print(
+            f"{args.data}: expected families/{family}/embedding/ and runs/{args.task}/td3/"
+            "seed<N>/policy/ (a train stage's layout)",
+            file=sys.stderr,
+        )
         sys.exit(2)
     _, embedding = load_action_embedding(found / "encoder", found / "decoder")
     env = make(args.task)
     low, high = env.action_space.low, env.action_space.high
-    print(f"{args.task}: TD3's final policies as is and through {family}'s embedding "
-          f"(k={embedding.k}, {embedding.dim} dimensions, |z| <= {embedding.bound:.3g}); "
-          f"{args.episodes} episodes each")
+    print(
+        f"{args.task}: TD3's final policies as is and through {family}'s embedding "
+        f"(k={embedding.k}, {embedding.dim} dimensions, |z| <= {embedding.bound:.3g}); "
+        f"{args.episodes} episodes each"
+    )
     for run in runs:
         seed = json.loads((run / "run.json").read_text())["seed"]
         with (run / "eval.csv").open() as f:
@@ -124,10 +136,14 @@ def main() -> None:
         for through in (None, embedding):
             done = [episode(env, mu, s, through) for s in starts]
             acts = np.concatenate([a for _, a, _ in done])
-            line.append(f"{np.mean([r for r, _, _ in done]):9.1f} ({at_bound(acts, low, high):.0%} at a bound)")
+            line.append(
+                f"{np.mean([r for r, _, _ in done]):9.1f} ({at_bound(acts, low, high):.0%} at a bound)"
+            )
         clipped = np.mean([c for _, _, cs in done for c in cs])
-        print(f"seed {seed}: as is {line[0]}, the run's last evaluation {last:.1f}; "
-              f"through the embedding {line[1]}, {clipped:.0%} of its codes clipped to the box")
+        print(
+            f"seed {seed}: as is {line[0]}, the run's last evaluation {last:.1f}; "
+            f"through the embedding {line[1]}, {clipped:.0%} of its codes clipped to the box"
+        )
 
 
 if __name__ == "__main__":

@@ -85,8 +85,11 @@ from ede.training import train_group
 TASK = "Reacher-v5"
 PRECISIONS = list(get_args(Precision))
 # td3.compile's modes; an earlier commit without it is eager ("none") only.
-COMPILE_MODES = (list(get_args(TD3Config.model_fields["compile"].annotation))
-                 if "compile" in TD3Config.model_fields else ["none"])
+COMPILE_MODES = (
+    list(get_args(TD3Config.model_fields["compile"].annotation))
+    if "compile" in TD3Config.model_fields
+    else ["none"]
+)
 START = 1_000  # uniform random start steps, no updates
 WARMUP = START + 300  # steps per run of each row's untimed warm-up run
 
@@ -132,11 +135,24 @@ def sb3(steps: int, setting: Setting) -> float:
             return True
 
     env = gymnasium.make(TASK)
-    model = TD3("MlpPolicy", env, learning_rate=1e-3, buffer_size=steps, learning_starts=START,
-                batch_size=setting.batch_size, tau=0.005, gamma=0.99, train_freq=1,
-                gradient_steps=1, action_noise=NormalActionNoise(np.zeros(2), 0.1 * np.ones(2)),
-                policy_delay=2, policy_kwargs={"net_arch": setting.hidden}, seed=0,
-                device=setting.device, verbose=0)
+    model = TD3(
+        "MlpPolicy",
+        env,
+        learning_rate=1e-3,
+        buffer_size=steps,
+        learning_starts=START,
+        batch_size=setting.batch_size,
+        tau=0.005,
+        gamma=0.99,
+        train_freq=1,
+        gradient_steps=1,
+        action_noise=NormalActionNoise(np.zeros(2), 0.1 * np.ones(2)),
+        policy_delay=2,
+        policy_kwargs={"net_arch": setting.hidden},
+        seed=0,
+        device=setting.device,
+        verbose=0,
+    )
     clock = Clock()
     model.learn(total_timesteps=steps, callback=clock)
     _sync(setting.device)
@@ -147,22 +163,34 @@ def _embedding(device: str) -> ActionEmbedding:
     """An embedding of Reacher-v5's actions (k = 4, 2-dimensional codes), untrained."""
     torch.manual_seed(0)
     low, high = -np.ones(2), np.ones(2)
-    return ActionEmbedding(Encoder(4, 2, 2, [400, 400]),
-                           ActionDecoder(2, 4, low, high, [400, 400]),
-                           Whitening(np.zeros(2), np.ones(2)), bound=3.0).to(device)
+    return ActionEmbedding(
+        Encoder(4, 2, 2, [400, 400]),
+        ActionDecoder(2, 4, low, high, [400, 400]),
+        Whitening(np.zeros(2), np.ones(2)),
+        bound=3.0,
+    ).to(device)
 
 
-def ours(steps: int, setting: Setting, algo: str, precision: str, compile: str,
-         members: int) -> float:
+def ours(
+    steps: int, setting: Setting, algo: str, precision: str, compile: str, members: int
+) -> float:
     """Our ``algo``, ``members`` seeds as one group (one run if 1): aggregate steps/s from the
     end of the start steps (every member's) to the end of the last update."""
-    config = TD3Config(hidden=setting.hidden, batch_size=setting.batch_size, start_steps=START,
-                       buffer_size=steps, eval_every=10**9, eval_episodes=1,
-                       checkpoint_every=10**9, precision=precision, device=setting.device,
-                       update_schedule="step",  # as SB3: train_freq=1
-                       # (no compile key when eager: the script then also runs on commits from
-                       # before td3.compile, to measure them the same way)
-                       **({} if compile == "none" else {"compile": compile}))
+    config = TD3Config(
+        hidden=setting.hidden,
+        batch_size=setting.batch_size,
+        start_steps=START,
+        buffer_size=steps,
+        eval_every=10**9,
+        eval_episodes=1,
+        checkpoint_every=10**9,
+        precision=precision,
+        device=setting.device,
+        update_schedule="step",  # as SB3: train_freq=1
+        # (no compile key when eager: the script then also runs on commits from
+        # before td3.compile, to measure them the same way)
+        **({} if compile == "none" else {"compile": compile}),
+    )
     embedding = _embedding(setting.device) if algo == "ede-td3" else None
     specs = [RunSpec(TASK, algo, seed, steps, config, EdeTD3Config()) for seed in range(members)]
     times: dict[int, float] = {}
@@ -181,8 +209,13 @@ def ours(steps: int, setting: Setting, algo: str, precision: str, compile: str,
     return members * (steps - START) / (times[members * steps] - times[members * START])
 
 
-def warm(learner: Callable[..., float], steps: int, setting: Setting, *args: object,
-         compiled: bool = False) -> Timing:
+def warm(
+    learner: Callable[..., float],
+    steps: int,
+    setting: Setting,
+    *args: object,
+    compiled: bool = False,
+) -> Timing:
     """``learner`` timed after an untimed short run of its own; a compiled one compiles afresh
     there (``torch._dynamo.reset``: no graphs of other shapes, no recompile limit reached)."""
     if compiled:
@@ -213,8 +246,13 @@ def cpu_model() -> tuple[str, list[str]]:
 def onednn_kernels(precision: str) -> str:
     """The oneDNN kernels of one product under ``precision``, from a fresh interpreter."""
     code = f"import torch; torch.set_num_threads(1); from ede.nets import product_error; product_error({precision!r})"
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                            env={**os.environ, "ONEDNN_VERBOSE": "1"}, check=True)
+    result = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "ONEDNN_VERBOSE": "1"},
+        check=True,
+    )
     kernels = set()
     for line in result.stdout.splitlines():
         fields = line.split(",")
@@ -226,20 +264,26 @@ def onednn_kernels(precision: str) -> str:
 
 def describe_machine(precisions: list[str], device: str = "cpu") -> None:
     model, flags = cpu_model()
-    print(f"CPU: {model}; flags: {' '.join(flags) or '-'}; torch {torch.__version__}, "
-          f"CPU capability {torch.backends.cpu.get_cpu_capability()}")
+    print(
+        f"CPU: {model}; flags: {' '.join(flags) or '-'}; torch {torch.__version__}, "
+        f"CPU capability {torch.backends.cpu.get_cpu_capability()}"
+    )
     for precision in precisions:
         error = product_error(precision)
         kind = "fp32-accurate" if error < 1e-4 else "bf16-rounded inputs"
-        print(f"  {precision:<12} product error {error:.1e} ({kind}); oneDNN: {onednn_kernels(precision)}")
+        print(
+            f"  {precision:<12} product error {error:.1e} ({kind}); oneDNN: {onednn_kernels(precision)}"
+        )
     if device == "cuda":
         print(f"GPU: {torch.cuda.get_device_name()}")
 
 
 def _shape(setting: Setting) -> str:
-    return (f"{TASK}, {setting.device}, 1 torch thread, {'-'.join(map(str, setting.hidden))} "
-            f"networks, batch {setting.batch_size}, one update per step after {START:,} "
-            f"uniform random start steps")
+    return (
+        f"{TASK}, {setting.device}, 1 torch thread, {'-'.join(map(str, setting.hidden))} "
+        f"networks, batch {setting.batch_size}, one update per step after {START:,} "
+        f"uniform random start steps"
+    )
 
 
 def _mark(timing: Timing) -> str:
@@ -257,30 +301,43 @@ def table(args: argparse.Namespace, setting: Setting) -> None:
     for members in [1, *args.members]:
         for mode in args.compile:
             steps = args.steps if members == 1 else args.group_steps
-            timing = warm(ours, steps, setting, "td3", "fp32", mode, members,
-                          compiled=mode != "none")
+            timing = warm(
+                ours, steps, setting, "td3", "fp32", mode, members, compiled=mode != "none"
+            )
             if members == 1:
                 single[mode] = timing.rate
-            rows.append(("ours TD3, one run" if members == 1 else "ours TD3, group",
-                         mode, members, timing))
+            rows.append(
+                ("ours TD3, one run" if members == 1 else "ours TD3, group", mode, members, timing)
+            )
     print(_shape(setting))
-    print(f"Timed: the {args.steps - START:,} steps after the start steps of {args.steps:,}-step "
-          f"single runs; groups run {args.group_steps:,} steps per run (M x {args.group_steps:,} "
-          f"environment steps), timed over M x {args.group_steps - START:,}"
-          + (" (fewer per run, to keep this short; the rates count only timed steps)"
-             if args.group_steps < args.steps else "")
-          + f". Each row after an untimed {WARMUP:,}-step-per-run warm-up of its own.")
-    print(f"{'':<22} {'compile':<16} {'M':>2} {'steps/s':>9} {'x SB3':>6} "
-          f"{'per run':>9} {'x single':>8}")
+    print(
+        f"Timed: the {args.steps - START:,} steps after the start steps of {args.steps:,}-step "
+        f"single runs; groups run {args.group_steps:,} steps per run (M x {args.group_steps:,} "
+        f"environment steps), timed over M x {args.group_steps - START:,}"
+        + (
+            " (fewer per run, to keep this short; the rates count only timed steps)"
+            if args.group_steps < args.steps
+            else ""
+        )
+        + f". Each row after an untimed {WARMUP:,}-step-per-run warm-up of its own."
+    )
+    print(
+        f"{'':<22} {'compile':<16} {'M':>2} {'steps/s':>9} {'x SB3':>6} "
+        f"{'per run':>9} {'x single':>8}"
+    )
     print(f"{'stable-baselines3 TD3':<22} {'-':<16} {1:>2} {reference.rate:9.0f} {1:6.2f}")
     for label, mode, members, timing in rows:
-        line = (f"{label:<22} {mode:<16} {members:>2} {timing.rate:9.0f} "
-                f"{timing.rate / reference.rate:6.2f}")
+        line = (
+            f"{label:<22} {mode:<16} {members:>2} {timing.rate:9.0f} "
+            f"{timing.rate / reference.rate:6.2f}"
+        )
         if members > 1:
             line += f" {timing.rate / members:9.0f} {timing.rate / single[mode]:8.2f}"
         print(line + _mark(timing))
-    print("steps/s: all M runs together; per run: steps/s / M; x single: steps/s over the one "
-          "run's in the same compile mode")
+    print(
+        "steps/s: all M runs together; per run: steps/s / M; x single: steps/s over the one "
+        "run's in the same compile mode"
+    )
 
 
 def precisions(args: argparse.Namespace, setting: Setting) -> None:
@@ -291,22 +348,31 @@ def precisions(args: argparse.Namespace, setting: Setting) -> None:
     rows = []
     for precision in chosen:
         for mode in args.compile:
-            td3 = warm(ours, args.steps, setting, "td3", precision, mode, 1,
-                       compiled=mode != "none")
-            ede = warm(ours, args.steps, setting, "ede-td3", precision, mode, 1,
-                       compiled=mode != "none")
+            td3 = warm(
+                ours, args.steps, setting, "td3", precision, mode, 1, compiled=mode != "none"
+            )
+            ede = warm(
+                ours, args.steps, setting, "ede-td3", precision, mode, 1, compiled=mode != "none"
+            )
             rows.append((precision, mode, td3, ede))
     print(_shape(setting))
-    print(f"Timed: the {args.steps - START:,} steps after the start steps of {args.steps:,}-step "
-          f"runs, each after an untimed {WARMUP:,}-step warm-up of its own.")
-    print(f"{'':<22} {'precision':<12} {'compile':<16} {'steps/s':>9} {'x SB3':>6} "
-          f"{'x our TD3':>9}")
+    print(
+        f"Timed: the {args.steps - START:,} steps after the start steps of {args.steps:,}-step "
+        f"runs, each after an untimed {WARMUP:,}-step warm-up of its own."
+    )
+    print(
+        f"{'':<22} {'precision':<12} {'compile':<16} {'steps/s':>9} {'x SB3':>6} {'x our TD3':>9}"
+    )
     print(f"{'stable-baselines3 TD3':<22} {'-':<12} {'-':<16} {reference.rate:9.0f} {1:6.2f}")
     for precision, mode, td3, ede in rows:
-        print(f"{'ours TD3':<22} {precision:<12} {mode:<16} {td3.rate:9.0f} "
-              f"{td3.rate / reference.rate:6.2f}{_mark(td3)}")
-        print(f"{'ours EDE-TD3':<22} {precision:<12} {mode:<16} {ede.rate:9.0f} "
-              f"{ede.rate / reference.rate:6.2f} {ede.rate / td3.rate:9.2f}{_mark(ede)}")
+        print(
+            f"{'ours TD3':<22} {precision:<12} {mode:<16} {td3.rate:9.0f} "
+            f"{td3.rate / reference.rate:6.2f}{_mark(td3)}"
+        )
+        print(
+            f"{'ours EDE-TD3':<22} {precision:<12} {mode:<16} {ede.rate:9.0f} "
+            f"{ede.rate / reference.rate:6.2f} {ede.rate / td3.rate:9.2f}{_mark(ede)}"
+        )
 
 
 def _list(kind: Callable[[str], object], choices: list[str] | None = None) -> Callable[[str], list]:
@@ -315,33 +381,58 @@ def _list(kind: Callable[[str], object], choices: list[str] | None = None) -> Ca
         bad = [item for item in items if choices is not None and item not in choices]
         if not items or bad:
             raise argparse.ArgumentTypeError(
-                f"expected a comma-separated list{' of ' + ', '.join(choices) if choices else ''}")
+                f"expected a comma-separated list{' of ' + ', '.join(choices) if choices else ''}"
+            )
         return items
+
     return parse
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__.splitlines()[0],
-        epilog="See the module docstring (top of this file) for what each row measures.")
-    parser.add_argument("--hidden", type=_list(int), default=[400, 300],
-                        help="hidden widths, comma-separated (default 400,300: the paper's)")
+        epilog="See the module docstring (top of this file) for what each row measures.",
+    )
+    parser.add_argument(
+        "--hidden",
+        type=_list(int),
+        default=[400, 300],
+        help="hidden widths, comma-separated (default 400,300: the paper's)",
+    )
     parser.add_argument("--batch-size", type=int, default=100, help="default 100: the paper's")
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    parser.add_argument("--steps", type=int, default=5_000,
-                        help=f"steps of a single run, the first {START:,} untimed (default 5000)")
-    parser.add_argument("--group-steps", type=int,
-                        help=f"steps per run of a group, the first {START:,} untimed (default: "
-                        f"{START:,} plus half of --steps' timed steps, 3000 at --steps 5000)")
-    parser.add_argument("--members", type=_list(int), default=[4, 8],
-                        help="group sizes, comma-separated (default 4,8)")
-    parser.add_argument("--compile", type=_list(str, COMPILE_MODES), default=["none", "default"],
-                        help="td3.compile modes, comma-separated: none, default, reduce-overhead "
-                        "(CUDA only); default none,default")
-    parser.add_argument("--precisions", type=_list(str, [*PRECISIONS, "all"]),
-                        help="measure our TD3 and EDE-TD3 in these td3.precision values "
-                        f"({', '.join(PRECISIONS)} or all) instead of the groups table "
-                        "(--members and --group-steps then unused)")
+    parser.add_argument(
+        "--steps",
+        type=int,
+        default=5_000,
+        help=f"steps of a single run, the first {START:,} untimed (default 5000)",
+    )
+    parser.add_argument(
+        "--group-steps",
+        type=int,
+        help=f"steps per run of a group, the first {START:,} untimed (default: "
+        f"{START:,} plus half of --steps' timed steps, 3000 at --steps 5000)",
+    )
+    parser.add_argument(
+        "--members",
+        type=_list(int),
+        default=[4, 8],
+        help="group sizes, comma-separated (default 4,8)",
+    )
+    parser.add_argument(
+        "--compile",
+        type=_list(str, COMPILE_MODES),
+        default=["none", "default"],
+        help="td3.compile modes, comma-separated: none, default, reduce-overhead "
+        "(CUDA only); default none,default",
+    )
+    parser.add_argument(
+        "--precisions",
+        type=_list(str, [*PRECISIONS, "all"]),
+        help="measure our TD3 and EDE-TD3 in these td3.precision values "
+        f"({', '.join(PRECISIONS)} or all) instead of the groups table "
+        "(--members and --group-steps then unused)",
+    )
     args = parser.parse_args()
     if args.group_steps is None:
         args.group_steps = START + (args.steps - START) // 2

@@ -84,7 +84,9 @@ class ArtifactMeta(_Meta):
 
     def content_sha256(self) -> str:
         """The SHA-256 of the result-relevant fields as they are: what ``meta_sha256`` must be."""
-        content = self.model_dump(mode="json", exclude=PROVENANCE | {"weights_sha256", "meta_sha256"})
+        content = self.model_dump(
+            mode="json", exclude=PROVENANCE | {"weights_sha256", "meta_sha256"}
+        )
         return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()
 
     @property
@@ -121,7 +123,8 @@ class DecoderMeta(ArtifactMeta):
     hidden: list[int]
     bound: float = Field(gt=0, description="largest whitened |z| seen: the EDE actor's bound")
     output_range: Literal["bounds", "unit"] = Field(
-        "bounds", description="the decoder's squashing (DecoderConfig.output_range)")
+        "bounds", description="the decoder's squashing (DecoderConfig.output_range)"
+    )
     code_whitening: WhiteningMeta
     params: dict[str, Any]
     data_fingerprint: str
@@ -132,8 +135,9 @@ class DecoderMeta(ArtifactMeta):
 KIND: dict[type, str] = {EncoderMeta: "encoder", DecoderMeta: "decoder"}
 
 
-def _save(path: Path, modules: dict[str, nn.Module], meta: dict[str, Any],
-          model: type[ArtifactMeta]) -> None:
+def _save(
+    path: Path, modules: dict[str, nn.Module], meta: dict[str, Any], model: type[ArtifactMeta]
+) -> None:
     def write(tmp: Path) -> None:
         tensors = {
             f"{name}.{key}": value.detach().cpu().contiguous()
@@ -141,8 +145,14 @@ def _save(path: Path, modules: dict[str, nn.Module], meta: dict[str, Any],
             for key, value in module.state_dict().items()
         }
         save_tensors(tensors, tmp / WEIGHTS)
-        validated = model.model_validate({**meta, "software": software_versions(),
-                                          "weights_sha256": sha256(tmp / WEIGHTS), "meta_sha256": ""})
+        validated = model.model_validate(
+            {
+                **meta,
+                "software": software_versions(),
+                "weights_sha256": sha256(tmp / WEIGHTS),
+                "meta_sha256": "",
+            }
+        )
         sealed = validated.model_copy(update={"meta_sha256": validated.content_sha256()})
         (tmp / META).write_text(sealed.model_dump_json(indent=2) + "\n")
 
@@ -155,20 +165,25 @@ M = TypeVar("M", bound=ArtifactMeta)
 def _load_meta(path: Path, model: type[M]) -> tuple[M, dict[str, torch.Tensor]]:
     meta_file, weights_file = path / META, path / WEIGHTS
     if not meta_file.is_file() or not weights_file.is_file():
-        raise ArtifactError(f"{path}: no {model.__name__.removesuffix('Meta').lower()} here "
-                            f"(expected {META} and {WEIGHTS}; run `ede-pipeline pretrain`)")
+        raise ArtifactError(
+            f"{path}: no {model.__name__.removesuffix('Meta').lower()} here "
+            f"(expected {META} and {WEIGHTS}; run `ede-pipeline pretrain`)"
+        )
     try:
         meta = model.model_validate_json(meta_file.read_text())
     except ValidationError as error:
         first = error.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
         if first["loc"] == ("meta_sha256",) and first["type"] == "missing":
-            raise ArtifactError(f"{meta_file}: records no meta_sha256 (made by an earlier version); "
-                                f"{AGAIN}") from None
+            raise ArtifactError(
+                f"{meta_file}: records no meta_sha256 (made by an earlier version); {AGAIN}"
+            ) from None
         raise ArtifactError(f"{meta_file}: {where}: {first['msg']}") from None
     if meta.content_sha256() != meta.meta_sha256:
-        raise ArtifactError(f"{meta_file}: does not match its checksum (meta_sha256): edited or "
-                            f"damaged since it was made; {AGAIN}")
+        raise ArtifactError(
+            f"{meta_file}: does not match its checksum (meta_sha256): edited or "
+            f"damaged since it was made; {AGAIN}"
+        )
     if sha256(weights_file) != meta.weights_sha256:
         raise ArtifactError(f"{weights_file}: does not match the checksum in {META}")
     try:
@@ -184,8 +199,10 @@ def _fill(path: Path, name: str, module: nn.Module, tensors: dict[str, torch.Ten
     found = {k.removeprefix(f"{name}."): v for k, v in tensors.items() if k.startswith(f"{name}.")}
     if set(found) != set(expected):
         missing, extra = set(expected) - set(found), set(found) - set(expected)
-        raise ArtifactError(f"{path / WEIGHTS}: {name} tensors differ (missing {sorted(missing)}, "
-                            f"unexpected {sorted(extra)})")
+        raise ArtifactError(
+            f"{path / WEIGHTS}: {name} tensors differ (missing {sorted(missing)}, "
+            f"unexpected {sorted(extra)})"
+        )
     for key, value in expected.items():
         if found[key].shape != value.shape:
             raise ArtifactError(
@@ -227,7 +244,9 @@ def save_encoder(
     _save(path, {"encoder": encoder, "predictor": result.predictor}, meta, EncoderMeta)
 
 
-def load_encoder(path: str | Path, device: torch.device | str = "cpu") -> tuple[EncoderMeta, EncoderResult]:
+def load_encoder(
+    path: str | Path, device: torch.device | str = "cpu"
+) -> tuple[EncoderMeta, EncoderResult]:
     """Load an encoder artifact as an :class:`EncoderResult` (history and metrics empty)."""
     path = Path(path)
     meta, tensors = _load_meta(path, EncoderMeta)
@@ -286,11 +305,15 @@ def load_action_embedding(
     encoder_meta, encoded = load_encoder(encoder_path)
     meta, tensors = _load_meta(decoder_path, DecoderMeta)
     if meta.encoder_sha256 != encoder_meta.identity:
-        raise ArtifactError(f"{decoder_path}: was trained against another encoder than {encoder_path}")
+        raise ArtifactError(
+            f"{decoder_path}: was trained against another encoder than {encoder_path}"
+        )
     low, high = np.asarray(meta.action_space.low), np.asarray(meta.action_space.high)
     decoder = ActionDecoder(meta.dim, meta.k, low, high, meta.hidden, meta.output_range)
     _fill(decoder_path, "decoder", decoder, tensors)
-    embedding = ActionEmbedding(encoded.encoder, decoder, meta.code_whitening.whitening(), meta.bound)
+    embedding = ActionEmbedding(
+        encoded.encoder, decoder, meta.code_whitening.whitening(), meta.bound
+    )
     return meta, embedding.to(device)
 
 
@@ -322,22 +345,31 @@ def params_mismatches(
     lines: list[str] = []
 
     def differ(name: str, made: Any, given: str) -> None:
-        lines.append(f"{path}: made with {name} = {_show(made)}, but params.yaml has {name} = {given}")
+        lines.append(
+            f"{path}: made with {name} = {_show(made)}, but params.yaml has {name} = {given}"
+        )
 
     if meta.k != embedding.k:
         differ("embedding.k", meta.k, _show(embedding.k))
     size = len(meta.action_space.low) if action_size is None else action_size
     if meta.dim != (size if embedding.dim is None else embedding.dim):
-        differ("embedding.dim", meta.dim, _show(embedding.dim) if embedding.dim is not None
-               else f"null (the action size, {size})")
+        differ(
+            "embedding.dim",
+            meta.dim,
+            _show(embedding.dim)
+            if embedding.dim is not None
+            else f"null (the action size, {size})",
+        )
     sections: list[tuple[str, EmbeddingConfig | DecoderConfig]] = [("embedding", embedding)]
     if decoder is not None:
         sections.append(("decoder", decoder))
     for section, config in sections:
         recorded = meta.params.get(section)
         if not isinstance(recorded, dict):
-            lines.append(f"{path}: records no {section} params, so it cannot be checked against "
-                         "params.yaml; make it again (`ede-pipeline pretrain`)")
+            lines.append(
+                f"{path}: records no {section} params, so it cannot be checked against "
+                "params.yaml; make it again (`ede-pipeline pretrain`)"
+            )
             continue
         given = config.model_dump(mode="json")
         done = result_neutral(type(config)) | ({"k", "dim"} if section == "embedding" else set())
@@ -346,11 +378,15 @@ def params_mismatches(
             if key in done:
                 continue
             if key not in recorded:
-                lines.append(f"{path}: made with no record of {name}, but params.yaml has "
-                             f"{name} = {_show(given[key])}")
+                lines.append(
+                    f"{path}: made with no record of {name}, but params.yaml has "
+                    f"{name} = {_show(given[key])}"
+                )
             elif key not in given:
-                lines.append(f"{path}: made with {name} = {_show(recorded[key])}, which params.yaml "
-                             "does not have")
+                lines.append(
+                    f"{path}: made with {name} = {_show(recorded[key])}, which params.yaml "
+                    "does not have"
+                )
             elif recorded[key] != given[key]:
                 differ(name, recorded[key], _show(given[key]))
     return lines

@@ -16,8 +16,19 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["MARK", "NotOurs", "NotWritten", "claim", "ownership_problem",
-           "remove_stale_temporaries", "save_tensors", "sha256", "write_atomically", "write_json", "write_text"]
+__all__ = [
+    "MARK",
+    "NotOurs",
+    "NotWritten",
+    "claim",
+    "ownership_problem",
+    "remove_stale_temporaries",
+    "save_tensors",
+    "sha256",
+    "write_atomically",
+    "write_json",
+    "write_text",
+]
 
 # Every folder a stage writes holds this file: what wrote it (its ``kind``) and the names of the
 # entries it owns (fnmatch patterns). A stage replaces or writes into an existing folder only where
@@ -36,8 +47,11 @@ class NotWritten(OSError):
 
     def __init__(self, path: Path, error: OSError) -> None:
         self.reason = str(error.strerror or error)
-        super().__init__(error.errno, f"{path}: not written ({self.reason}); nothing of it is "
-                         "left, and what was there before is as it was")
+        super().__init__(
+            error.errno,
+            f"{path}: not written ({self.reason}); nothing of it is "
+            "left, and what was there before is as it was",
+        )
 
 
 def ownership_problem(path: str | Path, kind: str) -> str | None:
@@ -51,16 +65,25 @@ def ownership_problem(path: str | Path, kind: str) -> str | None:
         return None
     mark = _read_mark(path)
     if mark is None:
-        return (f"{path}: holds {_listed(entries)}, which no ede stage wrote there; expected a new "
-                f"or empty folder, or {_a(kind)} written before: move them, or choose another place")
+        return (
+            f"{path}: holds {_listed(entries)}, which no ede stage wrote there; expected a new "
+            f"or empty folder, or {_a(kind)} written before: move them, or choose another place"
+        )
     if mark["kind"] != kind:
-        return (f"{path}: holds {_a(mark['kind'])}, not {_a(kind)}; choose another place (a stage "
-                "replaces only its own kind of output)")
-    foreign = [name for name in entries
-               if name != MARK and not any(fnmatchcase(name, own) for own in mark["owns"])]
+        return (
+            f"{path}: holds {_a(mark['kind'])}, not {_a(kind)}; choose another place (a stage "
+            "replaces only its own kind of output)"
+        )
+    foreign = [
+        name
+        for name in entries
+        if name != MARK and not any(fnmatchcase(name, own) for own in mark["owns"])
+    ]
     if foreign:
-        return (f"{path}: holds {_listed(foreign)} beside the {kind} written there; move "
-                f"{'it' if len(foreign) == 1 else 'them'} out first")
+        return (
+            f"{path}: holds {_listed(foreign)} beside the {kind} written there; move "
+            f"{'it' if len(foreign) == 1 else 'them'} out first"
+        )
     return None
 
 
@@ -69,9 +92,12 @@ def _read_mark(folder: Path) -> dict[str, Any] | None:
         mark = json.loads((folder / MARK).read_text())
     except (OSError, ValueError):
         return None
-    if not (isinstance(mark, dict) and isinstance(mark.get("kind"), str)
-            and isinstance(mark.get("owns"), list)
-            and all(isinstance(name, str) for name in mark["owns"])):
+    if not (
+        isinstance(mark, dict)
+        and isinstance(mark.get("kind"), str)
+        and isinstance(mark.get("owns"), list)
+        and all(isinstance(name, str) for name in mark["owns"])
+    ):
         return None
     return mark
 

@@ -39,18 +39,33 @@ from ede.errors import first_line
 from ede.runs import identity_difference
 
 if TYPE_CHECKING:
-    from ede.td3 import Agent, CodeExecutor, ReplayBuffer
     from ede.runs import RunSpec
+    from ede.td3 import Agent, CodeExecutor, ReplayBuffer
 
-__all__ = ["VERSION", "Checkpoint", "CheckpointError", "CheckpointWriteError", "Episode",
-           "Layout", "apply", "read", "write"]
+__all__ = [
+    "VERSION",
+    "Checkpoint",
+    "CheckpointError",
+    "CheckpointWriteError",
+    "Episode",
+    "Layout",
+    "apply",
+    "read",
+    "write",
+]
 
 VERSION = 5  # 2: diagnostics; 3: checksums, identity; 4: a member's slice; 5: named parameters
 CHECKSUMS = "checksums.json"
 FILES = ("state.safetensors", "state.json")  # what CHECKSUMS signs
 STATE = {  # state.json's values beside its version and identity, and their JSON types
-    "step": int, "episodes": int, "i": int, "wall_seconds": (int, float),
-    "episode_start": dict, "episode_return": (int, float), "history": list, "diagnostics": list,
+    "step": int,
+    "episodes": int,
+    "i": int,
+    "wall_seconds": (int, float),
+    "episode_start": dict,
+    "episode_return": (int, float),
+    "history": list,
+    "diagnostics": list,
 }
 
 Shapes = dict[str, tuple[tuple[int, ...], torch.dtype]]
@@ -131,13 +146,18 @@ class Layout:
     plan: tuple[int, ...]  # (K, A): a code's actions
 
     @classmethod
-    def of(cls, agent: Agent, buffer: ReplayBuffer, obs: tuple[int, ...],
-           plan: tuple[int, ...]) -> Layout:
+    def of(
+        cls, agent: Agent, buffer: ReplayBuffer, obs: tuple[int, ...], plan: tuple[int, ...]
+    ) -> Layout:
         """The layout of a group's members, from its agent and its (still empty) buffer."""
         rows = {k: v for k, v in buffer.state_dict(0).items() if k != "count"}
-        return cls(_shapes(agent.state_dict(0)),
-                   {k: (tuple(v.shape[1:]), v.dtype) for k, v in rows.items()},
-                   buffer.capacity, tuple(obs), tuple(plan))
+        return cls(
+            _shapes(agent.state_dict(0)),
+            {k: (tuple(v.shape[1:]), v.dtype) for k, v in rows.items()},
+            buffer.capacity,
+            tuple(obs),
+            tuple(plan),
+        )
 
 
 def read(path: Path, spec: RunSpec, layout: Layout) -> Checkpoint:
@@ -152,15 +172,22 @@ def read(path: Path, spec: RunSpec, layout: Layout) -> Checkpoint:
         raise CheckpointError("not a folder")
     state = _verified_state(path)
     if state.get("version") != VERSION:
-        raise CheckpointError(f"format version {state.get('version')}, this version reads "
-                              f"{VERSION}")
+        raise CheckpointError(
+            f"format version {state.get('version')}, this version reads {VERSION}"
+        )
     if state.get("fingerprint") != spec.fingerprint():
-        raise CheckpointError("another run's: " + (identity_difference(
-            state.get("identity"), spec.identity()) or "made by another configuration"))
+        raise CheckpointError(
+            "another run's: "
+            + (
+                identity_difference(state.get("identity"), spec.identity())
+                or "made by another configuration"
+            )
+        )
     for key, kind in STATE.items():
         if not isinstance(state.get(key), kind):
-            raise CheckpointError(f"state.json: {key} is missing or not a "
-                                  f"{getattr(kind, '__name__', 'number')}")
+            raise CheckpointError(
+                f"state.json: {key} is missing or not a {getattr(kind, '__name__', 'number')}"
+            )
     try:
         tensors = load_file(path / "state.safetensors")
     except (SafetensorError, OSError) as error:
@@ -172,8 +199,11 @@ def read(path: Path, spec: RunSpec, layout: Layout) -> Checkpoint:
         code=tensors["code"],
         plan=tensors["plan"].numpy(),
         i=state["i"],
-        episode=Episode(state["episode_start"], list(tensors["episode_actions"].numpy()),
-                        state["episode_return"]),
+        episode=Episode(
+            state["episode_start"],
+            list(tensors["episode_actions"].numpy()),
+            state["episode_return"],
+        ),
         obs=tensors["obs"].numpy(),
         episodes=state["episodes"],
         history=state["history"],
@@ -182,8 +212,14 @@ def read(path: Path, spec: RunSpec, layout: Layout) -> Checkpoint:
     )
 
 
-def apply(checkpoint: Checkpoint, agent: Agent, buffer: ReplayBuffer, member: int,
-          executor: CodeExecutor, env: gymnasium.Env) -> tuple[np.ndarray, Episode]:
+def apply(
+    checkpoint: Checkpoint,
+    agent: Agent,
+    buffer: ReplayBuffer,
+    member: int,
+    executor: CodeExecutor,
+    env: gymnasium.Env,
+) -> tuple[np.ndarray, Episode]:
     """Continue ``member`` from a read checkpoint: replay its episode on ``env``, then, once that
     reached the saved observation, load the agent's and the buffer's member and the executor.
 
@@ -201,8 +237,9 @@ def apply(checkpoint: Checkpoint, agent: Agent, buffer: ReplayBuffer, member: in
     except (ValueError, TypeError, KeyError) as error:  # a start the environment rejects
         raise CheckpointError(f"not restorable ({first_line(error)})") from None
     if not np.array_equal(obs, checkpoint.obs):
-        raise CheckpointError("not restorable (replaying the episode did not reach the saved "
-                              "state)")
+        raise CheckpointError(
+            "not restorable (replaying the episode did not reach the saved state)"
+        )
     agent.load_state_dict(member, checkpoint.agent)
     buffer.load_state_dict(member, checkpoint.buffer)
     executor.code = checkpoint.code.to(executor.code.device)
@@ -241,8 +278,9 @@ def write(path: Path, spec: RunSpec, checkpoint: Checkpoint) -> None:
     }
 
     def fill(tmp: Path) -> None:
-        save_tensors({k: v.detach().cpu().clone() for k, v in tensors.items()},
-                     tmp / "state.safetensors")
+        save_tensors(
+            {k: v.detach().cpu().clone() for k, v in tensors.items()}, tmp / "state.safetensors"
+        )
         (tmp / "state.json").write_text(json.dumps(state, allow_nan=False))
         sums = {name: sha256(tmp / name) for name in FILES}
         (tmp / CHECKSUMS).write_text(json.dumps(sums, allow_nan=False))
@@ -251,8 +289,9 @@ def write(path: Path, spec: RunSpec, checkpoint: Checkpoint) -> None:
         write_atomically(path, fill, kind="checkpoint")
     except OSError as error:
         reason = error.reason if isinstance(error, NotWritten) else error.strerror or error
-        raise CheckpointWriteError(f"{path}: not written ({reason}); "
-                                   "the previous checkpoint is kept") from None
+        raise CheckpointWriteError(
+            f"{path}: not written ({reason}); the previous checkpoint is kept"
+        ) from None
 
 
 def _to_json(row: dict[str, float]) -> dict[str, float | None]:
@@ -271,12 +310,12 @@ def _shapes(tensors: Mapping[str, torch.Tensor]) -> Shapes:
 
 def _part(tensors: Mapping[str, torch.Tensor], owner: str) -> dict[str, torch.Tensor]:
     """The tensors of ``owner`` ("agent", "buffer"), without its prefix."""
-    return {k.removeprefix(f"{owner}."): v for k, v in tensors.items()
-            if k.startswith(f"{owner}.")}
+    return {k.removeprefix(f"{owner}."): v for k, v in tensors.items() if k.startswith(f"{owner}.")}
 
 
-def _check_tensors(tensors: Mapping[str, torch.Tensor], state: dict[str, Any],
-                   layout: Layout) -> None:
+def _check_tensors(
+    tensors: Mapping[str, torch.Tensor], state: dict[str, Any], layout: Layout
+) -> None:
     """Every tensor ``layout`` calls for, of its shape and dtype, and no other; the buffer holding
     ``state``'s steps."""
     _expect(tensors, "buffer.count", (), torch.int64)
@@ -285,9 +324,11 @@ def _check_tensors(tensors: Mapping[str, torch.Tensor], state: dict[str, Any],
         raise CheckpointError("the replay buffer does not hold the run's steps")
     rows = min(count, layout.capacity)
     expected: dict[str, tuple[tuple[int | None, ...], torch.dtype | None]] = {
-        f"agent.{k}": v for k, v in layout.agent.items()}
-    expected |= {f"buffer.{k}": ((rows, *shape), dtype)
-                 for k, (shape, dtype) in layout.buffer.items()}
+        f"agent.{k}": v for k, v in layout.agent.items()
+    }
+    expected |= {
+        f"buffer.{k}": ((rows, *shape), dtype) for k, (shape, dtype) in layout.buffer.items()
+    }
     expected |= {  # the executor's and the episode's: in the environment's dtypes
         "buffer.count": ((), torch.int64),
         "code": (layout.buffer["code"][0], None),
@@ -304,18 +345,25 @@ def _check_tensors(tensors: Mapping[str, torch.Tensor], state: dict[str, Any],
         raise CheckpointError(f"i = {state['i']}, not a step of a code of {layout.plan[0]}")
 
 
-def _expect(tensors: Mapping[str, torch.Tensor], name: str, shape: tuple[int | None, ...],
-            dtype: torch.dtype | None = None) -> None:
+def _expect(
+    tensors: Mapping[str, torch.Tensor],
+    name: str,
+    shape: tuple[int | None, ...],
+    dtype: torch.dtype | None = None,
+) -> None:
     """``tensors[name]`` has ``shape`` (None: any size) and ``dtype`` (None: any)."""
     if name not in tensors:
         raise CheckpointError(f"{name} is missing")
     found = tensors[name]
     fits = len(found.shape) == len(shape) and all(
-        e is None or e == f for e, f in zip(shape, found.shape))
+        e is None or e == f for e, f in zip(shape, found.shape, strict=True)
+    )
     if not fits or (dtype is not None and found.dtype != dtype):
         wanted = "[" + ", ".join("any" if e is None else str(e) for e in shape) + "]"
-        raise CheckpointError(f"{name} is {list(found.shape)} {found.dtype}, expected {wanted}"
-                              + ("" if dtype is None else f" {dtype}"))
+        raise CheckpointError(
+            f"{name} is {list(found.shape)} {found.dtype}, expected {wanted}"
+            + ("" if dtype is None else f" {dtype}")
+        )
 
 
 def _verified_state(path: Path) -> dict[str, Any]:
@@ -335,4 +383,3 @@ def _verified_state(path: Path) -> dict[str, Any]:
     if not isinstance(state, dict):
         raise CheckpointError("state.json is not an object")
     return state
-

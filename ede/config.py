@@ -33,18 +33,18 @@ from ede.errors import first_line
 __all__ = [
     "ALGOS",
     "ALGO_LABELS",
+    "SEED_MAX",
+    "SEED_RANGE",
     "Algo",
     "CollectConfig",
     "DecoderConfig",
     "EdeTD3Config",
     "EmbeddingConfig",
     "FamilyConfig",
-    "ParamsError",
     "Params",
+    "ParamsError",
     "ReportConfig",
     "RunsConfig",
-    "SEED_MAX",
-    "SEED_RANGE",
     "TD3Config",
     "episode_length",
     "is_seed",
@@ -87,7 +87,8 @@ def _seed(value: int) -> int:
 
 
 Seed = Annotated[
-    int, AfterValidator(_seed),
+    int,
+    AfterValidator(_seed),
     Field(description="seed of every random number generator of a stage"),
 ]
 
@@ -110,9 +111,12 @@ Device = Annotated[
 ]
 Threads = Annotated[
     int,
-    Field(gt=0, description="torch threads on CPU: 1 is fastest for networks this small and "
-          "lets stages and runs share the cores (more threads than cores slows everything)",
-          json_schema_extra=RESULT_NEUTRAL),
+    Field(
+        gt=0,
+        description="torch threads on CPU: 1 is fastest for networks this small and "
+        "lets stages and runs share the cores (more threads than cores slows everything)",
+        json_schema_extra=RESULT_NEUTRAL,
+    ),
 ]
 Precision = Literal["fp32", "bf16-matmul", "bf16"]
 
@@ -138,9 +142,12 @@ class _Section(BaseModel):
 
 def result_neutral(section: type[BaseModel]) -> frozenset[str]:
     """The keys of ``section`` marked :data:`RESULT_NEUTRAL`: where or how fast it runs."""
-    return frozenset(name for name, field in section.model_fields.items()
-                     if isinstance(field.json_schema_extra, dict)
-                     and field.json_schema_extra.get("result_neutral"))
+    return frozenset(
+        name
+        for name, field in section.model_fields.items()
+        if isinstance(field.json_schema_extra, dict)
+        and field.json_schema_extra.get("result_neutral")
+    )
 
 
 class FamilyConfig(_Section):
@@ -163,9 +170,13 @@ class CollectConfig(_Section):
     )
     seed: Seed = 0
     saturated_episodes: float = Field(
-        0.0, ge=0, le=1, description="share of episodes whose actions are bang-bang (each "
+        0.0,
+        ge=0,
+        le=1,
+        description="share of episodes whose actions are bang-bang (each "
         "component at its low or high bound, equally likely) instead of uniform; 0 is the "
-        "paper's uniform random data (beyond the paper: docs/results.md, HalfCheetah-v5)")
+        "paper's uniform random data (beyond the paper: docs/results.md, HalfCheetah-v5)",
+    )
 
 
 class EmbeddingConfig(_Section):
@@ -179,19 +190,22 @@ class EmbeddingConfig(_Section):
     batch_size: PositiveInt = 128
     epochs: PositiveInt = Field(10, description="passes over the training windows")
     window_stride: PositiveInt = Field(
-        1, description="training windows start every this many steps of an episode: 1 uses every "
+        1,
+        description="training windows start every this many steps of an episode: 1 uses every "
         "window (overlapping); k gives non-overlapping windows, as the authors' code (which also "
-        "collects 400K steps for its 100K windows: collect.steps 400000)"
+        "collects 400K steps for its 100K windows: collect.steps 400000)",
     )
     predictor_state: bool = Field(
-        True, description="whether P sees the state s_t; false feeds it a constant, as the "
+        True,
+        description="whether P sees the state s_t; false feeds it a constant, as the "
         "authors' code does in effect (its delta-encoded first row is always zero), so P predicts "
-        "the change from the code alone"
+        "the change from the code alone",
     )
     change_whitening: Literal["final", "all"] = Field(
-        "final", description="moments that whiten P's target, the k-step change: its own "
+        "final",
+        description="moments that whiten P's target, the k-step change: its own "
         "('final'), or those of the changes after 0..k steps pooled, as the authors' code ('all': "
-        "a smaller spread, so the target's variance exceeds 1; docs/fidelity.md, row 6a)"
+        "a smaller spread, so the target's variance exceeds 1; docs/fidelity.md, row 6a)",
     )
     holdout: float = Field(0.1, gt=0, lt=1, description="fraction of episodes never trained on")
     seed: Seed = 0
@@ -203,8 +217,10 @@ class DecoderConfig(_Section):
     """Stage 3: the decoder D, the minimum-norm one-sided inverse of E (Section 2.3)."""
 
     lam: float = Field(
-        1e-4, ge=0, description="weight λ of the norm penalty: the sum over the batch and the k "
-        "steps of ‖a‖, the authors' weighting (README, Stages 2 and 3)"
+        1e-4,
+        ge=0,
+        description="weight λ of the norm penalty: the sum over the batch and the k "
+        "steps of ‖a‖, the authors' weighting (README, Stages 2 and 3)",
     )
     z_source: Literal["prior", "marginal"] = Field(
         "marginal",
@@ -212,9 +228,10 @@ class DecoderConfig(_Section):
         "marginal on the rollouts as the authors' code does",
     )
     output_range: Literal["bounds", "unit"] = Field(
-        "bounds", description="how D's tanh becomes actions: mapped onto the action box "
+        "bounds",
+        description="how D's tanh becomes actions: mapped onto the action box "
         "('bounds'), or kept in [-1, 1] and clipped to the box as the authors' code ('unit': "
-        "within ±1 on the 7-DoF family's ±2 box; docs/fidelity.md, row 11a)"
+        "within ±1 on the 7-DoF family's ±2 box; docs/fidelity.md, row 11a)",
     )
     hidden: HiddenSizes = Field(default_factory=lambda: [400, 400])
     lr: float = Field(1e-4, gt=0)
@@ -238,31 +255,39 @@ class TD3Config(_Section):
     policy_delay: PositiveInt = Field(2, description="critic updates per actor update")
     exploration_noise: float = Field(0.1, ge=0, description="behaviour noise std (noise_units)")
     noise_units: Literal["absolute", "range"] = Field(
-        "absolute", description="TD3's noises in action units (sfujim's TD3, the authors' code) or "
+        "absolute",
+        description="TD3's noises in action units (sfujim's TD3, the authors' code) or "
         "× the half-range of the action box (range: stable-baselines3); the same on a ±1 box. "
-        "EDE-TD3's are × its bound (ede_td3); docs/fidelity.md, row 8d"
+        "EDE-TD3's are × its bound (ede_td3); docs/fidelity.md, row 8d",
     )
     critic_action_repeat: Repeat = Field(
-        1, description="copies of (action or code, plan step) the critic sees; auto: the authors' "
+        1,
+        description="copies of (action or code, plan step) the critic sees; auto: the authors' "
         "max(1, ⌊0.5·obs size / their size⌋); 1: standard TD3 (stable-baselines3); docs/fidelity.md, "
-        "rows 7a–7b"
+        "rows 7a–7b",
     )
     start_steps: int = Field(
-        0, ge=0, description="uniform random steps before the policy acts and updates start; 0 (the "
+        0,
+        ge=0,
+        description="uniform random steps before the policy acts and updates start; 0 (the "
         "authors' code): the actor plus exploration noise acts from the first step, and updates "
-        "start as soon as a batch can be sampled"
+        "start as soon as a batch can be sampled",
     )
     update_schedule: Literal["step", "episode"] = Field(
-        "episode", description="episode (the authors' code): at each episode's end as many "
+        "episode",
+        description="episode (the authors' code): at each episode's end as many "
         "updates as it had steps, the policy fixed while it collects; step: one update after "
         "every environment step (the paper's text, standard TD3). "
-        "docs/fidelity.md, row 2: it moves TD3's result"
+        "docs/fidelity.md, row 2: it moves TD3's result",
     )
     buffer_size: PositiveInt = 1_000_000
-    eval_every: PositiveInt = Field(1_000, description="steps between evaluations (the authors' code)")
+    eval_every: PositiveInt = Field(
+        1_000, description="steps between evaluations (the authors' code)"
+    )
     eval_episodes: PositiveInt = 10
     checkpoint_every: PositiveInt = Field(
-        50_000, description="steps between a run's checkpoints", json_schema_extra=RESULT_NEUTRAL)
+        50_000, description="steps between a run's checkpoints", json_schema_extra=RESULT_NEUTRAL
+    )
     precision: Precision = Field(
         "fp32",
         description="fp32; bf16-matmul: fp32 tensors, matrix products from bf16 inputs with fp32 "
@@ -271,9 +296,10 @@ class TD3Config(_Section):
     device: Device = "cpu"
     threads: Threads = 1
     compile: Literal["none", "default", "reduce-overhead"] = Field(
-        "none", description="how the update runs: eager (none), compiled whole with "
+        "none",
+        description="how the update runs: eager (none), compiled whole with "
         "torch.compile (default), or compiled and captured as a CUDA graph on a GPU "
-        "(reduce-overhead); leaves results alone beyond rounding (README, \"Stage 4: train\")",
+        '(reduce-overhead); leaves results alone beyond rounding (README, "Stage 4: train")',
         json_schema_extra=RESULT_NEUTRAL,
     )
 
@@ -285,19 +311,23 @@ class EdeTD3Config(_Section):
         1.0, gt=0, description="the actor's |z| bound, × the largest whitened |z| the decoder saw"
     )
     target_noise_scale: float = Field(
-        0.25, gt=0, description="target smoothing noise std, × td3.policy_noise × the bound; "
+        0.25,
+        gt=0,
+        description="target smoothing noise std, × td3.policy_noise × the bound; "
         "0.25 = 1/k for k = 4, as the authors' code (one code moves the state k steps, so the "
-        "same noise on it perturbs k actions)"
+        "same noise on it perturbs k actions)",
     )
     target_noise_clip: Literal["absolute", "scaled"] = Field(
-        "absolute", description="absolute: the target noise is clipped at td3.noise_clip in code "
+        "absolute",
+        description="absolute: the target noise is clipped at td3.noise_clip in code "
         "units (the authors' code); scaled: at td3.noise_clip × the bound × target_noise_scale "
-        "(docs/fidelity.md, row 8a)"
+        "(docs/fidelity.md, row 8a)",
     )
     plan_step_input: Literal["onehot", "scalar"] = Field(
-        "onehot", description="how the critic sees i, the steps of the code already executed: a "
+        "onehot",
+        description="how the critic sees i, the steps of the code already executed: a "
         "one-hot of size k, or the raw count as one input (the authors' code; docs/fidelity.md, "
-        "row 7a)"
+        "row 7a)",
     )
 
 
@@ -305,12 +335,11 @@ class RunsConfig(_Section):
     """Stage 4: which runs make up the experiment."""
 
     tasks: dict[TaskId, str] = Field(
-        min_length=1, description="the tasks to train on, each with its family: the family whose "
-        "embedding EDE-TD3 acts in there (its source, or a target it transfers to)"
+        min_length=1,
+        description="the tasks to train on, each with its family: the family whose "
+        "embedding EDE-TD3 acts in there (its source, or a target it transfers to)",
     )
-    algos: list[Algo] = Field(
-        default_factory=lambda: list(ALGOS), min_length=1
-    )
+    algos: list[Algo] = Field(default_factory=lambda: list(ALGOS), min_length=1)
     seeds: list[Seed] = Field(min_length=1)
     budgets: dict[str, PositiveInt] = Field(description="environment steps per task")
 
@@ -318,9 +347,11 @@ class RunsConfig(_Section):
     @classmethod
     def _task_to_family(cls, tasks: Any) -> Any:
         if isinstance(tasks, dict) and any(isinstance(v, list) for v in tasks.values()):
-            raise ValueError("runs.tasks: expected each task mapped to its family "
-                             "(`ede/ReacherTurn-v0: reacher`), not a family to a list of tasks "
-                             "(the format before dvc.yaml had one train stage for every family)")
+            raise ValueError(
+                "runs.tasks: expected each task mapped to its family "
+                "(`ede/ReacherTurn-v0: reacher`), not a family to a list of tasks "
+                "(the format before dvc.yaml had one train stage for every family)"
+            )
         return tasks
 
     @model_validator(mode="after")
@@ -330,8 +361,9 @@ class RunsConfig(_Section):
         if missing:
             problems.append(f"runs.budgets: no budget for {', '.join(missing)}")
         if len(set(self.algos)) != len(self.algos):
-            problems.append(f"runs.algos: {self.algos} repeats an algorithm; "
-                            "expected distinct algorithms")
+            problems.append(
+                f"runs.algos: {self.algos} repeats an algorithm; expected distinct algorithms"
+            )
         if len(set(self.seeds)) != len(self.seeds):
             problems.append(f"runs.seeds: {self.seeds} repeats a seed; expected distinct seeds")
         if problems:
@@ -359,8 +391,11 @@ def _returns(value: Any) -> Any:
     number = isinstance(value, (int, float)) and not isinstance(value, bool)
     if number:
         return [value]
-    if not isinstance(value, list) or not value or not all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+    if (
+        not isinstance(value, list)
+        or not value
+        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    ):
         raise ValueError("expected a return or a non-empty list of returns")
     return value
 
@@ -374,24 +409,28 @@ class ReportConfig(_Section):
     confidence: float = Field(0.95, gt=0, lt=1)
     bootstrap_samples: PositiveInt = 2_000
     thresholds: dict[str, Returns] = Field(
-        default_factory=dict, description="per task, a return that counts as solved, or a list of "
-        "them: the report gives the steps each run takes to reach each"
+        default_factory=dict,
+        description="per task, a return that counts as solved, or a list of "
+        "them: the report gives the steps each run takes to reach each",
     )
     seed: Seed = 0
     bin_steps: PositiveInt | None = Field(
-        2_500, description="average each run's evaluations in bins of this many steps before the "
+        2_500,
+        description="average each run's evaluations in bins of this many steps before the "
         "mean over seeds, as the authors' figures (2,500 for ReacherVertical); null: no binning. "
-        "The report's curve CSVs (DVC plots) keep every evaluation"
+        "The report's curve CSVs (DVC plots) keep every evaluation",
     )
     effect_space_family: str | None = Field(
-        "point", description="a family of `families` whose embedding is drawn beside the effect "
+        "point",
+        description="a family of `families` whose embedding is drawn beside the effect "
         "space on its source task (Figure 6; the task's first two qpos are its position); null: "
-        "no Figure 6"
+        "no Figure 6",
     )
     exploration_family: str | None = Field(
-        "pointmass", description="a family of `families` whose embedding explores its source task "
+        "pointmass",
+        description="a family of `families` whose embedding explores its source task "
         "against uniform random actions (Figure 7; the first two qpos are a position in "
-        "[-1, 1]²); null: no Figure 7"
+        "[-1, 1]²); null: no Figure 7",
     )
 
 
@@ -425,25 +464,33 @@ class Params(_Section):
         problems = []
         for task, family in self.runs.tasks.items():
             if family not in self.families:
-                problems.append(f"runs.tasks.{task}: got {family!r}; expected a family of "
-                                f"`families` ({', '.join(self.families)})")
+                problems.append(
+                    f"runs.tasks.{task}: got {family!r}; expected a family of "
+                    f"`families` ({', '.join(self.families)})"
+                )
             elif task not in self.families[family].tasks:
-                problems.append(f"runs.tasks.{task}: not a task of the {family} family "
-                                f"({', '.join(self.families[family].tasks)})")
+                problems.append(
+                    f"runs.tasks.{task}: not a task of the {family} family "
+                    f"({', '.join(self.families[family].tasks)})"
+                )
         for task in self.report.thresholds:
             if task not in self.runs.all_tasks:
                 problems.append(f"report.thresholds.{task}: not a task of runs.tasks")
         for key in ("effect_space_family", "exploration_family"):
             family = getattr(self.report, key)
             if family is not None and family not in self.families:
-                problems.append(f"report.{key}: got {family!r}; expected a family of `families` "
-                                f"({', '.join(self.families)}) or null")
+                problems.append(
+                    f"report.{key}: got {family!r}; expected a family of `families` "
+                    f"({', '.join(self.families)}) or null"
+                )
         for name, family in self.families.items():
             repeated = [task for task in family.targets if family.tasks.count(task) > 1]
             if repeated:
-                problems.append(f"families.{name}.targets: {', '.join(dict.fromkeys(repeated))} "
-                                "given twice in the family (its source counts); expected each "
-                                "task once")
+                problems.append(
+                    f"families.{name}.targets: {', '.join(dict.fromkeys(repeated))} "
+                    "given twice in the family (its source counts); expected each "
+                    "task once"
+                )
         for a, b in itertools.combinations(self.families, 2):
             shared = set(self.families[a].tasks) & set(self.families[b].tasks)
             if shared:
@@ -462,9 +509,11 @@ class Params(_Section):
             source = action_box(family.source)
             for target in family.targets:
                 if action_box(target) != source:
-                    problems.append(f"families.{name}.targets: {target}'s actions are not "
-                                    f"{family.source}'s (a family shares one action space, "
-                                    "and so one embedding)")
+                    problems.append(
+                        f"families.{name}.targets: {target}'s actions are not "
+                        f"{family.source}'s (a family shares one action space, "
+                        "and so one embedding)"
+                    )
         return problems
 
     def _episode_problems(self) -> list[str]:
@@ -479,32 +528,45 @@ class Params(_Section):
         """
         collect, k = self.collect, self.embedding.k
         envs = collect.num_envs or 1  # null: one per core, which only the stage knows
-        lengths = {name: length for name, family in self.families.items()
-                   if (length := episode_length(family.source)) is not None}
+        lengths = {
+            name: length
+            for name, family in self.families.items()
+            if (length := episode_length(family.source)) is not None
+        }
         problems = []
         if collect.steps < k:
-            problems.append(f"collect.steps: got {collect.steps}; expected at least embedding.k "
-                            f"({k}): no window of k actions fits in the rollouts")
+            problems.append(
+                f"collect.steps: got {collect.steps}; expected at least embedding.k "
+                f"({k}): no window of k actions fits in the rollouts"
+            )
         if not lengths:
             if envs > collect.steps:
-                problems.append(f"collect.num_envs: got {envs}; expected at most collect.steps "
-                                f"({collect.steps}): each sub-environment records an equal share "
-                                "of the steps, so some would record none")
+                problems.append(
+                    f"collect.num_envs: got {envs}; expected at most collect.steps "
+                    f"({collect.steps}): each sub-environment records an equal share "
+                    "of the steps, so some would record none"
+                )
             return problems
         longest = max(lengths, key=lengths.__getitem__)
         length = lengths[longest]
-        episode = (f"{length}, the episode length of {self.families[longest].source} "
-                   f"(families.{longest}.source)")
+        episode = (
+            f"{length}, the episode length of {self.families[longest].source} "
+            f"(families.{longest}.source)"
+        )
         recorded = f"record about {envs * length} steps, not {collect.steps}"
         if collect.steps < length:
-            problems.append(f"collect.steps: got {collect.steps}; expected at least {episode}: "
-                            "collect records whole episodes, at least one per sub-environment, "
-                            f"so it would {recorded}")
+            problems.append(
+                f"collect.steps: got {collect.steps}; expected at least {episode}: "
+                "collect records whole episodes, at least one per sub-environment, "
+                f"so it would {recorded}"
+            )
         elif envs * length > collect.steps:
-            problems.append(f"collect.num_envs: got {envs}; expected at most "
-                            f"{collect.steps // length} = collect.steps {collect.steps} // "
-                            f"{episode}: each sub-environment records whole episodes, at least "
-                            f"one, so {envs} of them would {recorded}")
+            problems.append(
+                f"collect.num_envs: got {envs}; expected at most "
+                f"{collect.steps // length} = collect.steps {collect.steps} // "
+                f"{episode}: each sub-environment records whole episodes, at least "
+                f"one, so {envs} of them would {recorded}"
+            )
         return problems
 
     def _scale_problems(self) -> list[str]:
@@ -520,30 +582,38 @@ class Params(_Section):
         ):
             if windows / stride < batch_size:
                 of = f" / embedding.window_stride {stride}" if key == "embedding" else ""
-                problems.append(f"{key}.batch_size: got {batch_size}; expected at most "
-                                f"{int(windows / stride)} = {bound}{of}, the most training "
-                                "windows the rollouts can give: every epoch would be one "
-                                "partial batch")
+                problems.append(
+                    f"{key}.batch_size: got {batch_size}; expected at most "
+                    f"{int(windows / stride)} = {bound}{of}, the most training "
+                    "windows the rollouts can give: every epoch would be one "
+                    "partial batch"
+                )
         # EDE-TD3 samples k-step sequences: n stored steps hold n - (k - 1) of them.
         extra = embedding.k - 1 if "ede-td3" in self.runs.algos else 0
         batch = f"td3.batch_size {td3.batch_size}" + (
             f" + embedding.k {embedding.k} - 1 (ede-td3's k-step samples)" if extra else ""
         )
         if td3.buffer_size < td3.batch_size + extra:
-            problems.append(f"td3.buffer_size: got {td3.buffer_size}; expected at least "
-                            f"{td3.batch_size + extra} = {batch}: no batch could ever be sampled")
+            problems.append(
+                f"td3.buffer_size: got {td3.buffer_size}; expected at least "
+                f"{td3.batch_size + extra} = {batch}: no batch could ever be sampled"
+            )
         first_update = max(td3.start_steps, td3.batch_size + extra)
         for task in self.runs.all_tasks:
             budget = self.runs.budgets[task]
             if budget < first_update:
-                problems.append(f"runs.budgets.{task}: got {budget}; expected at least "
-                                f"{first_update} = max(td3.start_steps {td3.start_steps}, "
-                                f"{batch}), the step of the first update: the run would never "
-                                "update")
+                problems.append(
+                    f"runs.budgets.{task}: got {budget}; expected at least "
+                    f"{first_update} = max(td3.start_steps {td3.start_steps}, "
+                    f"{batch}), the step of the first update: the run would never "
+                    "update"
+                )
             if budget < td3.eval_every:
-                problems.append(f"runs.budgets.{task}: got {budget}; expected at least "
-                                f"td3.eval_every ({td3.eval_every}): the run would have only "
-                                "its initial and final evaluations")
+                problems.append(
+                    f"runs.budgets.{task}: got {budget}; expected at least "
+                    f"td3.eval_every ({td3.eval_every}): the run would have only "
+                    "its initial and final evaluations"
+                )
         return problems
 
 
@@ -594,10 +664,15 @@ class _UniqueKeyLoader(yaml.SafeLoader):
                 break
             if mark is not key_node.start_mark:
                 again = key_node.start_mark.line
-                where = (f"on line {again + 1}" if again == mark.line
-                         else f"on lines {mark.line + 1} and {again + 1}")
-                raise _DuplicateKey(problem=f"key {key!r} given twice, {where}; give it once",
-                                    problem_mark=key_node.start_mark)
+                where = (
+                    f"on line {again + 1}"
+                    if again == mark.line
+                    else f"on lines {mark.line + 1} and {again + 1}"
+                )
+                raise _DuplicateKey(
+                    problem=f"key {key!r} given twice, {where}; give it once",
+                    problem_mark=key_node.start_mark,
+                )
         return super().construct_mapping(node, deep=deep)
 
 
@@ -624,7 +699,7 @@ def read_yaml(path: Path) -> Any:
     except (OSError, UnicodeDecodeError) as error:
         raise ParamsError(path, [f"not readable YAML ({first_line(error)})"]) from None
     try:
-        return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a safe loader)
+        return yaml.load(text, Loader=_UniqueKeyLoader)
     except _DuplicateKey as error:
         raise ParamsError(path, [f"line {error.problem_mark.line + 1}: {error.problem}"]) from None
     except yaml.YAMLError as error:
@@ -700,11 +775,23 @@ def _describe(error: Any) -> str:
 
 
 # A YAML value's type, and what each of pydantic's errors for a value of another type expects.
-_KINDS = {bool: "a boolean", int: "an integer", float: "a number", str: "a string",
-          list: "a list", dict: "a mapping"}
-_EXPECTED = {"bool_type": "true or false", "int_type": "an integer", "float_type": "a number",
-             "string_type": "a string", "list_type": "a list", "dict_type": "a mapping",
-             "model_type": "a mapping"}
+_KINDS = {
+    bool: "a boolean",
+    int: "an integer",
+    float: "a number",
+    str: "a string",
+    list: "a list",
+    dict: "a mapping",
+}
+_EXPECTED = {
+    "bool_type": "true or false",
+    "int_type": "an integer",
+    "float_type": "a number",
+    "string_type": "a string",
+    "list_type": "a list",
+    "dict_type": "a mapping",
+    "model_type": "a mapping",
+}
 
 
 def _short(value: Any) -> str:
@@ -722,13 +809,15 @@ def _describe_yaml_error(error: yaml.YAMLError, text: str) -> str:
         return f"not readable YAML ({first_line(error)})"
     mark, problem = error.problem_mark, error.problem
     context, context_mark = error.context, error.context_mark
-    if context_mark is not None and not text[mark.index:].strip():  # at the end of the stream
+    if context_mark is not None and not text[mark.index :].strip():  # at the end of the stream
         mark = context_mark
     if context and context_mark is not None and context_mark.index != mark.index:
         context += f" from line {context_mark.line + 1}, column {context_mark.column + 1}"
     lines = text.splitlines()
     line = lines[mark.line] if mark.line < len(lines) else ""
     shown = line if len(line) <= 100 else line[:97] + "..."
-    return (f"line {mark.line + 1}, column {mark.column + 1}: not readable YAML: {problem}"
-            + (f" ({context})" if context else "")
-            + f"; the line reads: {json.dumps(shown, ensure_ascii=False)}")
+    return (
+        f"line {mark.line + 1}, column {mark.column + 1}: not readable YAML: {problem}"
+        + (f" ({context})" if context else "")
+        + f"; the line reads: {json.dumps(shown, ensure_ascii=False)}"
+    )

@@ -32,8 +32,8 @@ __all__ = [
     "ActionDecoder",
     "ActionEmbedding",
     "DecoderResult",
-    "EncoderResult",
     "Encoder",
+    "EncoderResult",
     "Predictor",
     "gaussian_kl",
     "prediction_loss",
@@ -81,7 +81,12 @@ class ActionDecoder(nn.Module):
     """
 
     def __init__(
-        self, dim: int, k: int, low: np.ndarray, high: np.ndarray, hidden: list[int],
+        self,
+        dim: int,
+        k: int,
+        low: np.ndarray,
+        high: np.ndarray,
+        hidden: list[int],
         output_range: str = "bounds",
     ) -> None:
         super().__init__()
@@ -292,7 +297,9 @@ class ActionEmbedding(nn.Module):
     ``z`` is always the whitened code, the EDE actor's action space, bounded by ``bound``.
     """
 
-    def __init__(self, encoder: Encoder, decoder: ActionDecoder, code_whitening: Whitening, bound: float):
+    def __init__(
+        self, encoder: Encoder, decoder: ActionDecoder, code_whitening: Whitening, bound: float
+    ):
         super().__init__()
         self.encoder, self.decoder = encoder.eval(), decoder.eval()
         self.k, self.action_size, self.dim = encoder.k, encoder.action_size, encoder.dim
@@ -348,8 +355,9 @@ def train_decoder(
         p.requires_grad_(False)
     embedding_whitening = encoded.code_whitening
     with initial_weights(config.seed):
-        decoder = ActionDecoder(encoder.dim, k, low, high, config.hidden,
-                                config.output_range).to(device)
+        decoder = ActionDecoder(encoder.dim, k, low, high, config.hidden, config.output_range).to(
+            device
+        )
     code_mean = torch.as_tensor(embedding_whitening.mean, dtype=torch.float32, device=device)
     code_std = torch.as_tensor(embedding_whitening.std, dtype=torch.float32, device=device)
 
@@ -374,9 +382,7 @@ def train_decoder(
             if config.z_source == "marginal":
                 z = train_z[batch]
             else:
-                z = torch.randn(
-                    (len(batch), encoder.dim), generator=prior_generator, device=device
-                )
+                z = torch.randn((len(batch), encoder.dim), generator=prior_generator, device=device)
             actions = decoder(z)  # (B, D) -> (B, K, A)
             recon = ((encoder(actions)[0] - code_mean) / code_std - z).pow(2).mean()
             norm = actions.norm(dim=-1).sum()  # (B, K, A) -> summed over B and K
@@ -395,8 +401,10 @@ def train_decoder(
     with torch.no_grad():
         decoded = decoder(held_z)
         span = decoder.half_range * 2
-        near = torch.minimum(decoded - (decoder.centre - decoder.half_range),
-                             (decoder.centre + decoder.half_range) - decoded)
+        near = torch.minimum(
+            decoded - (decoder.centre - decoder.half_range),
+            (decoder.centre + decoder.half_range) - decoded,
+        )
         at_bounds = (near <= 0.01 * span).float().mean().item()
     metrics = {
         "inverse_error": _inverse_error(encoder, decoder, held_z, code_mean, code_std),

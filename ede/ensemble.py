@@ -71,7 +71,7 @@ class Stack:
         views, at = {}, 0
         for name, shape in self.shapes.items():
             size = math.prod(shape)
-            view = rows[..., at:at + size].unflatten(-1, shape)  # (..., L, *shape)
+            view = rows[..., at : at + size].unflatten(-1, shape)  # (..., L, *shape)
             views[name] = view if self.networks > 1 else view.squeeze(-1 - len(shape))
             at += size
         return views
@@ -145,8 +145,9 @@ def mlp(params: Params, x: torch.Tensor) -> torch.Tensor:
     return x.reshape(*lead, -1, x.shape[-1])[..., :rows, :]
 
 
-def grad(loss: Callable[..., torch.Tensor], stack: Stack, *args: Any
-         ) -> tuple[torch.Tensor, torch.Tensor]:
+def grad(
+    loss: Callable[..., torch.Tensor], stack: Stack, *args: Any
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The gradient ``(M, N)`` of every member's ``loss(params, *args)`` ``(M,)`` with respect to
     its own parameters, and the losses.
 
@@ -165,7 +166,7 @@ def grad(loss: Callable[..., torch.Tensor], stack: Stack, *args: Any
     params = {name: value.detach().requires_grad_(True) for name, value in stack.params.items()}
     losses = loss(params, *args)
     grads = torch.autograd.grad(losses.sum(), list(params.values()))
-    return stack.flatten(dict(zip(params, grads))), losses.detach()
+    return stack.flatten(dict(zip(params, grads, strict=True))), losses.detach()
 
 
 class Adam:
@@ -177,8 +178,9 @@ class Adam:
     as torch computes them; the caller counts the steps.
     """
 
-    def __init__(self, stack: Stack, lr: float, betas: tuple[float, float] = (0.9, 0.999),
-                 eps: float = 1e-8) -> None:
+    def __init__(
+        self, stack: Stack, lr: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8
+    ) -> None:
         self.stack, self.lr, self.betas, self.eps = stack, lr, betas, eps
         self.exp_avg = torch.zeros_like(stack.flat)
         self.exp_avg_sq = torch.zeros_like(stack.flat)
@@ -190,13 +192,15 @@ class Adam:
         """``(2, M, 1)``: each member's step size lr / (1 − β₁ᵗ) and √(1 − β₂ᵗ), for its t-th
         step (members at t = 0 take t = 1: they are not due and the values are unused)."""
         beta1, beta2 = self.betas
-        rows = [(self.lr / (1 - beta1 ** max(t, 1)), math.sqrt(1 - beta2 ** max(t, 1)))
-                for t in steps]
+        rows = [
+            (self.lr / (1 - beta1 ** max(t, 1)), math.sqrt(1 - beta2 ** max(t, 1))) for t in steps
+        ]
         return torch.tensor(rows, dtype=torch.float32, device=device).T[..., None]
 
     @torch.no_grad()
-    def step(self, grad: torch.Tensor, corrections: torch.Tensor,
-             due: torch.Tensor | None = None) -> None:
+    def step(
+        self, grad: torch.Tensor, corrections: torch.Tensor, due: torch.Tensor | None = None
+    ) -> None:
         """One step of every member, or of those where ``due`` (``(M,)`` bool) is true, along
         ``grad`` ``(M, N)``; ``corrections``: :meth:`corrections` of the members' step counts
         after this step."""
@@ -208,10 +212,12 @@ class Adam:
         denom = torch.sqrt(v, out=self._denom).div_(root).add_(self.eps)
         param.sub_(torch.mul(step_size, m, out=self._step).div_(denom))
         if kept is not None:
-            for new, old in zip((param, m, v), kept):
+            for new, old in zip((param, m, v), kept, strict=True):
                 new.copy_(torch.where(due[:, None], new, old))
 
     def member(self, m: int) -> dict[str, Params]:
         """Member ``m``'s moments by parameter name (views)."""
-        return {"exp_avg": self.stack.views(self.exp_avg[m]),
-                "exp_avg_sq": self.stack.views(self.exp_avg_sq[m])}
+        return {
+            "exp_avg": self.stack.views(self.exp_avg[m]),
+            "exp_avg_sq": self.stack.views(self.exp_avg_sq[m]),
+        }

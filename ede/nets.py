@@ -6,12 +6,20 @@ import math
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager, nullcontext
 from functools import cache
+from itertools import pairwise
 
 import torch
 from torch import nn
 
-__all__ = ["flush_denormals", "initial_mlp", "initial_weights", "matmul_precision", "mlp",
-           "pick_device", "product_error"]
+__all__ = [
+    "flush_denormals",
+    "initial_mlp",
+    "initial_weights",
+    "matmul_precision",
+    "mlp",
+    "pick_device",
+    "product_error",
+]
 
 
 def mlp(
@@ -24,7 +32,7 @@ def mlp(
     """
     sizes = [in_size, *hidden]
     layers: list[nn.Module] = []
-    for a, b in zip(sizes[:-1], sizes[1:]):
+    for a, b in pairwise(sizes):
         layers += [nn.Linear(a, b), activation(inplace=True)]
     layers.append(nn.Linear(sizes[-1], out_size))
     return nn.Sequential(*layers)
@@ -35,7 +43,7 @@ def initial_mlp(sizes: Sequence[int], generator: torch.Generator) -> dict[str, t
     ``nn.Sequential`` names them (``0.weight`` ``(out, in)``, ``0.bias``, ``2.weight``, ...), each
     layer initialised as ``nn.Linear`` initialises it, drawn from ``generator`` alone."""
     params = {}
-    for j, (fan_in, fan_out) in enumerate(zip(sizes[:-1], sizes[1:])):
+    for j, (fan_in, fan_out) in enumerate(pairwise(sizes)):
         weight, bias = torch.empty(fan_out, fan_in), torch.empty(fan_out)
         nn.init.kaiming_uniform_(weight, a=math.sqrt(5), generator=generator)
         bound = 1 / math.sqrt(fan_in)

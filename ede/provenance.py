@@ -14,8 +14,15 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["CODE", "INSTRUCTION_SETS", "SOFTWARE", "code_version", "describe_software", "machine",
-           "software_versions"]
+__all__ = [
+    "CODE",
+    "INSTRUCTION_SETS",
+    "SOFTWARE",
+    "code_version",
+    "describe_software",
+    "machine",
+    "software_versions",
+]
 
 # Python, the array and learning libraries, and the simulator. Each is pinned by
 # requirements.lock; recording them beside every output says which pins made it.
@@ -37,8 +44,9 @@ def describe_software(versions: dict[str, str] | None) -> str:
     """One line for people: ``Python 3.11.7, numpy 2.4.6, …``; ``unrecorded`` for ``None``."""
     if not versions:
         return "unrecorded"
-    return ", ".join(f"{'Python' if name == 'python' else name} {value}"
-                     for name, value in versions.items())
+    return ", ".join(
+        f"{'Python' if name == 'python' else name} {value}" for name, value in versions.items()
+    )
 
 
 COMMIT_ENV = "EDE_COMMIT"  # the commit an installed copy (the image) was built from
@@ -63,15 +71,18 @@ def code_version() -> dict[str, Any]:
     root = Path(__file__).resolve().parents[1]
 
     def git(*args: str) -> str | None:
-        done = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True,
-                              timeout=30)
+        done = subprocess.run(
+            ["git", "-C", str(root), *args], capture_output=True, text=True, timeout=30
+        )
         return done.stdout.strip() if done.returncode == 0 else None
 
     try:
         # The checkout's own top level: not a venv's site-packages inside some checkout.
         if git("rev-parse", "--show-toplevel") == str(root):
-            commit, status = git("rev-parse", "HEAD"), git("status", "--porcelain",
-                                                          "--untracked-files=no", "--", *CODE)
+            commit, status = (
+                git("rev-parse", "HEAD"),
+                git("status", "--porcelain", "--untracked-files=no", "--", *CODE),
+            )
             if commit is not None and status is not None:
                 return {"commit": commit, "modified": bool(status)}
     except (OSError, subprocess.SubprocessError):  # no git, or it hung
@@ -91,8 +102,9 @@ def machine(device: torch.device | None = None) -> dict[str, Any]:
         "instruction_sets": [name for name in INSTRUCTION_SETS if name in flags],
         "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "torch_threads": torch.get_num_threads(),
-        "gpu": torch.cuda.get_device_name(device) if device is not None
-        and device.type == "cuda" else None,
+        "gpu": torch.cuda.get_device_name(device)
+        if device is not None and device.type == "cuda"
+        else None,
     }
 
 
@@ -107,5 +119,7 @@ def _cpu() -> tuple[str, frozenset[str]]:
     for line in text.splitlines():
         key, _, value = line.partition(":")
         fields.setdefault(key.strip(), value.strip())
-    return (fields.get("model name") or platform.processor() or platform.machine(),
-            frozenset(fields.get("flags", "").split()))
+    return (
+        fields.get("model name") or platform.processor() or platform.machine(),
+        frozenset(fields.get("flags", "").split()),
+    )

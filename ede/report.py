@@ -13,16 +13,16 @@ import matplotlib
 
 matplotlib.use("Agg")  # files only, never a display
 
-import gymnasium  # noqa: E402
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
+import gymnasium
+import matplotlib.pyplot as plt
+import numpy as np
+import torch
+from matplotlib.figure import Figure
 
-from ede.config import ALGO_LABELS  # noqa: E402
-from ede.embedding import ActionEmbedding  # noqa: E402
-from ede.runs import Curve  # noqa: E402
-from ede.stats import (  # noqa: E402
+from ede.config import ALGO_LABELS
+from ede.embedding import ActionEmbedding
+from ede.runs import Curve
+from ede.stats import (
     Interval,
     across_tasks,
     align_curves,
@@ -34,17 +34,17 @@ from ede.stats import (  # noqa: E402
     normalised,
     steps_to_threshold,
 )
-from ede.tasks import make  # noqa: E402
+from ede.tasks import make
+from ede.td3 import CodeExecutor, EmbeddingAdapter, IdentityAdapter
 from ede.training import evaluate
-from ede.td3 import CodeExecutor, EmbeddingAdapter, IdentityAdapter  # noqa: E402
 
 __all__ = [
     "ALGO_STYLE",
-    "AcrossTasks",
     "SCORES",
     "SCORE_OF",
-    "across_tasks_section",
+    "AcrossTasks",
     "TaskRow",
+    "across_tasks_section",
     "curve_band",
     "diagnostics_figure",
     "effect_space",
@@ -52,12 +52,14 @@ __all__ = [
     "improvement_on_task",
     "learning_curve_figure",
     "random_policy_return",
-    "zero_action_return",
     "summarise_task",
+    "zero_action_return",
 ]
 
-ALGO_STYLE = {algo: (ALGO_LABELS[algo], colour)
-              for algo, colour in (("td3", "tab:blue"), ("ede-td3", "tab:red"))}
+ALGO_STYLE = {
+    algo: (ALGO_LABELS[algo], colour)
+    for algo, colour in (("td3", "tab:blue"), ("ede-td3", "tab:red"))
+}
 
 
 @dataclass
@@ -88,8 +90,14 @@ def summarise_task(
     final = np.array([c.returns[-1] for c in curves])
     auc = np.array([area_under_curve(c.steps, c.returns) for c in curves])
     to_thresholds = {  # drawn first, as when there was one threshold at most
-        t: bootstrap_mean(np.array([steps_to_threshold(c.steps, c.returns, t) for c in curves]),
-                          confidence, samples, rng) for t in thresholds}
+        t: bootstrap_mean(
+            np.array([steps_to_threshold(c.steps, c.returns, t) for c in curves]),
+            confidence,
+            samples,
+            rng,
+        )
+        for t in thresholds
+    }
     final_interval = bootstrap_mean(final, confidence, samples, rng)
     auc_interval = bootstrap_mean(auc, confidence, samples, rng)
     return TaskRow(
@@ -129,7 +137,7 @@ def curve_band(
     for seeds in np.unique(present, axis=1).T:
         points = np.flatnonzero((present == seeds[:, None]).all(axis=0))
         intervals = bootstrap_means(table[np.ix_(seeds, points)], confidence, samples, rng)
-        for t, interval in zip(points, intervals):
+        for t, interval in zip(points, intervals, strict=True):
             mean[t], low[t], high[t], n[t] = interval.mean, interval.low, interval.high, interval.n
     return steps, mean, low, high, n
 
@@ -159,10 +167,11 @@ def learning_curve_figure(
     the intervals its tables were read from); the others are computed with ``rng``. ``title``
     replaces "<family> family" atop the figure.
     """
-    figure, axes = plt.subplots(1, len(tasks), figsize=(_panels_width(len(tasks)), 3.4),
-                                squeeze=False)
+    figure, axes = plt.subplots(
+        1, len(tasks), figsize=(_panels_width(len(tasks)), 3.4), squeeze=False
+    )
     per_task = isinstance(bin_steps, Mapping)
-    for ax, task in zip(axes[0], tasks):
+    for ax, task in zip(axes[0], tasks, strict=True):
         width = bin_steps.get(task) if per_task else bin_steps
         for algo, (label, colour) in ALGO_STYLE.items():
             runs = curves.get((task, algo), [])
@@ -175,8 +184,10 @@ def learning_curve_figure(
             steps, mean, low, high, _ = band
             ax.plot(steps, mean, color=colour, label=f"{label} ({len(runs)} seeds)")
             ax.fill_between(steps, low, high, color=colour, alpha=0.2, linewidth=0)
-        ax.set_title(f"{task}\nbins of {width:,.0f} steps" if per_task and width else task,
-                     fontsize=10 if per_task else None)
+        ax.set_title(
+            f"{task}\nbins of {width:,.0f} steps" if per_task and width else task,
+            fontsize=10 if per_task else None,
+        )
         ax.set_xlabel("environment steps")
         ax.grid(alpha=0.3)
         if ax.lines:
@@ -184,10 +195,18 @@ def learning_curve_figure(
         else:
             ax.text(0.5, 0.5, "no finished runs", ha="center", va="center", transform=ax.transAxes)
     axes[0][0].set_ylabel("evaluation return")
-    binned = ("evaluations averaged per bin, " if per_task else
-              f"evaluations averaged per {bin_steps:,} steps, " if bin_steps else "")
-    figure.suptitle(f"{title or f'{family} family'}\n{binned}mean over seeds, "
-                    f"{100 * confidence:.0f}% bootstrap band", fontsize=10)
+    binned = (
+        "evaluations averaged per bin, "
+        if per_task
+        else f"evaluations averaged per {bin_steps:,} steps, "
+        if bin_steps
+        else ""
+    )
+    figure.suptitle(
+        f"{title or f'{family} family'}\n{binned}mean over seeds, "
+        f"{100 * confidence:.0f}% bootstrap band",
+        fontsize=10,
+    )
     figure.tight_layout()
     return figure
 
@@ -196,8 +215,9 @@ def diagnostics_figure(
     family: str, tasks: list[str], runs: dict[tuple[str, str], list[dict[str, np.ndarray]]]
 ) -> Figure:
     """Per task, the mean over seeds of Q(s, μ(s)) (top) and of the critic loss (bottom, log)."""
-    figure, axes = plt.subplots(2, len(tasks), figsize=(_panels_width(len(tasks)), 4.6),
-                                squeeze=False, sharex="col")
+    figure, axes = plt.subplots(
+        2, len(tasks), figsize=(_panels_width(len(tasks)), 4.6), squeeze=False, sharex="col"
+    )
     for column, task in enumerate(tasks):
         for algo, (label, colour) in ALGO_STYLE.items():
             found = runs.get((task, algo), [])
@@ -205,8 +225,12 @@ def diagnostics_figure(
                 continue
             for row, name in enumerate(("mean_q", "critic_loss")):
                 steps, table = align_curves([(d["step"], d[name]) for d in found])
-                axes[row][column].plot(steps, np.nanmean(table, axis=0), color=colour,
-                                       label=f"{label} ({len(found)} seeds)")
+                axes[row][column].plot(
+                    steps,
+                    np.nanmean(table, axis=0),
+                    color=colour,
+                    label=f"{label} ({len(found)} seeds)",
+                )
         axes[0][column].set_title(task)
         axes[1][column].set_yscale("log")
         axes[1][column].set_xlabel("environment steps")
@@ -216,8 +240,10 @@ def diagnostics_figure(
             axes[0][column].legend(fontsize=8)
     axes[0][0].set_ylabel("mean Q(s, μ(s))")
     axes[1][0].set_ylabel("critic loss")
-    figure.suptitle(f"{family} family: training diagnostics\nmean over seeds per evaluation interval",
-                    fontsize=10)
+    figure.suptitle(
+        f"{family} family: training diagnostics\nmean over seeds per evaluation interval",
+        fontsize=10,
+    )
     figure.tight_layout()
     return figure
 
@@ -238,7 +264,9 @@ class EffectSpace:
 
 
 def effect_space(
-    embedding: ActionEmbedding, rng: np.random.Generator, sequences: int = 2000,
+    embedding: ActionEmbedding,
+    rng: np.random.Generator,
+    sequences: int = 2000,
     env_id: str = "ede/Point-v0",
 ) -> EffectSpace:
     """Figure 6: effects of random k-step sequences beside their codes, same colours.
@@ -271,8 +299,12 @@ def effect_space(
     left.scatter(effects[:, 0], effects[:, 1], c=colours, s=6)
     left.set(title=f"effect s[t+{k}] − s[t]", xlabel="Δx", ylabel="Δy", aspect="equal")
     right.scatter(codes[:, 0], codes[:, 1], c=colours, s=6)
-    right.set(title=f"EDE space E(a)  (affine fit R² = {r_squared:.3f})", xlabel="z₁",
-              ylabel="z₂", aspect="equal")
+    right.set(
+        title=f"EDE space E(a)  (affine fit R² = {r_squared:.3f})",
+        xlabel="z₁",
+        ylabel="z₂",
+        aspect="equal",
+    )
     figure.tight_layout()
     return EffectSpace(effects, codes, float(r_squared), figure)
 
@@ -325,8 +357,14 @@ def exploration(
         paths = []
         for seed in seeds:
             obs, _ = env.reset(seed=int(seed))
-            paths.append(np.array([env.unwrapped.data.qpos[:2].copy()  # type: ignore[attr-defined]
-                                   for _ in executor.episode(obs, policy)]))
+            paths.append(
+                np.array(
+                    [
+                        env.unwrapped.data.qpos[:2].copy()  # type: ignore[attr-defined]
+                        for _ in executor.episode(obs, policy)
+                    ]
+                )
+            )
         return paths
 
     raw = rollout(CodeExecutor(env, IdentityAdapter(low, high, device)), uniform_action)
@@ -334,12 +372,18 @@ def exploration(
     env.close()
     raw_cov, ede_cov = _coverage(raw, half_width, cells), _coverage(ede, half_width, cells)
     figure, axes = plt.subplots(1, 2, figsize=(8.4, 4.2))
-    for ax, paths, title in ((axes[0], raw, f"uniform random actions ({100 * raw_cov:.1f}% covered)"),
-                             (axes[1], ede, f"uniform random EDE actions ({100 * ede_cov:.1f}% covered)")):
+    for ax, paths, title in (
+        (axes[0], raw, f"uniform random actions ({100 * raw_cov:.1f}% covered)"),
+        (axes[1], ede, f"uniform random EDE actions ({100 * ede_cov:.1f}% covered)"),
+    ):
         for path in paths:
             ax.plot(path[:, 0], path[:, 1], linewidth=1)
-        ax.set(xlim=(-half_width, half_width), ylim=(-half_width, half_width), aspect="equal",
-               title=title)
+        ax.set(
+            xlim=(-half_width, half_width),
+            ylim=(-half_width, half_width),
+            aspect="equal",
+            title=title,
+        )
         ax.set_xticks([])
         ax.set_yticks([])
     figure.tight_layout()
@@ -353,8 +397,11 @@ def random_policy_return(task: str, episodes: int, seed: int) -> float:
     """The mean return of uniform random actions on ``task`` over ``episodes`` episodes, episode e
     from ``reset(seed=seed + e)``: the low end of a task's normalised scores."""
     rng = np.random.default_rng(seed)
-    return float(np.mean(_episode_returns(task, episodes, seed,
-                                          lambda space: rng.uniform(space.low, space.high))))
+    return float(
+        np.mean(
+            _episode_returns(task, episodes, seed, lambda space: rng.uniform(space.low, space.high))
+        )
+    )
 
 
 def zero_action_return(task: str, episodes: int, seed: int) -> tuple[float, float]:
@@ -362,13 +409,15 @@ def zero_action_return(task: str, episodes: int, seed: int) -> tuple[float, floa
     actuators: on a task with an action penalty, the return of doing nothing) over ``episodes``
     episodes, episode e from ``reset(seed=seed + e)``. A policy below it has learned nothing the
     task rewards beyond sparing its actions."""
-    returns = _episode_returns(task, episodes, seed,
-                               lambda space: np.clip(0.0, space.low, space.high))
+    returns = _episode_returns(
+        task, episodes, seed, lambda space: np.clip(0.0, space.low, space.high)
+    )
     return float(np.mean(returns)), float(np.std(returns, ddof=1) / np.sqrt(episodes))
 
 
-def _episode_returns(task: str, episodes: int, seed: int,
-                     act: Callable[[gymnasium.spaces.Box], np.ndarray]) -> np.ndarray:
+def _episode_returns(
+    task: str, episodes: int, seed: int, act: Callable[[gymnasium.spaces.Box], np.ndarray]
+) -> np.ndarray:
     """Each episode's return on ``task`` with ``act(action_space)`` as the policy, by the
     evaluation's own loop (:func:`ede.training.evaluate`)."""
     env = make(task)
@@ -376,8 +425,13 @@ def _episode_returns(task: str, episodes: int, seed: int,
         space = env.action_space
         assert isinstance(space, gymnasium.spaces.Box)
         adapter = IdentityAdapter(space.low, space.high, torch.device("cpu"))
-        return evaluate(env, lambda obs: torch.as_tensor(np.asarray(act(space), space.dtype)),
-                        adapter, episodes, seed)
+        return evaluate(
+            env,
+            lambda obs: torch.as_tensor(np.asarray(act(space), space.dtype)),
+            adapter,
+            episodes,
+            seed,
+        )
     finally:
         env.close()
 
@@ -391,17 +445,22 @@ SCORE_OF: dict[str, Callable[[Curve], float]] = {
 }
 
 
-def improvement_on_task(ours: list[Curve], theirs: list[Curve], confidence: float, samples: int,
-                        seed: int) -> dict[str, Interval]:
+def improvement_on_task(
+    ours: list[Curve], theirs: list[Curve], confidence: float, samples: int, seed: int
+) -> dict[str, Interval]:
     """rliable's probability that a run of ``ours`` beats a run of ``theirs`` on one task, per
     score (``SCORES``), with its bootstrap interval over all the task's runs of each (the two may
     have different numbers): the aggregates' evidence, for a task alone."""
+
     def column(curves: list[Curve], score: Callable[[Curve], float]) -> np.ndarray:  # (runs, 1)
         return np.array([[score(c)] for c in curves])
 
-    return {name: across_tasks(column(ours, score), column(theirs, score), confidence, samples,
-                               seed)["probability_of_improvement"]
-            for name, score in SCORE_OF.items()}
+    return {
+        name: across_tasks(column(ours, score), column(theirs, score), confidence, samples, seed)[
+            "probability_of_improvement"
+        ]
+        for name, score in SCORE_OF.items()
+    }
 
 
 @dataclass
@@ -419,15 +478,22 @@ class AcrossTasks:
         tasks = f"{len(self.tasks)} task{'s' * (len(self.tasks) != 1)}"
         runs = " and ".join(f"{n} of {ALGO_STYLE[a][0]}" for a, n in self.runs.items())
         left_out = f" Left out: {'; '.join(self.left_out)}." if self.left_out else ""
-        return (f"{tasks} ({', '.join(self.tasks)}); per task {runs} (each task's lowest seeds, as "
-                "many as every task has). Computed with rliable (Agarwal et al., 2021): stratified "
-                f"bootstrap intervals ({100 * confidence:.0f}%, {samples} resamples). Scores are "
-                f"normalised per task: 0 is uniform random actions' mean return ({RANDOM_EPISODES} "
-                f"episodes), 1 the best evaluation any run reached there.{left_out}")
+        return (
+            f"{tasks} ({', '.join(self.tasks)}); per task {runs} (each task's lowest seeds, as "
+            "many as every task has). Computed with rliable (Agarwal et al., 2021): stratified "
+            f"bootstrap intervals ({100 * confidence:.0f}%, {samples} resamples). Scores are "
+            f"normalised per task: 0 is uniform random actions' mean return ({RANDOM_EPISODES} "
+            f"episodes), 1 the best evaluation any run reached there.{left_out}"
+        )
 
 
-def across_tasks_section(curves: dict[tuple[str, str], list[Curve]], lows: dict[str, float],
-                         confidence: float, samples: int, seed: int) -> AcrossTasks | None:
+def across_tasks_section(
+    curves: dict[tuple[str, str], list[Curve]],
+    lows: dict[str, float],
+    confidence: float,
+    samples: int,
+    seed: int,
+) -> AcrossTasks | None:
     """Probability of improvement and IQM over final returns and areas under the curve, scores
     normalised per task between ``lows[task]`` (a random policy's return) and the best evaluation
     any run reached there; and the performance profile of the normalised final returns.
@@ -444,8 +510,10 @@ def across_tasks_section(curves: dict[tuple[str, str], list[Curve]], lows: dict[
     tasks = [t for t in lows if all(curves.get((t, a)) for a in algos)]
     highs = {t: max(float(c.returns.max()) for a in algos for c in curves[(t, a)]) for t in tasks}
     for task in [t for t in tasks if highs[t] <= lows[t]]:
-        left_out.append(f"{task} (its best evaluation, {highs[task]:.4g}, is not above the random "
-                        f"policy's {lows[task]:.4g})")
+        left_out.append(
+            f"{task} (its best evaluation, {highs[task]:.4g}, is not above the random "
+            f"policy's {lows[task]:.4g})"
+        )
         tasks.remove(task)
     if not tasks:
         return None
@@ -456,9 +524,11 @@ def across_tasks_section(curves: dict[tuple[str, str], list[Curve]], lows: dict[
             ordered = sorted(curves[(task, algo)], key=lambda c: c.seed)
             chosen[(task, algo)] = ordered[:count]
             if ordered[count:]:
-                left_out.append(f"{task} {ALGO_STYLE[algo][0]} seed"
-                                f"{'s' * (len(ordered) > count + 1)} "
-                                f"{', '.join(str(c.seed) for c in ordered[count:])}")
+                left_out.append(
+                    f"{task} {ALGO_STYLE[algo][0]} seed"
+                    f"{'s' * (len(ordered) > count + 1)} "
+                    f"{', '.join(str(c.seed) for c in ordered[count:])}"
+                )
     low, high = np.array([lows[t] for t in tasks]), np.array([highs[t] for t in tasks])
 
     def table(algo: str, score: Callable[[Curve], float]) -> np.ndarray:  # (runs, tasks)
@@ -474,19 +544,25 @@ def across_tasks_section(curves: dict[tuple[str, str], list[Curve]], lows: dict[
     thresholds = np.linspace(0.0, 1.0, 41)
     with global_numpy_seed(seed):
         profiles, bands = rly.create_performance_profile(
-            normalised_final, thresholds, reps=samples, confidence_interval_size=confidence)
+            normalised_final, thresholds, reps=samples, confidence_interval_size=confidence
+        )
     figure, ax = plt.subplots(figsize=(5.0, 3.4))
     for algo, (label, colour) in ALGO_STYLE.items():
         ax.plot(thresholds, profiles[algo], color=colour, label=label)
-        ax.fill_between(thresholds, bands[algo][0], bands[algo][1], color=colour, alpha=0.2,
-                        linewidth=0)
+        ax.fill_between(
+            thresholds, bands[algo][0], bands[algo][1], color=colour, alpha=0.2, linewidth=0
+        )
     runs = {a: len(chosen[(tasks[0], a)]) for a in algos}
     ax.set_xlabel("normalised final return τ")
     ax.set_ylabel("fraction of runs with score > τ")
-    each = (f"{runs['td3']} runs of each" if runs["td3"] == runs["ede-td3"] else
-            f"{runs['ede-td3']} runs of EDE-TD3 and {runs['td3']} of TD3 each")
-    ax.set_title(f"performance profile: {len(tasks)} task{'s' * (len(tasks) != 1)}, {each}",
-                 fontsize=10)
+    each = (
+        f"{runs['td3']} runs of each"
+        if runs["td3"] == runs["ede-td3"]
+        else f"{runs['ede-td3']} runs of EDE-TD3 and {runs['td3']} of TD3 each"
+    )
+    ax.set_title(
+        f"performance profile: {len(tasks)} task{'s' * (len(tasks) != 1)}, {each}", fontsize=10
+    )
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     figure.tight_layout()

@@ -40,6 +40,7 @@ import os
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
+from itertools import pairwise
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
@@ -59,9 +60,9 @@ __all__ = [
     "ARRAYS",
     "CHUNK_STEPS",
     "COLLECTOR_VERSION",
+    "UNFINGERPRINTED_ATTRS",
     "Rollouts",
     "RolloutsError",
-    "UNFINGERPRINTED_ATTRS",
     "Whitening",
     "collect",
     "fingerprint",
@@ -76,7 +77,16 @@ __all__ = [
 COLLECTOR_VERSION = 3
 CHUNK_STEPS = 16_384
 ARRAYS = ("obs", "state", "action", "reward", "episode", "t")
-REQUIRED_ATTRS = ("env_id", "family", "seed", "num_envs", "steps", "spaces", "params", "fingerprint")
+REQUIRED_ATTRS = (
+    "env_id",
+    "family",
+    "seed",
+    "num_envs",
+    "steps",
+    "spaces",
+    "params",
+    "fingerprint",
+)
 # Attributes the fingerprint leaves out: itself, and the versions of the software that wrote the
 # store, which name the machine rather than the content (the same rollouts collected in the
 # container and on the host share one fingerprint; scripts/container-test.sh checks this).
@@ -140,8 +150,15 @@ class _ActionStream:
 
     BLOCK = 256
 
-    def __init__(self, rng: np.random.Generator, low: np.ndarray, high: np.ndarray, dtype: Any,
-                 saturated: float = 0.0, episodes: np.random.Generator | None = None):
+    def __init__(
+        self,
+        rng: np.random.Generator,
+        low: np.ndarray,
+        high: np.ndarray,
+        dtype: Any,
+        saturated: float = 0.0,
+        episodes: np.random.Generator | None = None,
+    ):
         self._rng, self._low, self._high, self._dtype = rng, low, high, dtype
         self._block = np.empty((0, low.size), dtype=dtype)
         self._next = 0
@@ -198,8 +215,14 @@ def _run_sub_envs(
     assert isinstance(space, gymnasium.spaces.Box)
     low, high = space.low.astype(np.float64), space.high.astype(np.float64)
     streams = [
-        _ActionStream(np.random.default_rng([job.seed, job.index, 1]), low, high, space.dtype,
-                      job.saturated, np.random.default_rng([job.seed, job.index, 2]))
+        _ActionStream(
+            np.random.default_rng([job.seed, job.index, 1]),
+            low,
+            high,
+            space.dtype,
+            job.saturated,
+            np.random.default_rng([job.seed, job.index, 2]),
+        )
         for job in jobs
     ]
     for stream in streams:
@@ -292,8 +315,8 @@ def collect(
     else:
         per_job = [[] for _ in jobs]
         with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-            for group, result in zip(groups, pool.map(_run_in_worker, groups)):
-                for job, episodes in zip(group, result):
+            for group, result in zip(groups, pool.map(_run_in_worker, groups), strict=True):
+                for job, episodes in zip(group, result, strict=True):
                     per_job[job.index] = episodes
                     if progress is not None:
                         progress(sum(len(e["reward"]) for e in episodes))
@@ -414,7 +437,9 @@ class Rollouts:
         except RolloutsError:
             raise
         except (OSError, ValueError, KeyError, RuntimeError, json.JSONDecodeError) as error:
-            raise RolloutsError(f"{path}: unreadable store ({type(error).__name__}: {error})")
+            raise RolloutsError(
+                f"{path}: unreadable store ({type(error).__name__}: {error})"
+            ) from error
         rollouts = cls(path=path, attrs=attrs, **arrays)
         rollouts._check()  # first: an edited env_id must not be reported as where it came from
         if env_id is not None and attrs["env_id"] != env_id:
@@ -435,7 +460,9 @@ class Rollouts:
             raise RolloutsError(f"{self.path}: the first row does not start an episode")
         expected_t = np.arange(len(self)) - np.repeat(starts, np.diff([*starts, len(self)]))
         expected_episode = np.repeat(np.arange(starts.size), np.diff([*starts, len(self)]))
-        if not (np.array_equal(self.t, expected_t) and np.array_equal(self.episode, expected_episode)):
+        if not (
+            np.array_equal(self.t, expected_t) and np.array_equal(self.episode, expected_episode)
+        ):
             raise RolloutsError(f"{self.path}: episodes are not contiguous and in order")
         if self.attrs["fingerprint"] != fingerprint(self.arrays(), self.attrs):
             raise RolloutsError(
@@ -496,5 +523,5 @@ class Rollouts:
     def iter_episodes(self) -> Iterator[slice]:
         """The row range of each episode, in order."""
         bounds = [*np.flatnonzero(self.t == 0), len(self)]
-        for start, stop in zip(bounds[:-1], bounds[1:]):
+        for start, stop in pairwise(bounds):
             yield slice(int(start), int(stop))

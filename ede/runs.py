@@ -59,8 +59,16 @@ EVAL_COLUMNS = ("step", "episode", "mean_return", "std_return", "wall_seconds")
 DIAGNOSTIC_COLUMNS = ("step", "updates", "critic_loss", "actor_loss", "mean_q")
 # What a run's folder may hold while it trains (a stage refuses any other folder as its output).
 RUN_KIND = "training run"
-RUN_OWNS = ("eval.csv", "diagnostics.csv", "run.json", "metrics.json", "policy", "checkpoint",
-            "checkpoint.bad-*", "*.tmp-*")
+RUN_OWNS = (
+    "eval.csv",
+    "diagnostics.csv",
+    "run.json",
+    "metrics.json",
+    "policy",
+    "checkpoint",
+    "checkpoint.bad-*",
+    "*.tmp-*",
+)
 # A finished run's files that are published (docs/results/runs/): its numbers and what made it.
 PUBLISHED = ("eval.csv", "diagnostics.csv", "run.json", "metrics.json")
 
@@ -112,8 +120,10 @@ def identity_difference(found: Any, expected: Mapping[str, Any]) -> str | None:
                 ours, theirs = recorded.get(section) or {}, value.get(section) or {}
                 for name in sorted(set(ours) | set(theirs)) if isinstance(ours, dict) else []:
                     if ours.get(name) != theirs.get(name):
-                        return (f"made with {section}.{name} = {json.dumps(ours.get(name))}, but "
-                                f"the params say {json.dumps(theirs.get(name))}")
+                        return (
+                            f"made with {section}.{name} = {json.dumps(ours.get(name))}, but "
+                            f"the params say {json.dumps(theirs.get(name))}"
+                        )
         return f"{key} is {json.dumps(recorded)}, expected {json.dumps(value)}"
     return None
 
@@ -129,8 +139,9 @@ def _csv(rows: list[dict[str, float]], columns: tuple[str, ...]) -> str:
     return out.getvalue()
 
 
-def write_curves(out: Path, history: list[dict[str, float]],
-                 diagnostics: list[dict[str, float]]) -> None:
+def write_curves(
+    out: Path, history: list[dict[str, float]], diagnostics: list[dict[str, float]]
+) -> None:
     """``eval.csv`` and ``diagnostics.csv`` as they stand (each replaced whole)."""
     write_text(out / "diagnostics.csv", _csv(diagnostics, DIAGNOSTIC_COLUMNS))
     write_text(out / "eval.csv", _csv(history, EVAL_COLUMNS))
@@ -140,8 +151,10 @@ def write_policy(path: Path, tensors: Mapping[str, torch.Tensor], meta: dict[str
     """The final actor, ``policy.safetensors`` beside ``policy.json``, as one atomic folder."""
 
     def write(tmp: Path) -> None:
-        save_tensors({k: v.detach().cpu().contiguous() for k, v in tensors.items()},
-                     tmp / "policy.safetensors")
+        save_tensors(
+            {k: v.detach().cpu().contiguous() for k, v in tensors.items()},
+            tmp / "policy.safetensors",
+        )
         write_json(tmp / "policy.json", meta)
 
     write_atomically(path, write, kind="policy")
@@ -149,8 +162,15 @@ def write_policy(path: Path, tensors: Mapping[str, torch.Tensor], meta: dict[str
 
 def write_finished(out: Path, spec: RunSpec, metrics: dict[str, Any], device: torch.device) -> None:
     """``run.json``, then ``metrics.json``: from then on the run is finished."""
-    write_json(out / "run.json", {**spec.identity(), "software": software_versions(),
-                                  "code": code_version(), "machine": machine(device)})
+    write_json(
+        out / "run.json",
+        {
+            **spec.identity(),
+            "software": software_versions(),
+            "code": code_version(),
+            "machine": machine(device),
+        },
+    )
     write_json(out / "metrics.json", metrics)
 
 
@@ -209,12 +229,18 @@ def read_run(run_dir: Path, expected: dict[str, Any]) -> Run | None:
         raise RunRejected(f"{where}: steps must start at 0 and rise; found {_short(steps)}")
     budget = made.get("budget")
     if steps[-1] != budget:
-        raise RunRejected(f"{where}: the last evaluation is at step {steps[-1]:g}, not at the "
-                          f"run's budget {budget}")
+        raise RunRejected(
+            f"{where}: the last evaluation is at step {steps[-1]:g}, not at the "
+            f"run's budget {budget}"
+        )
     diagnostics = None
     if (run_dir / "diagnostics.csv").is_file():
-        diagnostics = _numbers(run_dir / "diagnostics.csv", ("step", "updates", "critic_loss"),
-                               finite=False, allow_empty=True)
+        diagnostics = _numbers(
+            run_dir / "diagnostics.csv",
+            ("step", "updates", "critic_loss"),
+            finite=False,
+            allow_empty=True,
+        )
     return Run(Curve(int(made["seed"]), steps, returns), diagnostics, made)
 
 
@@ -235,8 +261,9 @@ def _short(values: np.ndarray) -> str:
     return f"[{shown}{', ...' if len(values) > 6 else ''}]"
 
 
-def _numbers(path: Path, columns: tuple[str, ...], finite: bool,
-             allow_empty: bool = False) -> dict[str, np.ndarray]:
+def _numbers(
+    path: Path, columns: tuple[str, ...], finite: bool, allow_empty: bool = False
+) -> dict[str, np.ndarray]:
     """A CSV of numbers as columns: ``columns`` must be there, every cell a number (finite ones
     when ``finite``), at least one row unless ``allow_empty``."""
     try:
@@ -249,7 +276,9 @@ def _numbers(path: Path, columns: tuple[str, ...], finite: bool,
         raise RunRejected(f"{path}: not readable CSV ({first_line(error)})") from None
     absent = [c for c in columns if c not in header]
     if absent:
-        raise RunRejected(f"{path}: no column {', '.join(absent)}; found {', '.join(header) or 'none'}")
+        raise RunRejected(
+            f"{path}: no column {', '.join(absent)}; found {', '.join(header) or 'none'}"
+        )
     if not rows and not allow_empty:
         raise RunRejected(f"{path}: no rows")
     table = {name: np.zeros(len(rows)) for name in header}
@@ -258,7 +287,9 @@ def _numbers(path: Path, columns: tuple[str, ...], finite: bool,
             try:
                 table[name][line - 2] = value = float(row[name])
             except (TypeError, ValueError):
-                raise RunRejected(f"{path}: line {line}, {name}: {row[name]!r} is not a number") from None
+                raise RunRejected(
+                    f"{path}: line {line}, {name}: {row[name]!r} is not a number"
+                ) from None
             if finite and not np.isfinite(value):
                 raise RunRejected(f"{path}: line {line}, {name}: {row[name]}, not a finite number")
     return table

@@ -9,8 +9,9 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
-    "across_tasks",
+    "Divergence",
     "Interval",
+    "across_tasks",
     "align_curves",
     "area_under_curve",
     "bin_curve",
@@ -19,7 +20,6 @@ __all__ = [
     "divergence",
     "global_numpy_seed",
     "normalised",
-    "Divergence",
     "separation",
     "steps_to_threshold",
 ]
@@ -111,14 +111,23 @@ def bootstrap_means(
     stand_in = np.finfo(float).max / (2 * runs)  # n of them sum to half the largest double
     scores = np.where(np.isposinf(table), stand_in, table)
     with global_numpy_seed(int(rng.integers(2**32))):
-        _, band = rly.get_interval_estimates({"mean": scores}, lambda s: s.mean(axis=0),
-                                             reps=samples, confidence_interval_size=confidence)
+        _, band = rly.get_interval_estimates(
+            {"mean": scores},
+            lambda s: s.mean(axis=0),
+            reps=samples,
+            confidence_interval_size=confidence,
+        )
     low, high = np.where(band["mean"] > ceiling, np.inf, band["mean"])  # (points,) each
     means = table.mean(axis=0)
-    return [Interval(float(m), float(lo), float(hi), runs) for m, lo, hi in zip(means, low, high)]
+    return [
+        Interval(float(m), float(lo), float(hi), runs)
+        for m, lo, hi in zip(means, low, high, strict=True)
+    ]
 
 
-def bin_curve(steps: np.ndarray, returns: np.ndarray, width: float) -> tuple[np.ndarray, np.ndarray]:
+def bin_curve(
+    steps: np.ndarray, returns: np.ndarray, width: float
+) -> tuple[np.ndarray, np.ndarray]:
     """One run's evaluations averaged in bins of ``width`` steps, as the authors' figures were.
 
     Bins are right-closed — ``((b - 1)·width, b·width]`` — and the first one also holds step 0
@@ -147,10 +156,14 @@ def align_curves(curves: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarra
     return steps, table
 
 
-def separation(low_a: np.ndarray, high_a: np.ndarray, low_b: np.ndarray, high_b: np.ndarray) -> np.ndarray:
+def separation(
+    low_a: np.ndarray, high_a: np.ndarray, low_b: np.ndarray, high_b: np.ndarray
+) -> np.ndarray:
     """Where two bands of intervals are disjoint: +1 where a's lies wholly above b's, -1 where
     wholly below, 0 where they overlap (or either is missing, NaN)."""
-    low_a, high_a, low_b, high_b = (np.asarray(x, dtype=float) for x in (low_a, high_a, low_b, high_b))
+    low_a, high_a, low_b, high_b = (
+        np.asarray(x, dtype=float) for x in (low_a, high_a, low_b, high_b)
+    )
     return (low_a > high_b).astype(int) - (high_a < low_b).astype(int)
 
 
@@ -170,7 +183,10 @@ class Divergence:
 
 
 def divergence(
-    steps: np.ndarray, returns: np.ndarray, width: float, tail_fraction: float = 0.25,
+    steps: np.ndarray,
+    returns: np.ndarray,
+    width: float,
+    tail_fraction: float = 0.25,
     drop_fraction: float = 0.5,
 ) -> Divergence:
     """Did the run diverge: does every bin of its tail lie below its best earlier bin by more than
@@ -180,16 +196,19 @@ def divergence(
     and recovers within the tail has not diverged.
     """
     edges, binned = bin_curve(steps, returns, width)
-    tail_bins = max(1, int(round(tail_fraction * len(binned))))
+    tail_bins = max(1, round(tail_fraction * len(binned)))
     if len(binned) <= tail_bins:
-        raise ValueError(f"{len(binned)} bins of {width:g} steps: too few to have a tail of "
-                         f"{tail_fraction:g} and bins before it")
+        raise ValueError(
+            f"{len(binned)} bins of {width:g} steps: too few to have a tail of "
+            f"{tail_fraction:g} and bins before it"
+        )
     before, tail = binned[:-tail_bins], binned[-tail_bins:]
     best_bin = int(np.argmax(before))
     gained = before[best_bin] - binned[0]
     fell = bool(gained > 0 and np.all(tail < before[best_bin] - drop_fraction * gained))
-    return Divergence(float(binned[0]), float(before[best_bin]), float(edges[best_bin]),
-                      float(tail.mean()), fell)
+    return Divergence(
+        float(binned[0]), float(before[best_bin]), float(edges[best_bin]), float(tail.mean()), fell
+    )
 
 
 # Across tasks: rliable's aggregates (Agarwal et al., 2021) --------------------------------------
@@ -232,21 +251,34 @@ def across_tasks(
     from rliable import metrics
 
     ours, theirs = np.asarray(ours, dtype=float), np.asarray(theirs, dtype=float)
-    if ours.ndim != 2 or theirs.ndim != 2 or ours.shape[1] != theirs.shape[1] or min(
-            *ours.shape, *theirs.shape) == 0:
-        raise ValueError(f"scores of shapes {ours.shape} and {theirs.shape}: expected (runs, tasks) "
-                         "each, over the same tasks, at least one of each")
+    if (
+        ours.ndim != 2
+        or theirs.ndim != 2
+        or ours.shape[1] != theirs.shape[1]
+        or min(*ours.shape, *theirs.shape) == 0
+    ):
+        raise ValueError(
+            f"scores of shapes {ours.shape} and {theirs.shape}: expected (runs, tasks) "
+            "each, over the same tasks, at least one of each"
+        )
     kwargs = {"reps": samples, "confidence_interval_size": confidence}
     with global_numpy_seed(seed):
         point, band = rly.get_interval_estimates(
-            {"pair": (ours, theirs)}, metrics.probability_of_improvement, **kwargs)
+            {"pair": (ours, theirs)}, metrics.probability_of_improvement, **kwargs
+        )
         low, high = np.ravel(band["pair"])
-        found = {"probability_of_improvement": Interval(
-            float(point["pair"]), float(low), float(high), min(len(ours), len(theirs)))}
+        found = {
+            "probability_of_improvement": Interval(
+                float(point["pair"]), float(low), float(high), min(len(ours), len(theirs))
+            )
+        }
         point, band = rly.get_interval_estimates(
-            {"ours": ours, "theirs": theirs}, lambda s: np.array([metrics.aggregate_iqm(s)]),
-            **kwargs)
+            {"ours": ours, "theirs": theirs},
+            lambda s: np.array([metrics.aggregate_iqm(s)]),
+            **kwargs,
+        )
     for name, scores in (("ours", ours), ("theirs", theirs)):
-        found[f"iqm_{name}"] = Interval(float(point[name][0]), float(band[name][0, 0]),
-                                        float(band[name][1, 0]), len(scores))
+        found[f"iqm_{name}"] = Interval(
+            float(point[name][0]), float(band[name][0, 0]), float(band[name][1, 0]), len(scores)
+        )
     return found

@@ -35,7 +35,7 @@ def make(task_id: str, **kwargs: object) -> gymnasium.Env:
     return gymnasium.make(task_id, **kwargs)
 
 
-@functools.lru_cache(maxsize=None)  # params validation asks about the same few tasks often
+@functools.cache  # params validation asks about the same few tasks often
 def unusable(task_id: str) -> str | None:
     """Why ede cannot use ``task_id``, in one short phrase, or None when it can.
 
@@ -71,8 +71,11 @@ def describe_tasks(families: Mapping[str, Any]) -> list[TaskInfo]:
     """Every task this package registers and every task of ``families`` (the params'
     ``FamilyConfig`` by name), each built once to read its spaces; a task in no family has
     family and role "-"."""
-    roles = {task: (name, "source" if task == family.source else "target")
-             for name, family in families.items() for task in family.tasks}
+    roles = {
+        task: (name, "source" if task == family.source else "target")
+        for name, family in families.items()
+        for task in family.tasks
+    }
     infos = []
     for task_id in dict.fromkeys([*ede_envs.TASKS, *roles]):
         family, role = roles.get(task_id, ("-", "-"))
@@ -82,23 +85,29 @@ def describe_tasks(families: Mapping[str, Any]) -> list[TaskInfo]:
             assert isinstance(space, gymnasium.spaces.Box)
             low, high = np.unique(space.low), np.unique(space.high)
             bounds = f"[{low[0]:g},{high[0]:g}]" if low.size == high.size == 1 else "mixed"
-            infos.append(TaskInfo(
-                id=task_id, family=family, role=role,
-                observation_shape=env.observation_space.shape or (),
-                action_space=f"Box{bounds}^{space.shape[0]}",
-                max_episode_steps=env.spec.max_episode_steps if env.spec else 0,
-            ))
+            infos.append(
+                TaskInfo(
+                    id=task_id,
+                    family=family,
+                    role=role,
+                    observation_shape=env.observation_space.shape or (),
+                    action_space=f"Box{bounds}^{space.shape[0]}",
+                    max_episode_steps=env.spec.max_episode_steps if env.spec else 0,
+                )
+            )
         finally:
             env.close()
     return infos
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def action_box(task_id: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
     """The bounds (low, high) of a usable task's action Box, for comparing tasks."""
     env = make(task_id)
     try:
         space = env.action_space
-        return tuple(np.asarray(space.low, float).tolist()), tuple(np.asarray(space.high, float).tolist())
+        return tuple(np.asarray(space.low, float).tolist()), tuple(
+            np.asarray(space.high, float).tolist()
+        )
     finally:
         env.close()

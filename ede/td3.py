@@ -42,6 +42,7 @@ from ede.ensemble import Params
 from ede.nets import initial_mlp, matmul_precision
 
 __all__ = [
+    "TD3",
     "ActionAdapter",
     "Actor",
     "Agent",
@@ -53,7 +54,6 @@ __all__ = [
     "ReplayBatch",
     "ReplayBuffer",
     "Streams",
-    "TD3",
     "k_step_targets",
 ]
 
@@ -176,8 +176,9 @@ class CodeExecutor:
         action = self.plan[i]
         next_obs, reward, terminated, truncated, _ = self.env.step(action)
         self.i = 0 if terminated or truncated else (i + 1) % self.adapter.k
-        return CodeStep(self.code, i, action, float(reward), next_obs, bool(terminated),
-                        bool(truncated))
+        return CodeStep(
+            self.code, i, action, float(reward), next_obs, bool(terminated), bool(truncated)
+        )
 
     def episode(
         self, obs: np.ndarray, policy: Callable[[np.ndarray], torch.Tensor]
@@ -230,8 +231,9 @@ class Actor:
     a stack of members' (:mod:`ede.ensemble`).
     """
 
-    def __init__(self, obs_size: int, low: torch.Tensor, high: torch.Tensor,
-                 hidden: list[int]) -> None:
+    def __init__(
+        self, obs_size: int, low: torch.Tensor, high: torch.Tensor, hidden: list[int]
+    ) -> None:
         self.sizes = [obs_size, *hidden, len(low)]
         self.centre, self.half_range = (high + low) / 2, (high - low) / 2
 
@@ -245,7 +247,9 @@ class Actor:
         """One member's actor as ``policy.safetensors`` names it: ``net.0.weight``, ...,
         ``centre``, ``half_range``."""
         return {f"net.{k}": v for k, v in params.items()} | {
-            "centre": self.centre, "half_range": self.half_range}
+            "centre": self.centre,
+            "half_range": self.half_range,
+        }
 
 
 def critic_repeat(setting: int | str, obs_size: int, pair_size: int) -> int:
@@ -264,8 +268,15 @@ class Critic:
     with a twin axis first (``0.weight`` ``(2, out, in)``: Q1's, then Q2's), evaluated together.
     """
 
-    def __init__(self, obs_size: int, code_size: int, k: int, hidden: list[int],
-                 plan_step: str = "onehot", repeat: int | str = 1) -> None:
+    def __init__(
+        self,
+        obs_size: int,
+        code_size: int,
+        k: int,
+        hidden: list[int],
+        plan_step: str = "onehot",
+        repeat: int | str = 1,
+    ) -> None:
         self.k, self.plan_step = k, plan_step
         step_size = 0 if k == 1 else (k if plan_step == "onehot" else 1)
         self.repeat = critic_repeat(repeat, obs_size, code_size + step_size)
@@ -283,15 +294,17 @@ class Critic:
             pair.append(i.to(obs.dtype)[..., None])  # (..., B) -> (..., B, 1)
         return torch.cat([obs, *pair * self.repeat], dim=-1)
 
-    def __call__(self, params: Params, obs: torch.Tensor, code: torch.Tensor,
-                 i: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def __call__(
+        self, params: Params, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Q1 and Q2."""
         x = self.inputs(obs, code, i)
         q = ensemble.mlp(params, torch.stack([x, x], dim=-3))  # (..., B, in) -> (..., 2, B, 1)
         return q[..., 0, :, 0], q[..., 1, :, 0]
 
-    def q1(self, params: Params, obs: torch.Tensor, code: torch.Tensor,
-           i: torch.Tensor) -> torch.Tensor:
+    def q1(
+        self, params: Params, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor
+    ) -> torch.Tensor:
         """Q1 alone."""
         # The twin axis is a weight's third dimension from the end, a bias's second.
         first = {k: v.select(-3 if k.endswith("weight") else -2, 0) for k, v in params.items()}
@@ -328,8 +341,15 @@ class ReplayBuffer:
 
     FIELDS = ("obs", "next_obs", "code", "i", "reward", "terminated", "truncated")
 
-    def __init__(self, capacity: int, obs_size: int, code_size: int, k: int,
-                 device: torch.device, members: int = 1) -> None:
+    def __init__(
+        self,
+        capacity: int,
+        obs_size: int,
+        code_size: int,
+        k: int,
+        device: torch.device,
+        members: int = 1,
+    ) -> None:
         self.capacity, self.k, self.device, self.members = capacity, k, device, members
         shape = (capacity, members)
         self.obs = torch.zeros((*shape, obs_size), device=device)
@@ -341,8 +361,17 @@ class ReplayBuffer:
         self.truncated = torch.zeros(shape, dtype=torch.bool, device=device)
         self.count = np.zeros(members, dtype=np.int64)
 
-    def add(self, member: int, obs: np.ndarray, code: torch.Tensor, i: int, reward: float,
-            next_obs: np.ndarray, terminated: bool, truncated: bool) -> None:
+    def add(
+        self,
+        member: int,
+        obs: np.ndarray,
+        code: torch.Tensor,
+        i: int,
+        reward: float,
+        next_obs: np.ndarray,
+        terminated: bool,
+        truncated: bool,
+    ) -> None:
         row = int(self.count[member] % self.capacity)
         self.obs[row, member] = torch.as_tensor(obs, dtype=torch.float32)
         self.next_obs[row, member] = torch.as_tensor(next_obs, dtype=torch.float32)
@@ -359,8 +388,9 @@ class ReplayBuffer:
     def sampleable(self, member: int) -> int:
         return max(0, self.size(member) - (self.k - 1))
 
-    def indices(self, batch_size: int,
-                generators: Sequence[torch.Generator | None]) -> torch.Tensor:
+    def indices(
+        self, batch_size: int, generators: Sequence[torch.Generator | None]
+    ) -> torch.Tensor:
         """``(M, B)`` rows to sample: member m's drawn from ``generators[m]``, uniform over its
         sampleable steps; a member given ``None`` draws nothing (it is not updated) and gets
         row 0."""
@@ -371,8 +401,9 @@ class ReplayBuffer:
                 continue
             if self.sampleable(member) == 0:
                 raise ValueError("the buffer holds no step whose K-step future is written")
-            offset = torch.randint(self.sampleable(member), (batch_size,), generator=generator,
-                                   device=generator.device)
+            offset = torch.randint(
+                self.sampleable(member), (batch_size,), generator=generator, device=generator.device
+            )
             oldest = int(self.count[member]) - self.size(member)
             rows.append(((oldest + offset) % self.capacity).to(self.device))
         return torch.stack(rows)
@@ -459,8 +490,9 @@ class TD3:
     :mod:`ede.ensemble` runs the same functions on M members stacked on a leading axis.
     """
 
-    def __init__(self, actor: Actor, critic: Critic, adapter: ActionAdapter,
-                 config: TD3Config) -> None:
+    def __init__(
+        self, actor: Actor, critic: Critic, adapter: ActionAdapter, config: TD3Config
+    ) -> None:
         self.actor, self.critic, self.adapter, self.config = actor, critic, adapter, config
         self.autocast = config.precision == "bf16"
 
@@ -471,15 +503,16 @@ class TD3:
         return torch.autocast(device.type, dtype=torch.bfloat16, enabled=self.autocast)
 
     @torch.no_grad()
-    def target(self, actor_target: Params, critic_target: Params, batch: ReplayBatch,
-               noise: torch.Tensor) -> torch.Tensor:
+    def target(
+        self, actor_target: Params, critic_target: Params, batch: ReplayBatch, noise: torch.Tensor
+    ) -> torch.Tensor:
         """Equation 1 with clipped double-Q and target policy smoothing, ``(B,)``; ``noise``: a
         unit normal draw ``(B, C)``."""
         c, adapter = self.config, self.adapter
         parts = k_step_targets(batch, c.discount)
         with self._autocast(batch.obs.device):
             clip = c.noise_clip * adapter.clip_scale
-            noise = (noise * c.policy_noise * adapter.noise_scale * adapter.target_noise_scale)
+            noise = noise * c.policy_noise * adapter.noise_scale * adapter.target_noise_scale
             noise = torch.maximum(torch.minimum(noise, clip), -clip)
             chosen = self.clip(self.actor(actor_target, parts.bootstrap_obs) + noise)
             # Where a time limit cut the code short, the code goes on (c' = c).
@@ -523,8 +556,14 @@ class Agent:
         self.members = len(seeds)
         self.streams = [Streams(seed, device) for seed in seeds]
         actor = Actor(obs_size, adapter.code_low, adapter.code_high, config.hidden)
-        critic = Critic(obs_size, adapter.code_size, adapter.k, config.hidden, adapter.plan_step,
-                        config.critic_action_repeat)
+        critic = Critic(
+            obs_size,
+            adapter.code_size,
+            adapter.k,
+            config.hidden,
+            adapter.plan_step,
+            config.critic_action_repeat,
+        )
         self.td3 = TD3(actor, critic, adapter, config)
         # Each member draws its actor's initial weights, then its critic's, from its own stream.
         initial = [(actor.initial(s.weights), critic.initial(s.weights)) for s in self.streams]
@@ -539,9 +578,15 @@ class Agent:
         # update waits for the host: critic loss, critic steps, actor loss (−mean Q(s, μ(s), 0)),
         # actor steps.
         self.loss_sums = torch.zeros(4, self.members, device=device)
-        self._update = self._update_eager if config.compile == "none" else torch.compile(
-            self._update_eager, fullgraph=True,
-            mode=None if config.compile == "default" else config.compile)
+        self._update = (
+            self._update_eager
+            if config.compile == "none"
+            else torch.compile(
+                self._update_eager,
+                fullgraph=True,
+                mode=None if config.compile == "default" else config.compile,
+            )
+        )
 
     # Acting, one member at a time ----------------------------------------------------------
 
@@ -552,10 +597,12 @@ class Agent:
         x = torch.as_tensor(obs, dtype=torch.float32, device=self.device)[None]
         code = self.td3.actor(self.actor.member(member), x)[0]
         if explore:
-            noise = torch.randn(code.shape, generator=self.streams[member].exploration,
-                                device=self.device)
-            code = self.td3.clip(code + noise * self.config.exploration_noise
-                                 * self.adapter.noise_scale)
+            noise = torch.randn(
+                code.shape, generator=self.streams[member].exploration, device=self.device
+            )
+            code = self.td3.clip(
+                code + noise * self.config.exploration_noise * self.adapter.noise_scale
+            )
         return code
 
     def random_code(self, member: int) -> torch.Tensor:
@@ -574,14 +621,17 @@ class Agent:
         """The random part of an update: each due member's batch and target noise, drawn from
         its own generators (members not due draw nothing)."""
         c = self.config
-        replay = [s.replay if d else None for s, d in zip(self.streams, due)]
+        replay = [s.replay if d else None for s, d in zip(self.streams, due, strict=True)]
         batch = buffer.sample(c.batch_size, replay)
         shape = (c.batch_size, self.adapter.code_size)
-        noise = torch.stack([
-            torch.randn(shape, generator=s.target_noise, device=self.device) if d
-            else torch.zeros(shape, device=self.device)
-            for s, d in zip(self.streams, due)
-        ])
+        noise = torch.stack(
+            [
+                torch.randn(shape, generator=s.target_noise, device=self.device)
+                if d
+                else torch.zeros(shape, device=self.device)
+                for s, d in zip(self.streams, due, strict=True)
+            ]
+        )
         return batch, noise
 
     def update(self, buffer: ReplayBuffer, due: np.ndarray | None = None) -> None:
@@ -597,16 +647,34 @@ class Agent:
         delay = self.config.policy_delay
         actor_due = due & ((self.updates + 1) % delay == 0)
         self.updates += due
-        corrections = torch.stack([self.critic_adam.corrections(self.updates, self.device),
-                                   self.actor_adam.corrections(self.updates // delay, self.device)])
+        corrections = torch.stack(
+            [
+                self.critic_adam.corrections(self.updates, self.device),
+                self.actor_adam.corrections(self.updates // delay, self.device),
+            ]
+        )
         masks = torch.as_tensor(np.stack([due, actor_due]), device=self.device)
         with matmul_precision(self.config.precision):
-            self._update(batch, noise, masks, corrections, bool(actor_due.any()),
-                         not due.all(), not actor_due.all())
+            self._update(
+                batch,
+                noise,
+                masks,
+                corrections,
+                bool(actor_due.any()),
+                not due.all(),
+                not actor_due.all(),
+            )
 
-    def _update_eager(self, batch: ReplayBatch, noise: torch.Tensor, masks: torch.Tensor,
-                      corrections: torch.Tensor, actor: bool, critic_masked: bool,
-                      actor_masked: bool) -> None:
+    def _update_eager(
+        self,
+        batch: ReplayBatch,
+        noise: torch.Tensor,
+        masks: torch.Tensor,
+        corrections: torch.Tensor,
+        actor: bool,
+        critic_masked: bool,
+        actor_masked: bool,
+    ) -> None:
         """The update as one function of tensors (no host synchronisation): what
         ``td3.compile`` compiles. ``masks``: ``(2, M)`` bool, the members due a critic step and
         an actor step; ``corrections``: ``(2, 2, M)``, each optimiser's :meth:`Adam.corrections`;
@@ -652,17 +720,22 @@ class Agent:
         (minus its Q value)."""
         finite = torch.isfinite(self.loss_sums[[0, 2]]).tolist()  # (2, M)
         names = ("the critic's loss", "the actor's loss (its Q value)")
-        return {m: names[0] if not finite[0][m] else names[1]
-                for m in range(self.members) if not (finite[0][m] and finite[1][m])}
+        return {
+            m: names[0] if not finite[0][m] else names[1]
+            for m in range(self.members)
+            if not (finite[0][m] and finite[1][m])
+        }
 
     # State, one member at a time ---------------------------------------------------------------
 
     def _member(self, member: int) -> dict[str, Params]:
         """Member ``member``'s networks and optimiser moments (views), by checkpoint prefix."""
-        state = {"actor": self.actor.member(member),
-                 "actor_target": self.actor_target.member(member),
-                 "critic": self.critic.member(member),
-                 "critic_target": self.critic_target.member(member)}
+        state = {
+            "actor": self.actor.member(member),
+            "actor_target": self.actor_target.member(member),
+            "critic": self.critic.member(member),
+            "critic_target": self.critic_target.member(member),
+        }
         for name, adam in (("actor_adam", self.actor_adam), ("critic_adam", self.critic_adam)):
             state |= {f"{name}.{moment}": views for moment, views in adam.member(member).items()}
         return state
@@ -672,8 +745,11 @@ class Agent:
         each network's parameters (``actor.0.weight``, ``critic.0.weight`` (Q1's and Q2's), ...),
         each optimiser's moments (``actor_adam.exp_avg.0.weight``, ...), its update count,
         diagnostics sums and generator states."""
-        state = {f"{prefix}.{k}": v for prefix, params in self._member(member).items()
-                 for k, v in params.items()}
+        state = {
+            f"{prefix}.{k}": v
+            for prefix, params in self._member(member).items()
+            for k, v in params.items()
+        }
         state["updates"] = torch.tensor(int(self.updates[member]))
         state["loss_sums"] = self.loss_sums[:, member]
         for purpose in Streams.SAVED:

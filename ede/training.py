@@ -27,6 +27,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 import torch
+
 from ede import checkpoint
 from ede.atomic import claim, remove_stale_temporaries
 from ede.checkpoint import CheckpointError, Episode, Layout
@@ -58,8 +59,11 @@ EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes are seeded apart from traini
 
 
 def evaluate(
-    env: gymnasium.Env, policy: Callable[[np.ndarray], torch.Tensor], adapter: ActionAdapter,
-    episodes: int, seed: int,
+    env: gymnasium.Env,
+    policy: Callable[[np.ndarray], torch.Tensor],
+    adapter: ActionAdapter,
+    episodes: int,
+    seed: int,
 ) -> np.ndarray:
     """Returns of ``episodes`` episodes of ``policy`` (deterministic: μ(s)); episode e starts
     from ``reset(seed + e)``."""
@@ -72,14 +76,23 @@ def evaluate(
     return returns
 
 
-def _adapter(spec: RunSpec, space: gymnasium.spaces.Box, embedding: ActionEmbedding | None,
-             device: torch.device) -> ActionAdapter:
+def _adapter(
+    spec: RunSpec,
+    space: gymnasium.spaces.Box,
+    embedding: ActionEmbedding | None,
+    device: torch.device,
+) -> ActionAdapter:
     if spec.algo == "td3":
         return IdentityAdapter(space.low, space.high, device, spec.td3.noise_units)
     assert embedding is not None
     ede = spec.ede_td3
-    return EmbeddingAdapter(embedding, ede.bound_scale, ede.target_noise_scale,
-                            ede.target_noise_clip, ede.plan_step_input)
+    return EmbeddingAdapter(
+        embedding,
+        ede.bound_scale,
+        ede.target_noise_scale,
+        ede.target_noise_clip,
+        ede.plan_step_input,
+    )
 
 
 class _Run:
@@ -117,14 +130,17 @@ class _Run:
             return agent.random_code(self.index)
         code = agent.act(self.index, obs, explore=True)
         if not bool(torch.isfinite(code).all()):
-            raise self.diverged(self.step + 1, "the actor's " + (
-                "action" if self.spec.algo == "td3" else "code"))
+            raise self.diverged(
+                self.step + 1, "the actor's " + ("action" if self.spec.algo == "td3" else "code")
+            )
         return code
 
     def diverged(self, step: int, quantity: str) -> Diverged:
         spec = self.spec
-        return Diverged(f"{spec.task} {spec.algo} seed {spec.seed}: diverged at step {step}: "
-                        f"{quantity} is not finite")
+        return Diverged(
+            f"{spec.task} {spec.algo} seed {spec.seed}: diverged at step {step}: "
+            f"{quantity} is not finite"
+        )
 
     def env_step(self) -> int:
         """One environment step (Section 3: learn from every step).
@@ -140,8 +156,16 @@ class _Run:
             raise self.diverged(self.step + 1, "the environment's reward")
         if not np.isfinite(step.next_obs).all():
             raise self.diverged(self.step + 1, "the environment's observation")
-        buffer.add(self.index, self.obs, step.code, step.i, step.reward, step.next_obs,
-                   step.terminated, step.truncated)
+        buffer.add(
+            self.index,
+            self.obs,
+            step.code,
+            step.i,
+            step.reward,
+            step.next_obs,
+            step.terminated,
+            step.truncated,
+        )
         self.episode.actions.append(step.action)
         self.episode.ret += step.reward
         updates = 1 if config.update_schedule == "step" else 0
@@ -157,12 +181,22 @@ class _Run:
         return updates
 
     def evaluate(self) -> dict[str, float]:
-        returns = evaluate(self.eval_env, self.act, self.group.adapter,
-                           self.spec.td3.eval_episodes, EVAL_SEED_OFFSET * (self.spec.seed + 1))
+        returns = evaluate(
+            self.eval_env,
+            self.act,
+            self.group.adapter,
+            self.spec.td3.eval_episodes,
+            EVAL_SEED_OFFSET * (self.spec.seed + 1),
+        )
         if not np.isfinite(returns).all():
             raise self.diverged(self.step, "the evaluation's return")
-        row = {"step": self.step, "episode": self.episodes, "mean_return": float(returns.mean()),
-               "std_return": float(returns.std()), "wall_seconds": round(self.wall, 3)}
+        row = {
+            "step": self.step,
+            "episode": self.episodes,
+            "mean_return": float(returns.mean()),
+            "std_return": float(returns.std()),
+            "wall_seconds": round(self.wall, 3),
+        }
         self.history.append(row)
         trained = self.group.agent.take_diagnostics(self.index)
         if trained["updates"]:
@@ -182,9 +216,15 @@ class _Run:
         state = checkpoint.Checkpoint(
             agent=group.agent.state_dict(self.index),
             buffer=group.buffer.state_dict(self.index),
-            code=executor.code, plan=executor.plan, i=executor.i,
-            episode=self.episode, obs=self.obs, episodes=self.episodes,
-            history=self.history, diagnostics=self.diagnostics, wall_seconds=self.wall,
+            code=executor.code,
+            plan=executor.plan,
+            i=executor.i,
+            episode=self.episode,
+            obs=self.obs,
+            episodes=self.episodes,
+            history=self.history,
+            diagnostics=self.diagnostics,
+            wall_seconds=self.wall,
         )
         checkpoint.write(path, self.spec, state)
 
@@ -201,8 +241,9 @@ class _Run:
             return False
         group = self.group
         saved = checkpoint.read(path, self.spec, group.layout)
-        self.obs, self.episode = checkpoint.apply(saved, group.agent, group.buffer, self.index,
-                                                  self.executor, self.env)
+        self.obs, self.episode = checkpoint.apply(
+            saved, group.agent, group.buffer, self.index, self.executor, self.env
+        )
         self.episodes, self.wall = saved.episodes, saved.wall_seconds
         self.history, self.diagnostics = list(saved.history), list(saved.diagnostics)
         return True
@@ -212,8 +253,9 @@ class _Group:
     """The runs of one task and algorithm that differ in their seeds, as one agent with a
     member per run (M = 1 for a run alone) and one replay buffer."""
 
-    def __init__(self, specs: list[RunSpec], embedding: ActionEmbedding | None,
-                 device: torch.device) -> None:
+    def __init__(
+        self, specs: list[RunSpec], embedding: ActionEmbedding | None, device: torch.device
+    ) -> None:
         spec, self.device = specs[0], device
         probe = make(spec.task)
         space, obs_shape = probe.action_space, probe.observation_space.shape
@@ -223,10 +265,10 @@ class _Group:
         self.adapter = _adapter(spec, space, embedding, device)
         self.agent = Agent(obs_size, self.adapter, spec.td3, device, [s.seed for s in specs])
         capacity = min(spec.td3.buffer_size, spec.budget)
-        self.buffer = ReplayBuffer(capacity, obs_size, self.adapter.code_size, self.adapter.k,
-                                   device, len(specs))
-        self.layout = Layout.of(self.agent, self.buffer, obs_shape,
-                                (self.adapter.k, *space.shape))
+        self.buffer = ReplayBuffer(
+            capacity, obs_size, self.adapter.code_size, self.adapter.k, device, len(specs)
+        )
+        self.layout = Layout.of(self.agent, self.buffer, obs_shape, (self.adapter.k, *space.shape))
         self.runs = [_Run(j, s, self) for j, s in enumerate(specs)]
 
     def restart(self, index: int) -> _Run:
@@ -275,8 +317,9 @@ def train_run(
     notice: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Train one run into ``out``: :func:`train_group` of one member."""
-    return train_group([spec], [out], embedding, device, progress, keep_checkpoint,
-                       bad_checkpoint, notice)[0]
+    return train_group(
+        [spec], [out], embedding, device, progress, keep_checkpoint, bad_checkpoint, notice
+    )[0]
 
 
 @flush_denormals()
@@ -320,8 +363,7 @@ def train_group(
     if not alike or len({s.seed for s in specs}) != len(specs):
         raise ValueError("a group's runs must differ in their seeds only")
     group = _Group(specs, embedding, device)
-    sessions = [_Session.start(group, j, out, bad_checkpoint, notice)
-                for j, out in enumerate(outs)]
+    sessions = [_Session.start(group, j, out, bad_checkpoint, notice) for j, out in enumerate(outs)]
     if progress is not None:
         progress(sum(run.step for run in group.runs))
     while stepped := group.advance():
@@ -354,8 +396,14 @@ class _Session:
         return self.group.runs[self.index]
 
     @classmethod
-    def start(cls, group: _Group, index: int, out: Path, bad_checkpoint: str,
-              notice: Callable[[str], None]) -> _Session:
+    def start(
+        cls,
+        group: _Group,
+        index: int,
+        out: Path,
+        bad_checkpoint: str,
+        notice: Callable[[str], None],
+    ) -> _Session:
         claim(out, RUN_KIND, RUN_OWNS)
         path = out / "checkpoint"
         run = group.runs[index]
@@ -436,16 +484,21 @@ def _move_aside(path: Path) -> Path:
     return aside
 
 
-def save_policy(path: Path, agent: Agent, member: int, spec: RunSpec,
-                adapter: ActionAdapter) -> None:
+def save_policy(
+    path: Path, agent: Agent, member: int, spec: RunSpec, adapter: ActionAdapter
+) -> None:
     """Member ``member``'s final actor: ``policy.safetensors`` (the single-network ``Actor``'s
     tensors: ``net.0.weight``, ``net.0.bias``, ..., ``centre``, ``half_range``; an
     ``ede.nets.mlp`` of ``hidden`` loads ``net.*``) beside ``policy.json``."""
-    write_policy(path, agent.policy(member), {
-        **spec.identity(),
-        "k": adapter.k,
-        "code_size": adapter.code_size,
-        "code_low": adapter.code_low.tolist(),
-        "code_high": adapter.code_high.tolist(),
-        "hidden": spec.td3.hidden,
-    })
+    write_policy(
+        path,
+        agent.policy(member),
+        {
+            **spec.identity(),
+            "k": adapter.k,
+            "code_size": adapter.code_size,
+            "code_low": adapter.code_low.tolist(),
+            "code_high": adapter.code_high.tolist(),
+            "hidden": spec.td3.hidden,
+        },
+    )

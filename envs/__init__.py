@@ -44,6 +44,7 @@ TASKS: dict[str, Task] = {
     )
 }
 
+
 def register_envs() -> None:
     """Register every ``ede/`` task with gymnasium; calling it again is harmless."""
     from gymnasium.envs.registration import register, registry
@@ -51,9 +52,7 @@ def register_envs() -> None:
     for task in TASKS.values():
         if task.id in registry:
             continue
-        register(
-            id=task.id, entry_point=task.entry_point, max_episode_steps=task.max_episode_steps
-        )
+        register(id=task.id, entry_point=task.entry_point, max_episode_steps=task.max_episode_steps)
 
 
 register_envs()

@@ -9,7 +9,7 @@ observation (:meth:`_get_obs`) and its reward (:meth:`_get_rew`).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Final
+from typing import Any, ClassVar, Final
 
 import mujoco
 import numpy as np
@@ -78,7 +78,7 @@ class ReacherFamilyEnv(MujocoEnv, utils.EzPickle):
     The environment never terminates; `gymnasium.make` adds a `TimeLimit` of 100 steps.
     """
 
-    metadata = {
+    metadata: ClassVar[dict[str, Any]] = {
         "render_modes": ["human", "rgb_array", "depth_array", "rgbd_tuple"],
         "render_fps": RENDER_FPS,
     }

@@ -109,8 +109,7 @@ class ReacherVerticalEnv(ReacherFamilyEnv):
 
     def _reset_task(self, qpos: NDArray[np.float64], qvel: NDArray[np.float64]) -> None:
         self._set_target(
-            TARGET_CENTER_XZ
-            + self.np_random.uniform(-TARGET_HALF_WIDTH, TARGET_HALF_WIDTH, size=2)
+            TARGET_CENTER_XZ + self.np_random.uniform(-TARGET_HALF_WIDTH, TARGET_HALF_WIDTH, size=2)
         )
 
     def _get_obs(self) -> NDArray[np.float64]:

@@ -47,8 +47,11 @@ def validate(params: Params) -> None:
 
 @main.command("set-params")
 @click.argument("overrides", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option("--name", help="The experiment's name  [default: the file's name less `params-` "
-              "and `.yaml`, and the time: quick-20250130-141205]")
+@click.option(
+    "--name",
+    help="The experiment's name  [default: the file's name less `params-` "
+    "and `.yaml`, and the time: quick-20250130-141205]",
+)
 @params_option
 def set_params(params: Params, overrides: Path, name: str | None) -> None:
     """Print ``dvc exp run``'s arguments for a file of overrides: ``--name``, ``-S key=value``.
@@ -97,7 +100,9 @@ def envs(params: Params) -> None:
     ]
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     for row in rows:
-        click.echo("  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip())
+        click.echo(
+            "  ".join(cell.ljust(width) for cell, width in zip(row, widths, strict=True)).rstrip()
+        )
 
 
 main.add_command(task_code.task_code)

@@ -54,9 +54,15 @@ def imports_of(path: Path, name: str) -> set[str]:
         if isinstance(node, ast.Import):
             found |= {alias.name for alias in node.names}
         elif isinstance(node, ast.ImportFrom) and node.module:
-            module = node.module if node.level == 0 else name.rsplit(".", node.level)[0] + "." + node.module
+            module = (
+                node.module
+                if node.level == 0
+                else name.rsplit(".", node.level)[0] + "." + node.module
+            )
             found.add(module)
-            found |= {f"{module}.{alias.name}" for alias in node.names}  # submodules imported by name
+            found |= {
+                f"{module}.{alias.name}" for alias in node.names
+            }  # submodules imported by name
     return found
 
 
@@ -98,7 +104,9 @@ def _model_files(path: Path) -> list[Path]:
         if current in files:
             continue
         files.append(current)
-        todo += [(current.parent / name).resolve() for name in _INCLUDE.findall(current.read_text())]
+        todo += [
+            (current.parent / name).resolve() for name in _INCLUDE.findall(current.read_text())
+        ]
     return files
 
 
@@ -116,12 +124,20 @@ def task_code(task_id: str) -> dict[str, Any]:
     try:
         spec = env.spec
         assert spec is not None
-        entry_point = spec.entry_point if isinstance(spec.entry_point, str) else repr(spec.entry_point)
+        entry_point = (
+            spec.entry_point if isinstance(spec.entry_point, str) else repr(spec.entry_point)
+        )
         fullpath = getattr(env.unwrapped, "fullpath", None)
     finally:
         env.close()
-    return task_record(task_id, entry_point, spec.max_episode_steps, spec.kwargs,
-                       Path(fullpath) if fullpath else None, package_dirs())
+    return task_record(
+        task_id,
+        entry_point,
+        spec.max_episode_steps,
+        spec.kwargs,
+        Path(fullpath) if fullpath else None,
+        package_dirs(),
+    )
 
 
 def task_record(

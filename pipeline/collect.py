@@ -19,6 +19,7 @@ from ede_pipeline import layout
 from ede_pipeline.common import BadInput, check_family, family_option, holding, params_option
 from ede_pipeline.progress import progress
 
+
 @click.command()
 @family_option
 @click.option(
@@ -36,8 +37,9 @@ def collect(params: Params, family: str, out: Path | None, workers: int | None) 
     config = params.collect
     num_envs = config.num_envs or default_num_envs(config.steps, episode_length(env_id))
     with holding((out, ROLLOUTS)), progress(config.steps, f"collect {family}") as advance:
-        arrays = collect_steps(env_id, config.steps, num_envs, config.seed, workers, advance,
-                               config.saturated_episodes)
+        arrays = collect_steps(
+            env_id, config.steps, num_envs, config.seed, workers, advance, config.saturated_episodes
+        )
         write_store(out, arrays, store_attrs(params, family, num_envs, arrays))
     click.echo(f"{out}: {len(arrays['reward'])} steps, {int(arrays['episode'][-1]) + 1} episodes")
 
@@ -96,5 +98,11 @@ def inspect_rollouts(params: Params, family: str, path: Path | None) -> None:
     click.echo(f"{rollouts.path}: {rollouts.attrs['env_id']}, seed {rollouts.attrs['seed']}")
     click.echo(f"  {len(rollouts)} steps in {rollouts.num_episodes} episodes")
     click.echo(f"  state size {rollouts.state.shape[1]}, action size {rollouts.action.shape[1]}")
-    click.echo(f"  {len(rollouts.window_starts(params.embedding.k))} windows of k={params.embedding.k}")
+    click.echo(
+        f"  {len(rollouts.window_starts(params.embedding.k))} windows of k={params.embedding.k}"
+    )
+    click.echo(
+        f"  whitening: state std {state.std.min():.3g} to {state.std.max():.3g}, "
+        f"{params.embedding.k}-step change std {delta.std.min():.3g} to {delta.std.max():.3g}"
+    )
     click.echo(f"  fingerprint {rollouts.attrs['fingerprint']}")

@@ -77,8 +77,12 @@ def check_family(params: Params, family: str) -> None:
 Folder = tuple[Path | None, str]  # an output folder and the kind of output it is
 
 
-def check_outputs(output: Folder, files: tuple[Path | None, ...] = (),
-                  dirs: tuple[Folder, ...] = (), inputs: tuple[Path | None, ...] = ()) -> None:
+def check_outputs(
+    output: Folder,
+    files: tuple[Path | None, ...] = (),
+    dirs: tuple[Folder, ...] = (),
+    inputs: tuple[Path | None, ...] = (),
+) -> None:
     """Before any work: every place a stage will write can be written
     (:func:`ede.atomic.unwritable`) — ``output`` (a folder, with its kind) with its lock and
     temporaries, the other outputs ``files`` and ``dirs``, and the progress file ``EDE_PROGRESS``
@@ -95,8 +99,12 @@ def check_outputs(output: Folder, files: tuple[Path | None, ...] = (),
         if place is None:
             continue
         folder = kind is not None
-        problem = (unwritable(place, folder) or (folder and _above_working_directory(place))
-                   or _overlap(place, inputs) or (folder and ownership_problem(place, kind)))
+        problem = (
+            unwritable(place, folder)
+            or (folder and _above_working_directory(place))
+            or _overlap(place, inputs)
+            or (folder and ownership_problem(place, kind))
+        )
         if problem:
             raise BadInput(problem)
     if progress_file and (problem := unwritable(Path(progress_file), directory=False)):
@@ -106,8 +114,10 @@ def check_outputs(output: Folder, files: tuple[Path | None, ...] = (),
 def _above_working_directory(folder: Path) -> str | None:
     here, there = Path.cwd().resolve(), folder.resolve()
     if there == here or there in here.parents:
-        return (f"{folder}: the working directory{' or a folder above it' if there != here else ''}"
-                "; expected a folder of the output's own, e.g. one inside it")
+        return (
+            f"{folder}: the working directory{' or a folder above it' if there != here else ''}"
+            "; expected a folder of the output's own, e.g. one inside it"
+        )
     return None
 
 
@@ -116,15 +126,24 @@ def _overlap(output: Path, inputs: tuple[Path | None, ...]) -> str | None:
     for given in filter(None, inputs):
         source = given.resolve()
         if there == source or source.is_relative_to(there) or there.is_relative_to(source):
-            how = ("is" if there == source else "holds" if source.is_relative_to(there)
-                   else "lies inside")
+            how = (
+                "is"
+                if there == source
+                else "holds"
+                if source.is_relative_to(there)
+                else "lies inside"
+            )
             return f"{output}: {how} the stage's input {given}; expected a place apart from it"
     return None
 
 
 @contextmanager
-def holding(output: Folder, files: tuple[Path | None, ...] = (),
-            dirs: tuple[Folder, ...] = (), inputs: tuple[Path | None, ...] = ()) -> Iterator[None]:
+def holding(
+    output: Folder,
+    files: tuple[Path | None, ...] = (),
+    dirs: tuple[Folder, ...] = (),
+    inputs: tuple[Path | None, ...] = (),
+) -> Iterator[None]:
     """The stage's exclusive lock on its output (:func:`ede.locks.exclusive`) for the block,
     after :func:`check_outputs`. A place that cannot be written or that holds what the stage did
     not write, and a second process on the same output, are refused as bad input: one line,
@@ -166,16 +185,19 @@ def check_mujoco_gl() -> None:
         return
     try:
         import mujoco  # noqa: F401 — it reads MUJOCO_GL on import
-    except Exception as error:  # noqa: BLE001 — RuntimeError, or a backend's missing library
+    except Exception as error:
         reason = (str(error).strip().splitlines() or [type(error).__name__])[-1]
         works = [v for v in MUJOCO_GL_VALUES if _mujoco_starts_with(v)]
-        raise BadInput(f"MUJOCO_GL={value}: MuJoCo cannot start with it ({reason}); this machine "
-                       f"supports {', '.join(works) or 'none of ' + ', '.join(MUJOCO_GL_VALUES)}, "
-                       "or leave it unset: no stage renders") from None
+        raise BadInput(
+            f"MUJOCO_GL={value}: MuJoCo cannot start with it ({reason}); this machine "
+            f"supports {', '.join(works) or 'none of ' + ', '.join(MUJOCO_GL_VALUES)}, "
+            "or leave it unset: no stage renders"
+        ) from None
 
 
 def _mujoco_starts_with(value: str) -> bool:
     environ = {**os.environ, "MUJOCO_GL": value}
-    probe = subprocess.run([sys.executable, "-c", "import mujoco"], env=environ,
-                           capture_output=True, timeout=60)
+    probe = subprocess.run(
+        [sys.executable, "-c", "import mujoco"], env=environ, capture_output=True, timeout=60
+    )
     return probe.returncode == 0

@@ -78,7 +78,8 @@ def _headline(entry: dict[str, Any]) -> dict[str, dict[str, dict[str, Any]]]:
     files = (entry.get("data") or {}).get("metrics") or {}
     report = (files.get(layout.REPORT_METRICS.as_posix()) or {}).get("data") or {}
     return {
-        task: per_algo for task, per_algo in report.items()
+        task: per_algo
+        for task, per_algo in report.items()
         if isinstance(per_algo, dict) and any(a in per_algo for a in ALGO_LABELS)
     }
 
@@ -90,7 +91,8 @@ def _number(value: Any, digits: int = 2) -> str:
 def _changes(params: dict[str, Any], baseline: dict[str, Any]) -> list[str]:
     return [
         f"{key}: {baseline.get(key)} → {value}"
-        for key, value in params.items() if value != baseline.get(key)
+        for key, value in params.items()
+        if value != baseline.get(key)
     ]
 
 
@@ -98,8 +100,13 @@ def _block(entry: dict[str, Any], base: str, baseline: dict[str, Any]) -> list[s
     rev = str(entry.get("rev"))[:7]
     lines = [f"{entry.get('name') or rev}  ({rev}, from {base})"]
     changed = _changes(_params(entry), baseline)
-    lines += textwrap.wrap(f"changed: {'; '.join(changed) if changed else 'none'}", WIDTH,
-                           initial_indent="  ", subsequent_indent="    ", break_on_hyphens=False)
+    lines += textwrap.wrap(
+        f"changed: {'; '.join(changed) if changed else 'none'}",
+        WIDTH,
+        initial_indent="  ",
+        subsequent_indent="    ",
+        break_on_hyphens=False,
+    )
     tasks = _headline(entry)
     if not tasks:
         lines.append("  no report yet" if entry.get("error") is None else "  failed")
@@ -129,8 +136,9 @@ def _across_tasks(entry: dict[str, Any]) -> list[str]:
     cells = []
     for score, label in (("final_return", "final"), ("auc", "AUC")):
         p = (across.get(score) or {}).get("probability_of_improvement") or {}
-        cells.append(f"{label} {_number(p.get('value'))} "
-                     f"[{_number(p.get('low'))}, {_number(p.get('high'))}]")
+        cells.append(
+            f"{label} {_number(p.get('value'))} [{_number(p.get('low'))}, {_number(p.get('high'))}]"
+        )
     count = _number(across.get("task_count"), 0)
     return [f"  P(EDE-TD3 > TD3), {count} task{'s' * (count != '1')}: {'; '.join(cells)}"]
 
@@ -219,8 +227,11 @@ def prepare_workspace(name: str, params: dict[str, Any]) -> Path:
     for file in _git("ls-files", "-z", cwd=workspace).split("\0"):
         if file and file not in present:  # deleted here, not yet committed
             (workspace / file).unlink(missing_ok=True)
-    write_text(workspace / DEFAULT_PARAMS, f"# experiments/{name}.yaml applied to params.yaml "
-               f"(ede-pipeline experiment run {name})\n" + yaml.safe_dump(params, sort_keys=False))
+    write_text(
+        workspace / DEFAULT_PARAMS,
+        f"# experiments/{name}.yaml applied to params.yaml "
+        f"(ede-pipeline experiment run {name})\n" + yaml.safe_dump(params, sort_keys=False),
+    )
     write_text(workspace / ".dvc" / "config.local", _shared_config())
     (workspace / layout.DATA).mkdir(exist_ok=True)
     return workspace
@@ -249,7 +260,9 @@ def _code_path(workspace: Path) -> Path:
     the copy's commit (:func:`ede.provenance.code_version`)."""
     import tomllib
 
-    packages = tomllib.loads(Path("pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+    packages = tomllib.loads(Path("pyproject.toml").read_text())["tool"]["setuptools"][
+        "package-dir"
+    ]
     code = workspace / ".dvc" / "tmp" / "python"
     code.mkdir(parents=True, exist_ok=True)
     for package, folder in packages.items():
@@ -263,10 +276,14 @@ def _tool(workspace: Path, *argv: str) -> int:
     """Run one of this environment's tools (``ede-pipeline``, ``dvc``) in ``workspace`` with its
     code (:func:`_code_path`), its output to ours; a signal that stops us stops it first."""
     bin_dir = Path(sys.executable).parent
-    python_path = os.pathsep.join(filter(None, [str(_code_path(workspace)),
-                                                os.environ.get("PYTHONPATH")]))
-    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}",
-           "PYTHONPATH": python_path}
+    python_path = os.pathsep.join(
+        filter(None, [str(_code_path(workspace)), os.environ.get("PYTHONPATH")])
+    )
+    env = {
+        **os.environ,
+        "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}",
+        "PYTHONPATH": python_path,
+    }
     child = subprocess.Popen([str(bin_dir / argv[0]), *argv[1:]], cwd=workspace, env=env)
     before = signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     try:
@@ -283,8 +300,12 @@ def _git_identity() -> dict[str, str]:
     """``dvc exp save`` commits: where git has no user, one named for the tool."""
     if subprocess.run(["git", "config", "user.email"], capture_output=True).returncode == 0:
         return {}
-    return {"GIT_AUTHOR_NAME": "ede-pipeline", "GIT_AUTHOR_EMAIL": "ede-pipeline@localhost",
-            "GIT_COMMITTER_NAME": "ede-pipeline", "GIT_COMMITTER_EMAIL": "ede-pipeline@localhost"}
+    return {
+        "GIT_AUTHOR_NAME": "ede-pipeline",
+        "GIT_AUTHOR_EMAIL": "ede-pipeline@localhost",
+        "GIT_COMMITTER_NAME": "ede-pipeline",
+        "GIT_COMMITTER_EMAIL": "ede-pipeline@localhost",
+    }
 
 
 @click.group()
@@ -298,17 +319,24 @@ def list_experiments() -> None:
     comment)."""
     for path in sorted(EXPERIMENTS.glob("*.yaml")):
         lines = path.read_text().splitlines()
-        comment = " ".join(line.lstrip("#").strip() for line in
-                           lines[:next((i for i, line in enumerate(lines)
-                                        if not line.startswith("#")), len(lines))])
+        comment = " ".join(
+            line.lstrip("#").strip()
+            for line in lines[
+                : next((i for i, line in enumerate(lines) if not line.startswith("#")), len(lines))
+            ]
+        )
         first = comment.split(". ")[0].rstrip(".")
         click.echo(f"{path.stem:22s}{textwrap.shorten(first, WIDTH - 22, placeholder=' …')}")
 
 
 @experiment.command("run", context_settings={"ignore_unknown_options": True})
 @click.argument("name")
-@click.option("--push", is_flag=True, help="Then send its outputs to the artifact store (`dvc "
-              "push`: the DVC remote, `store` by default).")
+@click.option(
+    "--push",
+    is_flag=True,
+    help="Then send its outputs to the artifact store (`dvc "
+    "push`: the DVC remote, `store` by default).",
+)
 @click.argument("sweep_args", nargs=-1, type=click.UNPROCESSED)
 def run_experiment(name: str, push: bool, sweep_args: tuple[str, ...]) -> None:
     """Run experiments/NAME.yaml in its working copy and record it as the DVC experiment NAME.
@@ -336,16 +364,27 @@ def run_experiment(name: str, push: bool, sweep_args: tuple[str, ...]) -> None:
     if code := _tool(workspace, "dvc", "exp", "save", "--name", name, "--force"):
         raise Failed(f"experiment {name}: dvc exp save failed (exit {code})")
     if push and (code := _tool(workspace, "dvc", "push")):
-        raise Failed(f"experiment {name}: dvc push failed (exit {code}); it is recorded here, "
-                     "run it again to push")
-    click.echo(f"experiment {name}: recorded (`dvc exp show`, `ede-pipeline experiment show`); "
-               f"export its runs with `ede-pipeline experiment export {name}`", err=True)
+        raise Failed(
+            f"experiment {name}: dvc push failed (exit {code}); it is recorded here, "
+            "run it again to push"
+        )
+    click.echo(
+        f"experiment {name}: recorded (`dvc exp show`, `ede-pipeline experiment show`); "
+        f"export its runs with `ede-pipeline experiment export {name}`",
+        err=True,
+    )
 
 
 @experiment.command("export")
 @click.argument("name")
-@click.option("--to", "to", type=click.Path(file_okay=False, path_type=Path),
-              default=layout.RESULTS_RUNS, show_default=True, help="The published runs' folder.")
+@click.option(
+    "--to",
+    "to",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=layout.RESULTS_RUNS,
+    show_default=True,
+    help="The published runs' folder.",
+)
 def export(name: str, to: Path) -> None:
     """Copy experiment NAME's finished runs into the published layout.
 
@@ -361,8 +400,10 @@ def export(name: str, to: Path) -> None:
     experiment_file(name)
     workspace = WORKSPACES / name
     if not (workspace / DEFAULT_PARAMS).is_file():
-        raise BadInput(f"experiment {name}: not run here yet (no {workspace}); "
-                       f"`ede-pipeline experiment run {name}` first")
+        raise BadInput(
+            f"experiment {name}: not run here yet (no {workspace}); "
+            f"`ede-pipeline experiment run {name}` first"
+        )
     params = read_params(workspace / DEFAULT_PARAMS)
     finished, problems = _finished_runs(workspace, params)
     if problems:
@@ -371,15 +412,20 @@ def export(name: str, to: Path) -> None:
         raise BadInput(f"experiment {name}: no run has finished yet")
     exported = {}  # task: its runs and its source.json's parts, all checked before any is written
     for task in params.runs.tasks:
-        runs = [(algo, seed, folder, made) for (t, algo, seed), (folder, made) in finished.items()
-                if t == task]
+        runs = [
+            (algo, seed, folder, made)
+            for (t, algo, seed), (folder, made) in finished.items()
+            if t == task
+        ]
         if not runs:  # none of this task's runs has finished yet
             click.echo(f"{task}: no run finished yet; nothing exported", err=True)
             continue
         commits = sorted({made["code"]["commit"] for *_, made in runs})
-        part = {"experiment": experiment_file(name).as_posix(),
-                "commit": commits[0] if len(commits) == 1 else commits,
-                "seeds": list(params.runs.seeds)}
+        part = {
+            "experiment": experiment_file(name).as_posix(),
+            "commit": commits[0] if len(commits) == 1 else commits,
+            "seeds": list(params.runs.seeds),
+        }
         if task in params.report.thresholds:
             part["thresholds"] = params.report.thresholds[task]
         exported[task] = runs, _merged_source(layout.task_runs(task, to), part)
@@ -413,13 +459,19 @@ def _merged_source(folder: Path, part: dict) -> dict | list[dict]:
         return part
     checked = read_source(folder).parts
     written = json.loads((folder / "source.json").read_text())
-    kept = [(json_part, read) for json_part, read in zip(
-        written if isinstance(written, list) else [written], checked)
-        if read.experiment != part["experiment"]]
+    kept = [
+        (json_part, read)
+        for json_part, read in zip(
+            written if isinstance(written, list) else [written], checked, strict=True
+        )
+        if read.experiment != part["experiment"]
+    ]
     for _, read in kept:
         if twice := sorted(set(read.seeds) & set(part["seeds"])):
-            raise BadInput(f"{folder / 'source.json'}: seeds {twice} are already published by "
-                           f"{read.maker()}; an experiment adds seeds the task has not")
+            raise BadInput(
+                f"{folder / 'source.json'}: seeds {twice} are already published by "
+                f"{read.maker()}; an experiment adds seeds the task has not"
+            )
     return [*(json_part for json_part, _ in kept), part] if kept else part
 
 
@@ -429,8 +481,9 @@ def _finished_runs(workspace: Path, params: Params) -> tuple[dict, list[str]]:
     from ede.runs import RunRejected, RunSpec, read_run
 
     finished, problems = {}, []
-    for task, algo, seed in itertools.product(params.runs.tasks, params.runs.algos,
-                                              params.runs.seeds):
+    for task, algo, seed in itertools.product(
+        params.runs.tasks, params.runs.algos, params.runs.seeds
+    ):
         out = workspace / layout.run(task, algo, seed)
         spec = RunSpec(task, algo, seed, params.runs.budgets[task], params.td3, params.ede_td3)
         expected = {k: v for k, v in spec.identity().items() if k != "embedding"}
@@ -440,17 +493,24 @@ def _finished_runs(workspace: Path, params: Params) -> tuple[dict, list[str]]:
             problems.append(str(error))
             continue
         if run is not None and not (run.made.get("code") or {}).get("commit"):
-            problems.append(f"{out / 'run.json'}: names no commit (an image built without "
-                            "EDE_COMMIT?); only runs whose code is known are published")
+            problems.append(
+                f"{out / 'run.json'}: names no commit (an image built without "
+                "EDE_COMMIT?); only runs whose code is known are published"
+            )
         elif run is not None:
             finished[(task, algo, seed)] = (out, run.made)
     return finished, problems
 
 
-
 @experiment.command()
-@click.option("--num", "-n", type=int, default=1, show_default=True,
-              help="The experiments of the last N commits (first parents); -1: all of them.")
+@click.option(
+    "--num",
+    "-n",
+    type=int,
+    default=1,
+    show_default=True,
+    help="The experiments of the last N commits (first parents); -1: all of them.",
+)
 def show(num: int) -> None:
     """The DVC experiments, in 80 columns: name, changed params, headline returns per task."""
     command = [sys.executable, "-m", "dvc", "exp", "show", "--json", "--num", str(num)]
@@ -458,4 +518,8 @@ def show(num: int) -> None:
     if shown.returncode:
         raise click.ClickException(f"dvc exp show failed: {shown.stderr.strip()}")
     lines = experiment_blocks(json.loads(shown.stdout))
-    click.echo("\n".join(lines) if lines else "no experiments yet (`ede-pipeline experiment run NAME` or `make quick` makes one)")
+    click.echo(
+        "\n".join(lines)
+        if lines
+        else "no experiments yet (`ede-pipeline experiment run NAME` or `make quick` makes one)"
+    )

@@ -53,8 +53,10 @@ def _device(name: str) -> Any:
 def _paths_option(name: str) -> Any:
     def decorate(command: Any) -> Any:
         for option, what in (
-            ("--out", f"{name} artifact directory  "
-                      f"[default: data/families/<family>/embedding/{name}]"),
+            (
+                "--out",
+                f"{name} artifact directory  [default: data/families/<family>/embedding/{name}]",
+            ),
             ("--metrics", f"held-out metrics JSON  [default: …/{name}_metrics.json]"),
             ("--plots", f"per-epoch losses CSV  [default: …/{name}_history.csv]"),
         ):
@@ -66,8 +68,9 @@ def _paths_option(name: str) -> Any:
 
 def _rollouts_option(command: Any) -> Any:
     return click.option(
-        "--rollouts", type=click.Path(path_type=Path),
-        help="[default: data/families/<family>/rollouts.zarr]"
+        "--rollouts",
+        type=click.Path(path_type=Path),
+        help="[default: data/families/<family>/rollouts.zarr]",
     )(command)
 
 
@@ -82,7 +85,11 @@ def pretrain() -> None:
 @_paths_option("encoder")
 @params_option
 def encoder(
-    params: Params, family: str, rollouts: Path | None, out: Path | None, metrics: Path | None,
+    params: Params,
+    family: str,
+    rollouts: Path | None,
+    out: Path | None,
+    metrics: Path | None,
     plots: Path | None,
 ) -> None:
     """Train E and P on MSE + β·KL; held-out metrics against a mean-change baseline."""
@@ -94,9 +101,11 @@ def encoder(
     if len(data.window_starts(config.k)) == 0:
         raise BadInput(f"{data.path}: no episode is longer than k={config.k} steps")
     if data.num_episodes < 2:
-        raise BadInput(f"{data.path}: {data.num_episodes} episode; expected at least 2, one to "
-                       "train on and one to hold out (embedding.holdout): raise collect.steps "
-                       f"above the length of an episode of {data.attrs['env_id']}")
+        raise BadInput(
+            f"{data.path}: {data.num_episodes} episode; expected at least 2, one to "
+            "train on and one to hold out (embedding.holdout): raise collect.steps "
+            f"above the length of an episode of {data.attrs['env_id']}"
+        )
     folder = layout.embedding(family)
     out = out or folder / "encoder"
     metrics = metrics or folder / "encoder_metrics.json"
@@ -123,17 +132,25 @@ def encoder(
     )
 
 
-
 @pretrain.command()
 @family_option
 @_rollouts_option
-@click.option("--encoder", "encoder_path", type=click.Path(path_type=Path),
-              help="[default: data/families/<family>/embedding/encoder]")
+@click.option(
+    "--encoder",
+    "encoder_path",
+    type=click.Path(path_type=Path),
+    help="[default: data/families/<family>/embedding/encoder]",
+)
 @_paths_option("decoder")
 @params_option
 def decoder(
-    params: Params, family: str, rollouts: Path | None, encoder_path: Path | None,
-    out: Path | None, metrics: Path | None, plots: Path | None,
+    params: Params,
+    family: str,
+    rollouts: Path | None,
+    encoder_path: Path | None,
+    out: Path | None,
+    metrics: Path | None,
+    plots: Path | None,
 ) -> None:
     """Train D, the minimum-norm one-sided inverse of the frozen E."""
     check_family(params, family)
@@ -147,8 +164,9 @@ def decoder(
         meta, encoded = load_encoder(encoder_path, device)
     except ArtifactError as error:
         raise BadInput(str(error)) from None
-    mismatches = params_mismatches(encoder_path, meta, params.embedding,
-                                   action_size=data.action.shape[1])
+    mismatches = params_mismatches(
+        encoder_path, meta, params.embedding, action_size=data.action.shape[1]
+    )
     if mismatches:
         raise BadInput("\n".join(mismatches))
     if meta.family != family or meta.data_fingerprint != data.attrs["fingerprint"]:

@@ -89,25 +89,36 @@ class Page:
         data = _png(figure)
         self.images[name] = data
         encoded = base64.b64encode(data).decode()
-        self.add(f'<img src="data:image/png;base64,{encoded}" alt="{html.escape(alt)}" id="{name}">')
+        self.add(
+            f'<img src="data:image/png;base64,{encoded}" alt="{html.escape(alt)}" id="{name}">'
+        )
 
     def html(self, title: str) -> str:
-        return (f"<!DOCTYPE html>\n<html><head><meta charset='utf-8'><title>{title}</title>"
-                f"<style>{STYLE}</style></head><body>\n" + "\n".join(self.parts) + "\n</body></html>\n")
+        return (
+            f"<!DOCTYPE html>\n<html><head><meta charset='utf-8'><title>{title}</title>"
+            f"<style>{STYLE}</style></head><body>\n" + "\n".join(self.parts) + "\n</body></html>\n"
+        )
 
 
 def _table(rows: list[TaskRow], thresholds: list[float]) -> str:
     reach = "".join(f"<th>steps to {t:g}</th>" for t in thresholds)
-    head = (f"<tr><th>algorithm</th><th>final return</th><th>area under curve</th>{reach}"
-            "<th>seeds</th></tr>")
+    head = (
+        f"<tr><th>algorithm</th><th>final return</th><th>area under curve</th>{reach}"
+        "<th>seeds</th></tr>"
+    )
     body = []
     for row in rows:
         label = ALGO_STYLE[row.algo][0]
-        missing = (f' <span class="missing">(missing: {", ".join(map(str, row.missing))})</span>'
-                   if row.missing else "")
+        missing = (
+            f' <span class="missing">(missing: {", ".join(map(str, row.missing))})</span>'
+            if row.missing
+            else ""
+        )
         steps = "".join(f"<td>{_steps(row.to_thresholds[t])}</td>" for t in thresholds)
-        body.append(f"<tr><td>{label}</td><td>{_interval(row.final)}</td><td>{_interval(row.auc)}</td>"
-                    f"{steps}<td>{len(row.seeds)}{missing}</td></tr>")
+        body.append(
+            f"<tr><td>{label}</td><td>{_interval(row.final)}</td><td>{_interval(row.auc)}</td>"
+            f"{steps}<td>{len(row.seeds)}{missing}</td></tr>"
+        )
     return f"<table>{head}{''.join(body)}</table>"
 
 
@@ -126,7 +137,10 @@ class Inputs:
 
 
 def _by_family(
-    option: str, values: tuple[str, ...], params: Params, default: Callable[[str], Path],
+    option: str,
+    values: tuple[str, ...],
+    params: Params,
+    default: Callable[[str], Path],
     default_families: list[str],
 ) -> dict[str, Path]:
     """The ``FAMILY=PATH`` values of a repeatable option; none given, ``default_families`` at
@@ -137,11 +151,14 @@ def _by_family(
     for value in values:
         family, equals, path = value.partition("=")
         if not (family and equals and path):
-            raise BadInput(f"{option} {value!r}: expected FAMILY=PATH, e.g. "
-                           f"{option} point={default('point')}")
+            raise BadInput(
+                f"{option} {value!r}: expected FAMILY=PATH, e.g. {option} point={default('point')}"
+            )
         if family not in params.families:
-            raise BadInput(f"{option} {value!r}: unknown family {family!r}; params.yaml's families "
-                           f"are {', '.join(params.families)}")
+            raise BadInput(
+                f"{option} {value!r}: unknown family {family!r}; params.yaml's families "
+                f"are {', '.join(params.families)}"
+            )
         if family in found:
             raise BadInput(f"{option} {value!r}: the {family} family is given twice")
         found[family] = Path(path)
@@ -157,7 +174,10 @@ def _store_attributes(store: Path) -> dict[str, Any]:
 
 
 def read_inputs(
-    params: Params, runs: Path, embeddings: tuple[str, ...], rollouts: tuple[str, ...],
+    params: Params,
+    runs: Path,
+    embeddings: tuple[str, ...],
+    rollouts: tuple[str, ...],
     families: Path = layout.FAMILIES,
 ) -> Inputs:
     """Check every input before anything is written.
@@ -169,28 +189,44 @@ def read_inputs(
         BadInput: naming the option (or params key) and what it expects.
     """
     if not runs.is_dir():
-        raise BadInput(f"--runs {runs}: no such directory; expected the folder of the runs "
-                       "(<task>/<algo>/seed<N>/, written by `ede-pipeline train`)")
+        raise BadInput(
+            f"--runs {runs}: no such directory; expected the folder of the runs "
+            "(<task>/<algo>/seed<N>/, written by `ede-pipeline train`)"
+        )
     figures = {key: getattr(params.report, key) for key in FIGURE_FAMILIES}
     pictured = list(dict.fromkeys(family for family in figures.values() if family is not None))
-    found = [family for family in params.families
-             if family in pictured or layout.embedding(family, families).is_dir()]
-    folders = _by_family("--embedding", embeddings, params,
-                         lambda family: layout.embedding(family, families), found)
-    stores = _by_family("--rollouts", rollouts, params,
-                        lambda family: layout.rollouts(family, families), list(folders))
+    found = [
+        family
+        for family in params.families
+        if family in pictured or layout.embedding(family, families).is_dir()
+    ]
+    folders = _by_family(
+        "--embedding", embeddings, params, lambda family: layout.embedding(family, families), found
+    )
+    stores = _by_family(
+        "--rollouts",
+        rollouts,
+        params,
+        lambda family: layout.rollouts(family, families),
+        list(folders),
+    )
     loaded: dict[str, ActionEmbedding] = {}
     embedding_ids: dict[str, str] = {}
-    trained_on: dict[str, str] = {}  # per family, the rollouts' fingerprint its embedding learned from
+    trained_on: dict[
+        str, str
+    ] = {}  # per family, the rollouts' fingerprint its embedding learned from
     for family, folder in folders.items():
         given = f"--embedding {family}={folder}"
         if not folder.is_dir():
-            raise BadInput(f"{given}: no such directory; expected the {family} family's embedding "
-                           f"folder ({layout.ENCODER}/ and {layout.DECODER}/, from `ede-pipeline "
-                           "pretrain`)")
+            raise BadInput(
+                f"{given}: no such directory; expected the {family} family's embedding "
+                f"folder ({layout.ENCODER}/ and {layout.DECODER}/, from `ede-pipeline "
+                "pretrain`)"
+            )
         try:
-            meta, loaded[family] = load_action_embedding(folder / layout.ENCODER,
-                                                         folder / layout.DECODER)
+            meta, loaded[family] = load_action_embedding(
+                folder / layout.ENCODER, folder / layout.DECODER
+            )
         except ArtifactError as error:
             raise BadInput(f"{given}: {error}") from None
         if meta.family != family:
@@ -199,18 +235,24 @@ def read_inputs(
         embedding_ids[family] = meta.identity
     for key, family in figures.items():
         if family is not None and family not in folders:
-            raise BadInput(f"report.{key}: {family}, but no --embedding {family}=DIR is given; "
-                           f"{FIGURE_FAMILIES[key]} needs that family's embedding")
+            raise BadInput(
+                f"report.{key}: {family}, but no --embedding {family}=DIR is given; "
+                f"{FIGURE_FAMILIES[key]} needs that family's embedding"
+            )
     attributes: dict[str, dict[str, Any]] = {}
     for family, store in stores.items():
         given = f"--rollouts {family}={store}"
         attrs = _store_attributes(store)
         if "fingerprint" not in attrs:
-            raise BadInput(f"{given}: no rollouts store here; expected the Zarr store that "
-                           "`ede-pipeline collect` writes")
+            raise BadInput(
+                f"{given}: no rollouts store here; expected the Zarr store that "
+                "`ede-pipeline collect` writes"
+            )
         if trained_on.get(family, attrs["fingerprint"]) != attrs["fingerprint"]:
-            raise BadInput(f"{given}: rollouts {attrs['fingerprint'][:12]}, but the {family} "
-                           f"embedding was trained on {trained_on[family][:12]}")
+            raise BadInput(
+                f"{given}: rollouts {attrs['fingerprint'][:12]}, but the {family} "
+                f"embedding was trained on {trained_on[family][:12]}"
+            )
         attributes[family] = attrs
     return Inputs(runs, folders, loaded, attributes, embedding_ids)
 
@@ -228,10 +270,12 @@ def build(
 
     page = Page()
     page.add("<h1>Effect-Dependent Embeddings: EDE-TD3 against TD3</h1>")
-    page.add(f"<p>{params.runs.count} runs expected: {len(params.runs.all_tasks)} tasks × "
-             f"{len(params.runs.algos)} algorithms × {len(params.runs.seeds)} seeds. Intervals are "
-             f"{100 * config.confidence:.0f}% percentile bootstrap intervals of the mean over seeds "
-             f"({config.bootstrap_samples} resamples).</p>")
+    page.add(
+        f"<p>{params.runs.count} runs expected: {len(params.runs.all_tasks)} tasks × "
+        f"{len(params.runs.algos)} algorithms × {len(params.runs.seeds)} seeds. Intervals are "
+        f"{100 * config.confidence:.0f}% percentile bootstrap intervals of the mean over seeds "
+        f"({config.bootstrap_samples} resamples).</p>"
+    )
     metrics: dict[str, Any] = {}
     curve_files: dict[str, str] = {}
     missing_runs: list[str] = []
@@ -266,8 +310,16 @@ def build(
                         diagnostics.setdefault((task, algo), []).append(record.diagnostics)
                 curves[(task, algo)] = found
                 all_curves[(task, algo)] = found
-                row = summarise_task(task, algo, found, missing, config.thresholds.get(task, []),
-                                     config.confidence, config.bootstrap_samples, fresh())
+                row = summarise_task(
+                    task,
+                    algo,
+                    found,
+                    missing,
+                    config.thresholds.get(task, []),
+                    config.confidence,
+                    config.bootstrap_samples,
+                    fresh(),
+                )
                 rows.setdefault(task, []).append(row)
                 metrics.setdefault(task, {})[algo] = {
                     "final_return": None if row.final.n == 0 else row.final.mean,
@@ -277,15 +329,32 @@ def build(
             curve_files[task] = _curve_csv(task, params.runs.algos, curves, config, fresh)
         source = params.families[family].source
         page.add(f"<h3>{family} family (embedding learned on {source})</h3>")
-        page.figure(f"curves-{family}", learning_curve_figure(
-            family, tasks, curves, config.confidence, config.bootstrap_samples, None,
-            config.bin_steps, {key: curve_band(runs, config.confidence, config.bootstrap_samples,
-                                               fresh(), config.bin_steps)
-                               for key, runs in curves.items() if runs}),
-            f"learning curves of the {family} family")
+        page.figure(
+            f"curves-{family}",
+            learning_curve_figure(
+                family,
+                tasks,
+                curves,
+                config.confidence,
+                config.bootstrap_samples,
+                None,
+                config.bin_steps,
+                {
+                    key: curve_band(
+                        runs, config.confidence, config.bootstrap_samples, fresh(), config.bin_steps
+                    )
+                    for key, runs in curves.items()
+                    if runs
+                },
+            ),
+            f"learning curves of the {family} family",
+        )
         if diagnostics:
-            page.figure(f"diagnostics-{family}", diagnostics_figure(family, tasks, diagnostics),
-                        f"training diagnostics of the {family} family")
+            page.figure(
+                f"diagnostics-{family}",
+                diagnostics_figure(family, tasks, diagnostics),
+                f"training diagnostics of the {family} family",
+            )
         for task in tasks:
             thresholds = config.thresholds.get(task, [])
             note = f" (thresholds {', '.join(f'{t:g}' for t in thresholds)})" if thresholds else ""
@@ -302,10 +371,12 @@ def build(
         embedding, task = inputs.loaded[family], params.families[family].source
         space = effect_space(embedding, fresh(), env_id=task)
         metrics["effect_space_affine_r2"] = space.r_squared
-        page.add(f"<p>Effects s[t+{embedding.k}] − s[t] of {len(space.effects)} random "
-                 f"{embedding.k}-step sequences on {task} (left) and their codes E(a) under the "
-                 f"{family} family's embedding (right), coloured by effect. Best affine map "
-                 f"effect → code: <b>R² = {space.r_squared:.4f}</b>.</p>")
+        page.add(
+            f"<p>Effects s[t+{embedding.k}] − s[t] of {len(space.effects)} random "
+            f"{embedding.k}-step sequences on {task} (left) and their codes E(a) under the "
+            f"{family} family's embedding (right), coloured by effect. Best affine map "
+            f"effect → code: <b>R² = {space.r_squared:.4f}</b>.</p>"
+        )
         page.figure("effect-space", space.figure, "effect space beside EDE space")
 
     page.add("<h2>Exploration (Figure 7)</h2>")
@@ -316,21 +387,29 @@ def build(
         embedding, task = inputs.loaded[family], params.families[family].source
         explored = exploration(embedding, fresh(), env_id=task)
         metrics["coverage"] = {"raw": explored.raw_coverage, "ede": explored.ede_coverage}
-        page.add(f"<p>Positions over ten episodes on {task}: uniform random actions "
-                 f"every step cover <b>{100 * explored.raw_coverage:.1f}%</b> of the arena (a 20×20 "
-                 f"grid); uniform random EDE actions of the {family} family's embedding, chosen "
-                 f"every {embedding.k} steps, cover <b>{100 * explored.ede_coverage:.1f}%</b>.</p>")
+        page.add(
+            f"<p>Positions over ten episodes on {task}: uniform random actions "
+            f"every step cover <b>{100 * explored.raw_coverage:.1f}%</b> of the arena (a 20×20 "
+            f"grid); uniform random EDE actions of the {family} family's embedding, chosen "
+            f"every {embedding.k} steps, cover <b>{100 * explored.ede_coverage:.1f}%</b>.</p>"
+        )
         page.figure("exploration", explored.figure, "exploration with raw and EDE actions")
 
     page.add("<h2>Missing and excluded runs</h2>")
     if missing_runs:
-        page.add(f'<p class="missing">{len(missing_runs)} of {params.runs.count} runs have no '
-                 "results:</p><ul>" + "".join(f"<li><code>{html.escape(r)}</code></li>"
-                                              for r in missing_runs) + "</ul>")
+        page.add(
+            f'<p class="missing">{len(missing_runs)} of {params.runs.count} runs have no '
+            "results:</p><ul>"
+            + "".join(f"<li><code>{html.escape(r)}</code></li>" for r in missing_runs)
+            + "</ul>"
+        )
     if excluded:
-        page.add(f'<p class="missing">{len(excluded)} finished runs are left out of the figures '
-                 "and tables:</p><ul>" + "".join(f"<li>{html.escape(r)}</li>" for r in excluded)
-                 + "</ul>")
+        page.add(
+            f'<p class="missing">{len(excluded)} finished runs are left out of the figures '
+            "and tables:</p><ul>"
+            + "".join(f"<li>{html.escape(r)}</li>" for r in excluded)
+            + "</ul>"
+        )
     if not missing_runs and not excluded:
         page.add("<p>None: every run the params name is here.</p>")
     metrics["missing_runs"] = len(missing_runs)
@@ -344,43 +423,57 @@ def _expected(params: Params, inputs: Inputs, task: str, algo: str, seed: int) -
     """What a run's ``run.json`` must say: the run the params name, with the family's embedding
     where the report was given it."""
     embedding = inputs.embedding_ids.get(params.runs.tasks[task]) if algo == "ede-td3" else ""
-    expected = RunSpec(task, algo, seed, params.runs.budgets[task], params.td3, params.ede_td3,
-                       embedding or "").identity()
+    expected = RunSpec(
+        task, algo, seed, params.runs.budgets[task], params.td3, params.ede_td3, embedding or ""
+    ).identity()
     if embedding is None:
         del expected["embedding"]  # not given to the report: nothing to check it against
     return expected
 
 
-def _across_tasks(page: Page, metrics: dict[str, Any], curves: dict[tuple[str, str], list[Curve]],
-                  params: Params) -> None:
+def _across_tasks(
+    page: Page, metrics: dict[str, Any], curves: dict[tuple[str, str], list[Curve]], params: Params
+) -> None:
     """The claim across tasks, as rliable states it: probability of improvement and IQM of
     normalised scores with stratified bootstrap intervals, and a performance profile."""
     config = params.report
     page.add("<h2>Across tasks</h2>")
-    lows = {task: random_policy_return(task, RANDOM_EPISODES, config.seed)
-            for task in params.runs.all_tasks
-            if curves.get((task, "td3")) and curves.get((task, "ede-td3"))}
-    found = across_tasks_section(curves, lows, config.confidence, config.bootstrap_samples,
-                                 config.seed)
+    lows = {
+        task: random_policy_return(task, RANDOM_EPISODES, config.seed)
+        for task in params.runs.all_tasks
+        if curves.get((task, "td3")) and curves.get((task, "ede-td3"))
+    }
+    found = across_tasks_section(
+        curves, lows, config.confidence, config.bootstrap_samples, config.seed
+    )
     if found is None:
-        page.add("<p>No task has finished runs of both algorithms yet, or none has one whose best "
-                 "evaluation is above a random policy's return.</p>")
+        page.add(
+            "<p>No task has finished runs of both algorithms yet, or none has one whose best "
+            "evaluation is above a random policy's return.</p>"
+        )
         return
     rows = []
-    summary: dict[str, Any] = {"tasks": found.tasks, "task_count": len(found.tasks),
-                               "runs_per_task": found.runs}  # DVC's metrics keep numbers only
+    summary: dict[str, Any] = {
+        "tasks": found.tasks,
+        "task_count": len(found.tasks),
+        "runs_per_task": found.runs,
+    }  # DVC's metrics keep numbers only
     for score, label in SCORES.items():
         a = found.aggregates[score]
-        rows.append(f"<tr><td>{label}</td><td>{_interval(a['probability_of_improvement'])}</td>"
-                    f"<td>{_interval(a['iqm_ours'])}</td><td>{_interval(a['iqm_theirs'])}</td></tr>")
+        rows.append(
+            f"<tr><td>{label}</td><td>{_interval(a['probability_of_improvement'])}</td>"
+            f"<td>{_interval(a['iqm_ours'])}</td><td>{_interval(a['iqm_theirs'])}</td></tr>"
+        )
         summary[score] = {
             "probability_of_improvement": _as_json(a["probability_of_improvement"]),
             "iqm": {"ede-td3": _as_json(a["iqm_ours"]), "td3": _as_json(a["iqm_theirs"])},
         }
     metrics["across_tasks"] = summary
-    page.add(f"<p>{html.escape(found.describe(config.confidence, config.bootstrap_samples))}</p>"
-             "<table><tr><th>score</th><th>P(EDE-TD3 &gt; TD3)</th><th>IQM, EDE-TD3</th>"
-             "<th>IQM, TD3</th></tr>" + "".join(rows) + "</table>")
+    page.add(
+        f"<p>{html.escape(found.describe(config.confidence, config.bootstrap_samples))}</p>"
+        "<table><tr><th>score</th><th>P(EDE-TD3 &gt; TD3)</th><th>IQM, EDE-TD3</th>"
+        "<th>IQM, TD3</th></tr>" + "".join(rows) + "</table>"
+    )
     page.figure("performance-profile", found.figure, "performance profile across tasks")
 
 
@@ -400,20 +493,27 @@ def _fell_back(task: str, curves: dict[tuple[str, str], list[Curve]], params: Pa
             except ValueError:  # too few bins to tell
                 continue
             if verdict.diverged:
-                flagged.append(f"{ALGO_STYLE[algo][0]} seed {curve.seed} (best {verdict.best:.4g} "
-                               f"at step {verdict.best_step:,.0f}, last quarter {verdict.tail:.4g})")
+                flagged.append(
+                    f"{ALGO_STYLE[algo][0]} seed {curve.seed} (best {verdict.best:.4g} "
+                    f"at step {verdict.best_step:,.0f}, last quarter {verdict.tail:.4g})"
+                )
     if not flagged:
         return ""
-    return ('<p class="missing">Fell and stayed below their best (diverged, in the paper\'s '
-            f"sense): {html.escape('; '.join(flagged))}.</p>")
+    return (
+        '<p class="missing">Fell and stayed below their best (diverged, in the paper\'s '
+        f"sense): {html.escape('; '.join(flagged))}.</p>"
+    )
 
 
-def _curve_csv(task: str, algos: list[str], curves: dict, config: Any,
-               fresh: Callable[[], np.random.Generator]) -> str:
+def _curve_csv(
+    task: str, algos: list[str], curves: dict, config: Any, fresh: Callable[[], np.random.Generator]
+) -> str:
     """Mean curve per algorithm on the union of steps, for ``dvc plots``."""
-    series = {algo: curve_band(curves[(task, algo)], config.confidence, config.bootstrap_samples,
-                               fresh())
-              for algo in algos if curves[(task, algo)]}
+    series = {
+        algo: curve_band(curves[(task, algo)], config.confidence, config.bootstrap_samples, fresh())
+        for algo in algos
+        if curves[(task, algo)]
+    }
     steps = sorted({float(s) for band in series.values() for s in band[0]})
     lines = [",".join(["step", *series])]
     for step in steps:
@@ -426,16 +526,24 @@ def _curve_csv(task: str, algos: list[str], curves: dict, config: Any,
 
 
 def _row(what: str, sha256: str, software: dict[str, str] | None) -> str:
-    return (f"<tr><td>{html.escape(what)}</td><td><code>{sha256}</code></td>"
-            f"<td>{html.escape(describe_software(software))}</td></tr>")
+    return (
+        f"<tr><td>{html.escape(what)}</td><td><code>{sha256}</code></td>"
+        f"<td>{html.escape(describe_software(software))}</td></tr>"
+    )
 
 
-def _provenance(params: Params, params_text: str, inputs: Inputs,
-                runs_software: list[dict[str, Any] | None]) -> str:
+def _provenance(
+    params: Params, params_text: str, inputs: Inputs, runs_software: list[dict[str, Any] | None]
+) -> str:
     """The SHA-256 of every input beside the versions of the software that made it, and the
     software of the runs averaged."""
-    rows = [_row("params.yaml; this report", hashlib.sha256(params_text.encode()).hexdigest(),
-                 software_versions())]
+    rows = [
+        _row(
+            "params.yaml; this report",
+            hashlib.sha256(params_text.encode()).hexdigest(),
+            software_versions(),
+        )
+    ]
     for family in params.families:
         if family in inputs.rollouts:
             attrs = inputs.rollouts[family]
@@ -443,54 +551,103 @@ def _provenance(params: Params, params_text: str, inputs: Inputs,
         if family in inputs.embeddings:
             for name in (layout.ENCODER, layout.DECODER):
                 data = json.loads((inputs.embeddings[family] / name / "meta.json").read_text())
-                rows.append(_row(f"{family} {name} weights", data["weights_sha256"],
-                                 data.get("software")))
+                rows.append(
+                    _row(f"{family} {name} weights", data["weights_sha256"], data.get("software"))
+                )
     runs: dict[str, int] = {}  # the runs' software, described, and how many runs each
     for made_by in runs_software:
         described = describe_software(made_by)
         runs[described] = runs.get(described, 0) + 1
-    rows += [f"<tr><td>{count} training run{'s' * (count > 1)}</td><td></td>"
-             f"<td>{html.escape(software)}</td></tr>" for software, count in runs.items()]
+    rows += [
+        f"<tr><td>{count} training run{'s' * (count > 1)}</td><td></td>"
+        f"<td>{html.escape(software)}</td></tr>"
+        for software, count in runs.items()
+    ]
     params_html = html.escape(json.dumps(params.model_dump(mode="json"), indent=1))
-    return ("<table><tr><th>input</th><th>SHA-256</th><th>software</th></tr>" + "".join(rows)
-            + "</table>"
-            f"<details><summary>the params</summary><pre>{params_html}</pre></details>")
+    return (
+        "<table><tr><th>input</th><th>SHA-256</th><th>software</th></tr>"
+        + "".join(rows)
+        + "</table>"
+        f"<details><summary>the params</summary><pre>{params_html}</pre></details>"
+    )
 
 
 @click.command()
-@click.option("--runs", type=click.Path(path_type=Path), default=layout.RUNS, show_default=True,
-              help="The folder of the runs (<task>/<algo>/seed<N>/); the params say which to read.")
-@click.option("--families", type=click.Path(file_okay=False, path_type=Path),
-              default=layout.FAMILIES, show_default=True,
-              help="The folder of every family's outputs (<family>/embedding, "
-              "<family>/rollouts.zarr): the provenance lists each family found there, Figures 6 "
-              "and 7 draw report.effect_space_family's and report.exploration_family's.")
-@click.option("--embedding", "embeddings", metavar="FAMILY=DIR", multiple=True,
-              help="A family's embedding folder (encoder/ and decoder/), once per family, "
-              "instead of those in --families.")
-@click.option("--rollouts", metavar="FAMILY=STORE", multiple=True,
-              help="A family's rollouts store, once per family, instead of those in --families  "
-              "[default: <families>/<family>/rollouts.zarr for each family of the embeddings]")
-@click.option("--out", type=click.Path(path_type=Path), default=layout.REPORT,
-              show_default=True, help="Report directory: index.html and its PNG figures.")
-@click.option("--metrics", type=click.Path(path_type=Path),
-              default=layout.REPORT_METRICS, show_default=True,
-              help="Summary metrics (DVC metrics): mean final return and AUC per task and algorithm.")
-@click.option("--curves", type=click.Path(path_type=Path),
-              default=layout.REPORT_CURVES, show_default=True,
-              help="Mean learning curve per task, one CSV each (DVC plots).")
+@click.option(
+    "--runs",
+    type=click.Path(path_type=Path),
+    default=layout.RUNS,
+    show_default=True,
+    help="The folder of the runs (<task>/<algo>/seed<N>/); the params say which to read.",
+)
+@click.option(
+    "--families",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=layout.FAMILIES,
+    show_default=True,
+    help="The folder of every family's outputs (<family>/embedding, "
+    "<family>/rollouts.zarr): the provenance lists each family found there, Figures 6 "
+    "and 7 draw report.effect_space_family's and report.exploration_family's.",
+)
+@click.option(
+    "--embedding",
+    "embeddings",
+    metavar="FAMILY=DIR",
+    multiple=True,
+    help="A family's embedding folder (encoder/ and decoder/), once per family, "
+    "instead of those in --families.",
+)
+@click.option(
+    "--rollouts",
+    metavar="FAMILY=STORE",
+    multiple=True,
+    help="A family's rollouts store, once per family, instead of those in --families  "
+    "[default: <families>/<family>/rollouts.zarr for each family of the embeddings]",
+)
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    default=layout.REPORT,
+    show_default=True,
+    help="Report directory: index.html and its PNG figures.",
+)
+@click.option(
+    "--metrics",
+    type=click.Path(path_type=Path),
+    default=layout.REPORT_METRICS,
+    show_default=True,
+    help="Summary metrics (DVC metrics): mean final return and AUC per task and algorithm.",
+)
+@click.option(
+    "--curves",
+    type=click.Path(path_type=Path),
+    default=layout.REPORT_CURVES,
+    show_default=True,
+    help="Mean learning curve per task, one CSV each (DVC plots).",
+)
 @params_option
 def report(
-    params: Params, runs: Path, families: Path, embeddings: tuple[str, ...],
-    rollouts: tuple[str, ...], out: Path, metrics: Path, curves: Path,
+    params: Params,
+    runs: Path,
+    families: Path,
+    embeddings: tuple[str, ...],
+    rollouts: tuple[str, ...],
+    out: Path,
+    metrics: Path,
+    curves: Path,
 ) -> None:
     """Stage 5: learning curves, tables, the EDE pictures and provenance in one HTML page."""
     torch.set_num_threads(params.embedding.threads)  # it only encodes and decodes small batches
     given = (Path(path) for pair in (*embeddings, *rollouts) if (path := pair.partition("=")[2]))
-    with holding((out, "report"), files=(metrics,), dirs=((curves, "report curves"),),
-                 inputs=(runs, families, *given)):
-        _report(params, read_inputs(params, runs, embeddings, rollouts, families), out, metrics,
-                curves)
+    with holding(
+        (out, "report"),
+        files=(metrics,),
+        dirs=((curves, "report curves"),),
+        inputs=(runs, families, *given),
+    ):
+        _report(
+            params, read_inputs(params, runs, embeddings, rollouts, families), out, metrics, curves
+        )
 
 
 def _report(params: Params, inputs: Inputs, out: Path, metrics: Path, curves: Path) -> None:
@@ -512,5 +669,7 @@ def _report(params: Params, inputs: Inputs, out: Path, metrics: Path, curves: Pa
     write_atomically(out, write_page, kind="report")  # the largest first: a full disk stops it
     write_atomically(curves, write_curves, kind="report curves")
     write_json(metrics, summary)
-    click.echo(f"{out / 'index.html'}: {summary['missing_runs']} of {params.runs.count} runs "
-               f"missing, {summary['excluded_runs']} left out")
+    click.echo(
+        f"{out / 'index.html'}: {summary['missing_runs']} of {params.runs.count} runs "
+        f"missing, {summary['excluded_runs']} left out"
+    )

@@ -98,7 +98,9 @@ from ede.stats import bootstrap_mean, divergence, separation, steps_to_threshold
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, params_option
 
-ZERO_EPISODES = 100  # episodes behind a task's zero-action return (its standard error ~10 on Reacher's)
+ZERO_EPISODES = (
+    100  # episodes behind a task's zero-action return (its standard error ~10 on Reacher's)
+)
 
 
 @dataclass(frozen=True)
@@ -118,8 +120,11 @@ class Part:
 
     def maker(self) -> str:
         """``experiment `experiments/NAME.yaml``` or ``command `…```."""
-        return (f"experiment `{self.experiment}`" if self.experiment is not None
-                else f"command `{self.command}`")
+        return (
+            f"experiment `{self.experiment}`"
+            if self.experiment is not None
+            else f"command `{self.command}`"
+        )
 
 
 @dataclass(frozen=True)
@@ -175,7 +180,9 @@ def read_folder(root: Path, task: str) -> TaskRuns | None:
     cpus: Counter[str | None] = Counter()
     embeddings: dict[str, list[int]] = {}  # EDE-TD3's seeds by the embedding each used
     for algo in ALGO_STYLE:
-        seeds = sorted(int(p.name[4:]) for p in layout.run(task, algo, 0, root).parent.glob("seed*"))
+        seeds = sorted(
+            int(p.name[4:]) for p in layout.run(task, algo, 0, root).parent.glob("seed*")
+        )
         for seed in seeds:
             run = layout.run(task, algo, seed, root)
             try:
@@ -192,8 +199,15 @@ def read_folder(root: Path, task: str) -> TaskRuns | None:
         raise BadInput(f"{folder}: runs of different budgets {sorted(budgets)}; keep one per task")
     if not curves:
         return None
-    return TaskRuns(task, folder, curves, budgets.pop(), read_source(folder),
-                    embedding_figures(root, task, embeddings), dict(cpus))
+    return TaskRuns(
+        task,
+        folder,
+        curves,
+        budgets.pop(),
+        read_source(folder),
+        embedding_figures(root, task, embeddings),
+        dict(cpus),
+    )
 
 
 def cpu(path: Path, made: dict) -> str | None:
@@ -203,12 +217,20 @@ def cpu(path: Path, made: dict) -> str | None:
     machine = made.get("machine")
     if machine is None:
         return None
-    model, sets = (machine.get("cpu"), machine.get("instruction_sets")) if isinstance(
-        machine, dict) else (None, None)
-    if not isinstance(model, str) or not isinstance(sets, list) or not all(
-            isinstance(s, str) for s in sets):
-        raise BadInput(f"{path}: 'machine' is {machine!r}; expected its 'cpu' and "
-                       "'instruction_sets', as ede.provenance.machine records them")
+    model, sets = (
+        (machine.get("cpu"), machine.get("instruction_sets"))
+        if isinstance(machine, dict)
+        else (None, None)
+    )
+    if (
+        not isinstance(model, str)
+        or not isinstance(sets, list)
+        or not all(isinstance(s, str) for s in sets)
+    ):
+        raise BadInput(
+            f"{path}: 'machine' is {machine!r}; expected its 'cpu' and "
+            "'instruction_sets', as ede.provenance.machine records them"
+        )
     return f"{model} ({', '.join(sets) or 'none of ' + ', '.join(INSTRUCTION_SETS)})"
 
 
@@ -228,16 +250,19 @@ def read_source(folder: Path) -> Source:
     try:
         made = json.loads(path.read_text())
     except (OSError, ValueError):
-        raise BadInput(f"{path}: expected JSON naming the 'commit' that made the runs beside it "
-                       "(a string, or a list of them)") from None
+        raise BadInput(
+            f"{path}: expected JSON naming the 'commit' that made the runs beside it "
+            "(a string, or a list of them)"
+        ) from None
     parts = [read_part(path, part) for part in (made if isinstance(made, list) else [made])]
     if not parts:
         raise BadInput(f"{path}: an empty list; expected what made the runs beside it")
     seeds = [seed for part in parts for seed in part.seeds]
     if len(seeds) != len(set(seeds)):
         twice = sorted({s for s in seeds if seeds.count(s) > 1})
-        raise BadInput(f"{path}: seeds {twice} are named by two of its parts; expected each seed "
-                       "made by one")
+        raise BadInput(
+            f"{path}: seeds {twice} are named by two of its parts; expected each seed made by one"
+        )
     return Source(parts)
 
 
@@ -245,23 +270,35 @@ def read_part(path: Path, made: object) -> Part:
     """One part of ``source.json`` (:func:`read_source`)."""
     commits = made.get("commit") if isinstance(made, dict) else None
     commits = [commits] if isinstance(commits, str) else commits
-    if not isinstance(made, dict) or not isinstance(commits, list) or not commits or not all(
-            isinstance(c, str) for c in commits):
-        raise BadInput(f"{path}: expected JSON naming the 'commit' that made the runs beside it "
-                       "(a string, or a list of them)")
+    if (
+        not isinstance(made, dict)
+        or not isinstance(commits, list)
+        or not commits
+        or not all(isinstance(c, str) for c in commits)
+    ):
+        raise BadInput(
+            f"{path}: expected JSON naming the 'commit' that made the runs beside it "
+            "(a string, or a list of them)"
+        )
     experiment, command = made.get("experiment"), made.get("command")
     if not isinstance(experiment if "experiment" in made else command, str):
-        raise BadInput(f"{path}: expected the 'experiment' file (or the 'command') that made the "
-                       "runs beside it, as a string")
+        raise BadInput(
+            f"{path}: expected the 'experiment' file (or the 'command') that made the "
+            "runs beside it, as a string"
+        )
     thresholds = made.get("thresholds", [])
     if not isinstance(thresholds, list) or not all(
-            isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t)
-            for t in thresholds):
+        isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t)
+        for t in thresholds
+    ):
         raise BadInput(f"{path}: 'thresholds' is {thresholds!r}; expected a list of returns")
     seeds = made.get("seeds", [])
     if not isinstance(seeds, list) or not all(
-            isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds):
-        raise BadInput(f"{path}: 'seeds' is {seeds!r}; expected a list of seeds (whole numbers >= 0)")
+        isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds
+    ):
+        raise BadInput(
+            f"{path}: 'seeds' is {seeds!r}; expected a list of seeds (whole numbers >= 0)"
+        )
     return Part(commits, experiment, command, thresholds, seeds)
 
 
@@ -281,11 +318,15 @@ def embedding_figures(root: Path, task: str, embeddings: dict[str, list[int]]) -
             parts = [f"prediction ratio {e['prediction_ratio']:.3f}", f"KL {e['kl']:.1f} nats"]
             if decoder.is_file():
                 d = json.loads(decoder.read_text())
-                parts += [f"inverse error {d['inverse_error']:.2g}",
-                          f"{d['at_bounds']:.1%} of decoded actions at a bound"]
+                parts += [
+                    f"inverse error {d['inverse_error']:.2g}",
+                    f"{d['at_bounds']:.1%} of decoded actions at a bound",
+                ]
         except (OSError, ValueError, KeyError, TypeError):
-            raise BadInput(f"{kept}: expected pretrain's metrics, prediction_ratio and kl of the "
-                           "encoder, inverse_error and at_bounds of the decoder") from None
+            raise BadInput(
+                f"{kept}: expected pretrain's metrics, prediction_ratio and kl of the "
+                "encoder, inverse_error and at_bounds of the decoder"
+            ) from None
         figures[seeds_named(sorted(seeds))] = ", ".join(parts)
     if len(figures) > 1:
         return "; ".join(f"{seeds}: {text}" for seeds, text in figures.items())
@@ -308,8 +349,11 @@ def task_folders(root: Path) -> list[str]:
     the task its runs name. (A folder of runs without its ``source.json`` is one too, so that
     :func:`read_source` names what is missing rather than its runs being passed over.)"""
     folders = {source.parent for source in root.rglob("source.json")}
-    folders |= {made.parents[2] for made in root.rglob("seed*/run.json")
-                if len(made.relative_to(root).parts) > 3}  # <task>/<algo>/seed<N>/run.json
+    folders |= {
+        made.parents[2]
+        for made in root.rglob("seed*/run.json")
+        if len(made.relative_to(root).parts) > 3
+    }  # <task>/<algo>/seed<N>/run.json
     tasks = []
     for folder in sorted(folders):
         if (task := run_task(folder)) is None:
@@ -325,9 +369,10 @@ def read_runs(runs: Path, params) -> dict[str, list[TaskRuns]]:
     every other task kept under ``runs``, as its own family (as an experiment file runs
     such a task: its embedding learned on its own random data)."""
     kept = task_folders(runs) if runs.is_dir() else []
-    tasks = {**{t: f for t, f in params.runs.tasks.items() if t in kept},
-             **{t: layout.own_family(t, params.families) for t in kept
-                if t not in params.runs.tasks}}
+    tasks = {
+        **{t: f for t, f in params.runs.tasks.items() if t in kept},
+        **{t: layout.own_family(t, params.families) for t in kept if t not in params.runs.tasks},
+    }
     families: dict[str, list[TaskRuns]] = {}
     for task, family in tasks.items():
         if found := read_folder(runs, task):
@@ -349,6 +394,7 @@ def seeds_named(seeds: list[int]) -> str:
 
 def spans(steps: np.ndarray, width: float) -> str:
     """Bin ends as ranges of consecutive bins: ``12.5K–50K, 100K``."""
+
     def short(step: float) -> str:
         return f"{step / 1000:g}K"
 
@@ -358,11 +404,20 @@ def spans(steps: np.ndarray, width: float) -> str:
             groups[-1].append(step)
         else:
             groups.append([step])
-    return ", ".join(short(g[0]) if len(g) == 1 else f"{short(g[0])}–{short(g[-1])}" for g in groups)
+    return ", ".join(
+        short(g[0]) if len(g) == 1 else f"{short(g[0])}–{short(g[-1])}" for g in groups
+    )
 
 
-def summary_table(task: str, first: str, second: str, arms: dict[str, tuple[str, list[Curve], str]],
-                  thresholds: list[float], width: float, params) -> tuple[list[str], dict[str, tuple]]:
+def summary_table(
+    task: str,
+    first: str,
+    second: str,
+    arms: dict[str, tuple[str, list[Curve], str]],
+    thresholds: list[float],
+    width: float,
+    params,
+) -> tuple[list[str], dict[str, tuple]]:
     """A table of one row per arm (its name: its algorithm, runs and second column), with final
     return, area under the curve and the steps to reach each threshold, with bootstrap intervals
     over the runs; and each arm's binned band (:func:`ede.report.curve_band`). Every statistic
@@ -372,25 +427,41 @@ def summary_table(task: str, first: str, second: str, arms: dict[str, tuple[str,
     def fresh() -> np.random.Generator:
         return np.random.default_rng(report.seed)
 
-    lines = [f"| {first} | {second} | final return | area under the curve |"
-             + "".join(f" steps to reach {t:g} |" for t in thresholds),
-             "|---|---|---|---|" + "---|" * len(thresholds)]
+    lines = [
+        f"| {first} | {second} | final return | area under the curve |"
+        + "".join(f" steps to reach {t:g} |" for t in thresholds),
+        "|---|---|---|---|" + "---|" * len(thresholds),
+    ]
     bands = {}
     for name, (algo, runs, column) in arms.items():
-        row = summarise_task(task, algo, runs, [], [], report.confidence,
-                             report.bootstrap_samples, fresh())
+        row = summarise_task(
+            task, algo, runs, [], [], report.confidence, report.bootstrap_samples, fresh()
+        )
         bands[name] = curve_band(runs, report.confidence, report.bootstrap_samples, fresh(), width)
-        reached = [bootstrap_mean(np.array([steps_to_threshold(c.steps, c.returns, t) for c in runs]),
-                                  report.confidence, report.bootstrap_samples, fresh())
-                   for t in thresholds]
-        lines.append(f"| {name} | {column} | {row.final} | {row.auc} |"
-                     + "".join(f" {r.steps()} |" for r in reached))
+        reached = [
+            bootstrap_mean(
+                np.array([steps_to_threshold(c.steps, c.returns, t) for c in runs]),
+                report.confidence,
+                report.bootstrap_samples,
+                fresh(),
+            )
+            for t in thresholds
+        ]
+        lines.append(
+            f"| {name} | {column} | {row.final} | {row.auc} |"
+            + "".join(f" {r.steps()} |" for r in reached)
+        )
     return lines, bands
 
 
-def disjoint_bins(arms: dict[str, tuple[str, list[Curve], str]], bands: dict[str, tuple],
-                  names: tuple[str, str], width: float, confidence: float,
-                  wording: tuple[str, str] | None = None) -> list[str]:
+def disjoint_bins(
+    arms: dict[str, tuple[str, list[Curve], str]],
+    bands: dict[str, tuple],
+    names: tuple[str, str],
+    width: float,
+    confidence: float,
+    wording: tuple[str, str] | None = None,
+) -> list[str]:
     """A line naming the bins (right ends) where two arms' intervals are disjoint, and which lies
     above (the arms as ``wording`` calls them); none where an arm has a single seed, whose
     interval is a point."""
@@ -399,13 +470,23 @@ def disjoint_bins(arms: dict[str, tuple[str, list[Curve], str]], bands: dict[str
     (steps, _, low_a, high_a, _), (_, _, low_b, high_b, _) = bands[names[0]], bands[names[1]]
     sign = separation(low_a, high_a, low_b, high_b)
     ours, theirs = wording or names
-    return [f"Bins (right ends) where the {confidence:.0%} intervals are disjoint: {ours} above "
-            f"{theirs} at {spans(steps[sign > 0], width) or 'none'}; below at "
-            f"{spans(steps[sign < 0], width) or 'none'}.", ""]
+    return [
+        f"Bins (right ends) where the {confidence:.0%} intervals are disjoint: {ours} above "
+        f"{theirs} at {spans(steps[sign > 0], width) or 'none'}; below at "
+        f"{spans(steps[sign < 0], width) or 'none'}.",
+        "",
+    ]
 
 
-def task_section(found: TaskRuns, family: str, source: str, paper_budget: int | None, bins: int,
-                 refs: tuple[float, float, float], params) -> tuple[str, dict[str, tuple]]:
+def task_section(
+    found: TaskRuns,
+    family: str,
+    source: str,
+    paper_budget: int | None,
+    bins: int,
+    refs: tuple[float, float, float],
+    params,
+) -> tuple[str, dict[str, tuple]]:
     """One task's tables: per algorithm final return, area under the curve and the steps to
     reach each of its ``thresholds``; the disjoint bins; per seed, whether it diverged. And each
     algorithm's band, for the family's figure. ``paper_budget`` is None beyond the paper."""
@@ -414,61 +495,98 @@ def task_section(found: TaskRuns, family: str, source: str, paper_budget: int | 
         origin = f"{family} family, its own (beyond the paper). {budget:,} steps a run"
     else:
         role = "the family's source task" if found.task == source else "transferred"
-        origin = (f"{family} family, embedding learned on {source} ({role}). {budget:,} steps a "
-                  f"run, {budget / paper_budget:.1%} of the paper's {paper_budget:,}")
-    arms = {ALGO_STYLE[a][0]: (a, runs, seed_list([c.seed for c in runs]))
-            for a, runs in found.curves.items()}
-    table, bands = summary_table(found.task, "algorithm", "seeds", arms, found.source.thresholds,
-                                 width, params)
-    lines = [f"### {found.task}", "",
-             f"{origin}; {found.source.made_at()}; curves binned per {width:,.0f} steps."
-             + (f" Its embedding, held out: {found.embedding}." if found.embedding else "")
-             + f" References: uniform random actions {refs[0]:.4g} ({RANDOM_EPISODES} episodes), "
-             f"zero actions {refs[1]:.4g} ± {refs[2]:.2g} ({ZERO_EPISODES} episodes, ± standard error).",
-             "", cpu_line(found.cpus), "", *table, ""]
+        origin = (
+            f"{family} family, embedding learned on {source} ({role}). {budget:,} steps a "
+            f"run, {budget / paper_budget:.1%} of the paper's {paper_budget:,}"
+        )
+    arms = {
+        ALGO_STYLE[a][0]: (a, runs, seed_list([c.seed for c in runs]))
+        for a, runs in found.curves.items()
+    }
+    table, bands = summary_table(
+        found.task, "algorithm", "seeds", arms, found.source.thresholds, width, params
+    )
+    lines = [
+        f"### {found.task}",
+        "",
+        f"{origin}; {found.source.made_at()}; curves binned per {width:,.0f} steps."
+        + (f" Its embedding, held out: {found.embedding}." if found.embedding else "")
+        + f" References: uniform random actions {refs[0]:.4g} ({RANDOM_EPISODES} episodes), "
+        f"zero actions {refs[1]:.4g} ± {refs[2]:.2g} ({ZERO_EPISODES} episodes, ± standard error).",
+        "",
+        cpu_line(found.cpus),
+        "",
+        *table,
+        "",
+    ]
     if len(arms) == 2:
         lines += disjoint_bins(arms, bands, ("EDE-TD3", "TD3"), width, params.report.confidence)
         report = params.report
-        improvement = improvement_on_task(found.curves["ede-td3"], found.curves["td3"],
-                                          report.confidence, report.bootstrap_samples, report.seed)
-        lines += ["P(EDE-TD3 > TD3) over this task's seeds (rliable, as the aggregates across tasks): "
-                  + " and ".join(f"{improvement[s]} on the {label}" for s, label in SCORES.items())
-                  + ".", ""]
-    lines += ["| algorithm | seed | first bin | best bin before the last quarter | last quarter "
-              "| diverged |", "|---|---|---|---|---|---|"]
+        improvement = improvement_on_task(
+            found.curves["ede-td3"],
+            found.curves["td3"],
+            report.confidence,
+            report.bootstrap_samples,
+            report.seed,
+        )
+        lines += [
+            "P(EDE-TD3 > TD3) over this task's seeds (rliable, as the aggregates across tasks): "
+            + " and ".join(f"{improvement[s]} on the {label}" for s, label in SCORES.items())
+            + ".",
+            "",
+        ]
+    lines += [
+        "| algorithm | seed | first bin | best bin before the last quarter | last quarter "
+        "| diverged |",
+        "|---|---|---|---|---|---|",
+    ]
     for algo, runs in found.curves.items():
         for curve in runs:
             d = divergence(curve.steps, curve.returns, width)
-            lines.append(f"| {ALGO_STYLE[algo][0]} | {curve.seed} | {d.first:.1f} | {d.best:.1f} at "
-                         f"{d.best_step / 1000:g}K | {d.tail:.1f} | {'**yes**' if d.diverged else 'no'} |")
+            lines.append(
+                f"| {ALGO_STYLE[algo][0]} | {curve.seed} | {d.first:.1f} | {d.best:.1f} at "
+                f"{d.best_step / 1000:g}K | {d.tail:.1f} | {'**yes**' if d.diverged else 'no'} |"
+            )
     return "\n".join(lines) + "\n", {a: bands[ALGO_STYLE[a][0]] for a in found.curves}
 
 
-def complete_tasks(curves: dict[tuple[str, str], list[Curve]], both: set[str],
-                   planned: dict[str, list[int]]) -> tuple[list[str], str]:
+def complete_tasks(
+    curves: dict[tuple[str, str], list[Curve]], both: set[str], planned: dict[str, list[int]]
+) -> tuple[list[str], str]:
     """The tasks whose runs are all finished — of each algorithm, every seed its ``source.json``
     plans (``"seeds"``; where it names none, the runs there are all there are) — and a line
     naming those that wait, so that no task's seeds are cut to fit one still running."""
     tasks = list(dict.fromkeys(t for t, _ in curves if t in both))
-    finished = {t: min(len({c.seed for c in curves[(t, a)]} & set(planned.get(t, ())))
-                       for a in ALGO_STYLE) for t in tasks}
+    finished = {
+        t: min(len({c.seed for c in curves[(t, a)]} & set(planned.get(t, ()))) for a in ALGO_STYLE)
+        for t in tasks
+    }
     waiting = [t for t in tasks if finished[t] < len(planned.get(t, ()))]
     named = ", ".join(f"{t} ({finished[t]} of its {len(planned[t])} seeds)" for t in waiting)
-    note = (f"\nNot yet in these aggregates, with runs of an algorithm still to finish: "
-            f"{named}.\n") if waiting else ""
+    note = (
+        (f"\nNot yet in these aggregates, with runs of an algorithm still to finish: {named}.\n")
+        if waiting
+        else ""
+    )
     return [t for t in tasks if t not in waiting], note
 
 
 def across_section(title: str, found: AcrossTasks, params) -> str:
     """The aggregates across tasks as a Markdown table, after what they are over."""
     report = params.report
-    lines = [f"### Across tasks: {title}", "", found.describe(report.confidence,
-                                                             report.bootstrap_samples), "",
-             "| score | P(EDE-TD3 > TD3) | IQM, EDE-TD3 | IQM, TD3 |", "|---|---|---|---|"]
+    lines = [
+        f"### Across tasks: {title}",
+        "",
+        found.describe(report.confidence, report.bootstrap_samples),
+        "",
+        "| score | P(EDE-TD3 > TD3) | IQM, EDE-TD3 | IQM, TD3 |",
+        "|---|---|---|---|",
+    ]
     for score, label in SCORES.items():
         a = found.aggregates[score]
-        lines.append(f"| {label} | {a['probability_of_improvement']} | {a['iqm_ours']} | "
-                     f"{a['iqm_theirs']} |")
+        lines.append(
+            f"| {label} | {a['probability_of_improvement']} | {a['iqm_ours']} | {a['iqm_theirs']} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -479,53 +597,81 @@ def read_ablations(ablations: Path, runs: Path) -> list[tuple[str, TaskRuns, Tas
     found = []
     for variant in sorted(p for p in ablations.glob("*") if p.is_dir()):
         if variant.name == "default":
-            raise BadInput(f"{variant}: a variant named 'default' would be set against itself; "
-                          "rename it")
+            raise BadInput(
+                f"{variant}: a variant named 'default' would be set against itself; rename it"
+            )
         for task in task_folders(variant):
             if (ours := read_folder(variant, task)) is None:
                 continue
             folder, default = layout.task_runs(task, variant), layout.task_runs(task, runs)
             theirs = read_folder(runs, task)
             if theirs is None:
-                raise BadInput(f"{folder}: no finished default runs of {task} in {default} to set "
-                              "it against")
+                raise BadInput(
+                    f"{folder}: no finished default runs of {task} in {default} to set it against"
+                )
             if theirs.budget != ours.budget:
-                raise BadInput(f"{folder}: runs of {ours.budget} steps against the default's "
-                              f"{theirs.budget} in {default}; compare like with like")
+                raise BadInput(
+                    f"{folder}: runs of {ours.budget} steps against the default's "
+                    f"{theirs.budget} in {default}; compare like with like"
+                )
             chosen = {}
             for algo, variant_runs in ours.curves.items():
                 seeds = {c.seed for c in variant_runs}
                 chosen[algo] = [c for c in theirs.curves.get(algo, []) if c.seed in seeds]
                 if {c.seed for c in chosen[algo]} != seeds:
-                    raise BadInput(f"{folder / algo}: the default's runs of seeds {sorted(seeds)} "
-                                  f"are not all in {default / algo}; compare like with like")
+                    raise BadInput(
+                        f"{folder / algo}: the default's runs of seeds {sorted(seeds)} "
+                        f"are not all in {default / algo}; compare like with like"
+                    )
             theirs.curves = chosen
             found.append((variant.name, ours, theirs))
     return found
 
 
-def ablation_sections(variant: str, ours: TaskRuns, theirs: TaskRuns, bins: int,
-                      params) -> tuple[str, dict[str, tuple]]:
+def ablation_sections(
+    variant: str, ours: TaskRuns, theirs: TaskRuns, bins: int, params
+) -> tuple[str, dict[str, tuple]]:
     """Per algorithm, the default and the variant: final return, area and steps to each of the
     variant's thresholds with bootstrap intervals, and the bins where their intervals are
     disjoint. And the variant's band per algorithm, for its figure."""
     width = ours.budget / bins
     sections, variant_bands = [], {}
     for algo, runs in ours.curves.items():
-        def column(kept: TaskRuns) -> str:  # TD3 runs use no embedding
+
+        def column(kept: TaskRuns, algo: str = algo) -> str:  # TD3 runs use no embedding
             figures = kept.embedding if algo == "ede-td3" else None
             return f"{', '.join(kept.source.short_commits())}; {figures or '—'}"
 
-        arms = {"default": (algo, theirs.curves[algo], column(theirs)),
-                variant: (algo, runs, column(ours))}
-        table, bands = summary_table(ours.task, "runs", "commit; embedding (held out)", arms,
-                                     ours.source.thresholds, width, params)
-        lines = [f"### {variant}: {ours.task}, {ALGO_STYLE[algo][0]}", "",
-                 f"{ours.budget:,} steps a run, seeds {seed_list([c.seed for c in runs])} of each; the variant's "
-                 f"{ours.source.maker()}; curves binned per {width:,.0f} steps.",
-                 "", *table, "",
-                 *disjoint_bins(arms, bands, (variant, "default"), width, params.report.confidence,
-                                (variant, "the default"))]
+        arms = {
+            "default": (algo, theirs.curves[algo], column(theirs)),
+            variant: (algo, runs, column(ours)),
+        }
+        table, bands = summary_table(
+            ours.task,
+            "runs",
+            "commit; embedding (held out)",
+            arms,
+            ours.source.thresholds,
+            width,
+            params,
+        )
+        lines = [
+            f"### {variant}: {ours.task}, {ALGO_STYLE[algo][0]}",
+            "",
+            f"{ours.budget:,} steps a run, seeds {seed_list([c.seed for c in runs])} of each; the variant's "
+            f"{ours.source.maker()}; curves binned per {width:,.0f} steps.",
+            "",
+            *table,
+            "",
+            *disjoint_bins(
+                arms,
+                bands,
+                (variant, "default"),
+                width,
+                params.report.confidence,
+                (variant, "the default"),
+            ),
+        ]
         sections.append("\n".join(lines).rstrip("\n") + "\n")
         variant_bands[algo] = bands[variant]
     return "\n".join(sections), variant_bands
@@ -537,25 +683,45 @@ def references(tasks: list[str], params) -> dict[str, tuple[float, float, float]
     found = {}
     for task in tasks:
         try:
-            found[task] = (random_policy_return(task, RANDOM_EPISODES, params.report.seed),
-                           *zero_action_return(task, ZERO_EPISODES, params.report.seed))
+            found[task] = (
+                random_policy_return(task, RANDOM_EPISODES, params.report.seed),
+                *zero_action_return(task, ZERO_EPISODES, params.report.seed),
+            )
         except (gymnasium.error.Error, ValueError) as error:
-            raise BadInput(f"{task}: cannot be made to measure its reference returns: {error}") from None
+            raise BadInput(
+                f"{task}: cannot be made to measure its reference returns: {error}"
+            ) from None
     return found
 
 
 @click.command()
-@click.option("--runs", type=click.Path(file_okay=False, path_type=Path),
-              default=layout.RESULTS_RUNS, show_default=True,
-              help="The published runs: a folder per task, as `ede-pipeline experiment export` "
-              "writes them.")
-@click.option("--figures", type=click.Path(file_okay=False, path_type=Path),
-              default=layout.RESULTS, show_default=True, help="Where the figures go.")
-@click.option("--bins", type=click.IntRange(min=1), default=20, show_default=True,
-              help="Bins per run's budget.")
-@click.option("--ablations", type=click.Path(file_okay=False, path_type=Path),
-              help="One folder per variant, each compared with the default's runs in --runs  "
-              "[default: 'ablations' beside --runs]")
+@click.option(
+    "--runs",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=layout.RESULTS_RUNS,
+    show_default=True,
+    help="The published runs: a folder per task, as `ede-pipeline experiment export` writes them.",
+)
+@click.option(
+    "--figures",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=layout.RESULTS,
+    show_default=True,
+    help="Where the figures go.",
+)
+@click.option(
+    "--bins",
+    type=click.IntRange(min=1),
+    default=20,
+    show_default=True,
+    help="Bins per run's budget.",
+)
+@click.option(
+    "--ablations",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="One folder per variant, each compared with the default's runs in --runs  "
+    "[default: 'ablations' beside --runs]",
+)
 @params_option
 def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Path | None) -> None:
     """Print docs/results.md's tables (Markdown) and draw its figures from the published runs.
@@ -571,10 +737,16 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
     report = params.report
     families = read_runs(runs, params)
     found_ablations = read_ablations(ablations, runs) if ablations.is_dir() else []
-    curves_of = {family: {(f.task, a): c for f in found for a, c in f.curves.items()}
-                 for family, found in families.items()}
-    both = {task for curves in curves_of.values() for (task, _) in curves
-            if all((task, a) in curves for a in ALGO_STYLE)}
+    curves_of = {
+        family: {(f.task, a): c for f in found for a, c in f.curves.items()}
+        for family, found in families.items()
+    }
+    both = {
+        task
+        for curves in curves_of.values()
+        for (task, _) in curves
+        if all((task, a) in curves for a in ALGO_STYLE)
+    }
     refs = references([f.task for found in families.values() for f in found], params)
     lows = {task: refs[task][0] for task in both}
     planned = {f.task: f.source.seeds for found in families.values() for f in found}
@@ -583,14 +755,27 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
         source = params.families[family].source if family in params.families else found[0].task
         bands = {}
         for task_runs in found:
-            text, task_bands = task_section(task_runs, family, source,
-                                            params.runs.budgets.get(task_runs.task), bins,
-                                            refs[task_runs.task], params)
+            text, task_bands = task_section(
+                task_runs,
+                family,
+                source,
+                params.runs.budgets.get(task_runs.task),
+                bins,
+                refs[task_runs.task],
+                params,
+            )
             click.echo(text)
             bands.update({(task_runs.task, a): band for a, band in task_bands.items()})
         figure = learning_curve_figure(
-            family, [f.task for f in found], curves_of[family], report.confidence,
-            report.bootstrap_samples, None, {f.task: f.budget / bins for f in found}, bands)
+            family,
+            [f.task for f in found],
+            curves_of[family],
+            report.confidence,
+            report.bootstrap_samples,
+            None,
+            {f.task: f.budget / bins for f in found},
+            bands,
+        )
         figures.mkdir(parents=True, exist_ok=True)
         figure.savefig(figures / f"{family}.png", dpi=120)
         plt.close(figure)
@@ -607,8 +792,13 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
         sets.append(("the transfer tasks", transfer))
     for title, curves in sets + [("every task", everything)] * (len(curves_of) > 1):
         tasks, waiting = complete_tasks(curves, both, planned)
-        aggregates = across_tasks_section(curves, {t: lows[t] for t in tasks}, report.confidence,
-                                          report.bootstrap_samples, report.seed)
+        aggregates = across_tasks_section(
+            curves,
+            {t: lows[t] for t in tasks},
+            report.confidence,
+            report.bootstrap_samples,
+            report.seed,
+        )
         if aggregates is not None:
             click.echo(across_section(title, aggregates, params) + waiting)
             if title == "every task" or len(curves_of) == 1:
@@ -622,11 +812,16 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
             drawn.setdefault(variant, []).append((ours, variant_bands))
     for variant, kept in drawn.items():
         figure = learning_curve_figure(
-            variant, [k.task for k, _ in kept],
-            {(k.task, a): c for k, _ in kept for a, c in k.curves.items()}, report.confidence,
-            report.bootstrap_samples, None, {k.task: k.budget / bins for k, _ in kept},
+            variant,
+            [k.task for k, _ in kept],
+            {(k.task, a): c for k, _ in kept for a, c in k.curves.items()},
+            report.confidence,
+            report.bootstrap_samples,
+            None,
+            {k.task: k.budget / bins for k, _ in kept},
             {(k.task, a): band for k, bands in kept for a, band in bands.items()},
-            title=f"the {variant} variant (a fidelity ablation)")
+            title=f"the {variant} variant (a fidelity ablation)",
+        )
         figure.savefig(figures / f"ablation-{variant}.png", dpi=120)
         plt.close(figure)
         click.echo(f"Figure: {figures / f'ablation-{variant}.png'}\n")

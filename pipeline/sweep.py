@@ -81,8 +81,12 @@ class RunId:
 def train_runs(params: Params) -> dict[str, RunId]:
     """Every run of ``dvc.yaml``'s train matrix, by the name DVC gives its stage
     (``train@<task>-<algo>-<seed>``): a stage's run known from the params, not from its command."""
-    return {f"train@{task}-{algo}-{seed}": RunId(task, algo, seed)
-            for task in params.runs.tasks for algo in params.runs.algos for seed in params.runs.seeds}
+    return {
+        f"train@{task}-{algo}-{seed}": RunId(task, algo, seed)
+        for task in params.runs.tasks
+        for algo in params.runs.algos
+        for seed in params.runs.seeds
+    }
 
 
 def train_command(task: str, algo: str, seeds: list[int]) -> list[str]:
@@ -90,11 +94,27 @@ def train_command(task: str, algo: str, seeds: list[int]) -> list[str]:
     :mod:`ede_pipeline.layout` (``dvc.yaml``'s train command for one seed;
     ``tests/pipeline/test_layout.py`` holds the two together)."""
     inputs = layout.task_inputs(task)
-    out = layout.run(task, algo, seeds[0]) if len(seeds) == 1 else \
-        layout.run(task, algo, 0).with_name("seed{seed}")
-    return ["ede-pipeline", "train", "--task", task, "--algo", algo,
-            "--seed", ",".join(map(str, seeds)), "--out", str(out),
-            "--encoder", str(inputs / layout.ENCODER), "--decoder", str(inputs / layout.DECODER)]
+    out = (
+        layout.run(task, algo, seeds[0])
+        if len(seeds) == 1
+        else layout.run(task, algo, 0).with_name("seed{seed}")
+    )
+    return [
+        "ede-pipeline",
+        "train",
+        "--task",
+        task,
+        "--algo",
+        algo,
+        "--seed",
+        ",".join(map(str, seeds)),
+        "--out",
+        str(out),
+        "--encoder",
+        str(inputs / layout.ENCODER),
+        "--decoder",
+        str(inputs / layout.DECODER),
+    ]
 
 
 @dataclass(frozen=True)
@@ -129,7 +149,7 @@ def group_jobs(jobs: list[Job], size: int) -> list[Job]:
     for (task, algo), members in groups.items():
         members.sort(key=lambda job: job.runs[0].seed)
         for start in range(0, len(members), size):
-            chunk = members[start:start + size]
+            chunk = members[start : start + size]
             if len(chunk) == 1:
                 grouped.append(chunk[0])
                 continue
@@ -139,8 +159,17 @@ def group_jobs(jobs: list[Job], size: int) -> list[Job]:
             argv = [*shell, shlex.join(command)] if shell else command
             stages = tuple(job.stage for job in chunk)
             log = str(Path(first.log).with_name(f"{Path(first.log).stem}+{len(chunk) - 1}.log"))
-            grouped.append(Job(" + ".join(stages), [argv], first.cwd, first.env, log, stages,
-                               tuple(job.runs[0] for job in chunk)))
+            grouped.append(
+                Job(
+                    " + ".join(stages),
+                    [argv],
+                    first.cwd,
+                    first.env,
+                    log,
+                    stages,
+                    tuple(job.runs[0] for job in chunk),
+                )
+            )
     return alone + grouped
 
 
@@ -255,8 +284,9 @@ def _import_ray() -> Any:
     return ray
 
 
-def check_ray_address(address: str | None, timeout: float = RAY_CONNECT_TIMEOUT,
-                      name: str = "--address") -> None:
+def check_ray_address(
+    address: str | None, timeout: float = RAY_CONNECT_TIMEOUT, name: str = "--address"
+) -> None:
     """A Ray address is refused at once, before anything runs, unless a Ray cluster answers there:
     Ray itself would retry for minutes, printing warnings, after the upstream stages have run.
     ``auto`` (and no address) are Ray's to resolve.
@@ -275,16 +305,22 @@ def check_ray_address(address: str | None, timeout: float = RAY_CONNECT_TIMEOUT,
     target = address.removeprefix("ray://")
     host, colon, port = target.rpartition(":")
     if not colon or not host or not port.isdigit():
-        raise BadInput(f"{name} {address!r}: expected HOST:PORT, ray://HOST:PORT or auto, as "
-                       "`ray start --head` prints it")
+        raise BadInput(
+            f"{name} {address!r}: expected HOST:PORT, ray://HOST:PORT or auto, as "
+            "`ray start --head` prints it"
+        )
     deadline = time.monotonic() + timeout
     if why := _unreachable(host.strip("[]"), int(port), timeout):
-        raise BadInput(f"{name} {address}: no Ray cluster can be reached there ({why}); start "
-                       "one with `ray start --head`, or give the address it prints")
+        raise BadInput(
+            f"{name} {address}: no Ray cluster can be reached there ({why}); start "
+            "one with `ray start --head`, or give the address it prints"
+        )
     left = max(deadline - time.monotonic(), 0.01)
     if why := _not_ray(target, address.startswith("ray://"), left, timeout):
-        raise BadInput(f"{name} {address}: {why}; give the address `ray start --head` prints "
-                       "(the GCS, HOST:6379 by default, or ray://HOST:10001 for Ray Client)")
+        raise BadInput(
+            f"{name} {address}: {why}; give the address `ray start --head` prints "
+            "(the GCS, HOST:6379 by default, or ray://HOST:10001 for Ray Client)"
+        )
 
 
 def _unreachable(host: str, port: int, timeout: float) -> str:
@@ -336,7 +372,9 @@ def _not_ray(target: str, client: bool, timeout: float, bound: float) -> str:
         detail = (error.details() or "").rpartition("last error: ")[2]
         answer = detail if detail.startswith(code.name) else f"{code.name}: {detail}".rstrip(": ")
         if code in (grpc.StatusCode.UNAUTHENTICATED, grpc.StatusCode.PERMISSION_DENIED):
-            return f"the Ray cluster there refused this machine's credentials ({question}: {answer})"
+            return (
+                f"the Ray cluster there refused this machine's credentials ({question}: {answer})"
+            )
         return f"what answers there is not Ray ({question}: {answer})"
     return ""
 
@@ -350,18 +388,24 @@ class RayExecutor:
     raising, and an exception is not retried (``retry_exceptions=False``).
     """
 
-    def __init__(self, address: str | None, num_cpus: float, jobs: int | None,
-                 retries: int) -> None:
+    def __init__(
+        self, address: str | None, num_cpus: float, jobs: int | None, retries: int
+    ) -> None:
         ray = self.ray = _import_ray()
         if not ray.is_initialized():
             try:
-                ray.init(address=address, include_dashboard=False, log_to_driver=False,
-                         configure_logging=False)
+                ray.init(
+                    address=address,
+                    include_dashboard=False,
+                    log_to_driver=False,
+                    configure_logging=False,
+                )
             except ConnectionError as error:  # e.g. auto, and no cluster on this machine
                 first = (str(error).strip().splitlines() or [type(error).__name__])[0]
                 raise BadInput(f"--address {address}: {first}") from None
-        self.task = ray.remote(run_on_ray).options(num_cpus=num_cpus, max_retries=retries,
-                                                   retry_exceptions=False)
+        self.task = ray.remote(run_on_ray).options(
+            num_cpus=num_cpus, max_retries=retries, retry_exceptions=False
+        )
         self.jobs = jobs
 
     def map_unordered(self, jobs: list[Job]) -> Iterator[Outcome]:
@@ -378,9 +422,13 @@ class RayExecutor:
             try:
                 yield ray.get(ref)
             except ray.exceptions.RayError as error:  # lost every attempt, or run_job raised
-                yield Outcome(job.stage, None, time.perf_counter() - start,
-                              error=f"{type(error).__name__}: {first_line(error)}",
-                              attempts=attempts(job))
+                yield Outcome(
+                    job.stage,
+                    None,
+                    time.perf_counter() - start,
+                    error=f"{type(error).__name__}: {first_line(error)}",
+                    attempts=attempts(job),
+                )
 
 
 def run_on_ray(job: Job) -> Outcome:
@@ -446,7 +494,9 @@ def upstream_of(repo: Repo, stages: list[Stage]) -> list[Stage]:
 def record(stage: Stage) -> None:
     """What ``dvc repro`` does once a stage's command has succeeded: hash the dependencies and
     outputs, save the run to the run cache, commit the outputs to the cache, write ``dvc.lock``."""
-    no_cache_outs = any(not out.use_cache for out in stage.outs if not (out.is_metric or out.is_plot))
+    no_cache_outs = any(
+        not out.use_cache for out in stage.outs if not (out.is_metric or out.is_plot)
+    )
     stage.save(run_cache=not no_cache_outs)
     stage.commit()
     stage.dump(update_pipeline=False)
@@ -482,7 +532,9 @@ def repo_lock(repo: Repo) -> Iterator[None]:
 def _duration(seconds: float) -> str:
     seconds = round(seconds)
     hours, rest = divmod(seconds, 3600)
-    return f"{hours}h{rest // 60:02d}m{rest % 60:02d}s" if hours else f"{rest // 60}m{rest % 60:02d}s"
+    return (
+        f"{hours}h{rest // 60:02d}m{rest % 60:02d}s" if hours else f"{rest // 60}m{rest % 60:02d}s"
+    )
 
 
 def progress_file(job: Job) -> Path:
@@ -561,9 +613,13 @@ class Tally:
         steps = ""
         if total:
             rate = (done - before) / elapsed
-            steps = f", {_count(done)}/{_count(total)} steps ({done / total:.0%}), {rate:,.0f} steps/s"
-        return (f"sweep: {self.done}/{self.total} runs{again}{steps}, elapsed {_duration(elapsed)}, "
-                f"{self._eta(elapsed, counts)}")
+            steps = (
+                f", {_count(done)}/{_count(total)} steps ({done / total:.0%}), {rate:,.0f} steps/s"
+            )
+        return (
+            f"sweep: {self.done}/{self.total} runs{again}{steps}, elapsed {_duration(elapsed)}, "
+            f"{self._eta(elapsed, counts)}"
+        )
 
     # Output ------------------------------------------------------------------------------
 
@@ -574,8 +630,10 @@ class Tally:
             if job is not None:
                 self.finished.add(job)
             elapsed = time.perf_counter() - self.start
-            return (f"[{self.done}/{self.total}] {status:<6} {stage}  {detail}  "
-                    f"(elapsed {_duration(elapsed)}, {self._eta(elapsed, self._counts())})")
+            return (
+                f"[{self.done}/{self.total}] {status:<6} {stage}  {detail}  "
+                f"(elapsed {_duration(elapsed)}, {self._eta(elapsed, self._counts())})"
+            )
 
     def echo(self, text: str) -> None:
         with self.lock:
@@ -639,30 +697,68 @@ def _tail(text: str) -> str:
 
 @click.command()
 @click.argument("targets", nargs=-1)
-@click.option("-j", "--jobs", type=click.IntRange(min=1),
-              help="Runs at once  [default: local: the number of cores; ray: as the cluster fits]")
-@click.option("--executor", type=click.Choice(["local", "ray"]), default="local", show_default=True,
-              help="Child processes on this machine, or Ray tasks on a cluster.")
-@click.option("--address", help="Ray: the cluster to join (`ray start --head` prints it; "
-              "default: $RAY_ADDRESS, else a new local Ray instance). One where no Ray cluster "
-              "answers within 10 s is refused before anything runs.")
-@click.option("--retries", type=click.IntRange(min=0), default=RETRIES, show_default=True,
-              help="Ray: times a run lost with its Ray worker or node is started again on the "
-                   "nodes there are (it resumes from its checkpoint). A run whose command fails "
-                   "is not.")
-@click.option("--cpus-per-run", type=click.FloatRange(min=0, min_open=True), default=1.0,
-              callback=lambda ctx, param, value: _finite(param, value),
-              show_default=True, help="Ray: the num_cpus of each run's task.")
-@click.option("--group-size", type=click.IntRange(min=1),
-              help="Runs of one task and algorithm trained by one process (`train --seeds`)  "
-                   "[default: on CUDA (td3.device cuda, or auto with a GPU) every seed; on CPU as "
-                   "many as leave every job a process]")
-@click.option("--logs", type=click.Path(path_type=Path), default=LOGS,
-              show_default=True, help="Where each run's output goes, one file per stage.")
+@click.option(
+    "-j",
+    "--jobs",
+    type=click.IntRange(min=1),
+    help="Runs at once  [default: local: the number of cores; ray: as the cluster fits]",
+)
+@click.option(
+    "--executor",
+    type=click.Choice(["local", "ray"]),
+    default="local",
+    show_default=True,
+    help="Child processes on this machine, or Ray tasks on a cluster.",
+)
+@click.option(
+    "--address",
+    help="Ray: the cluster to join (`ray start --head` prints it; "
+    "default: $RAY_ADDRESS, else a new local Ray instance). One where no Ray cluster "
+    "answers within 10 s is refused before anything runs.",
+)
+@click.option(
+    "--retries",
+    type=click.IntRange(min=0),
+    default=RETRIES,
+    show_default=True,
+    help="Ray: times a run lost with its Ray worker or node is started again on the "
+    "nodes there are (it resumes from its checkpoint). A run whose command fails "
+    "is not.",
+)
+@click.option(
+    "--cpus-per-run",
+    type=click.FloatRange(min=0, min_open=True),
+    default=1.0,
+    callback=lambda ctx, param, value: _finite(param, value),
+    show_default=True,
+    help="Ray: the num_cpus of each run's task.",
+)
+@click.option(
+    "--group-size",
+    type=click.IntRange(min=1),
+    help="Runs of one task and algorithm trained by one process (`train --seeds`)  "
+    "[default: on CUDA (td3.device cuda, or auto with a GPU) every seed; on CPU as "
+    "many as leave every job a process]",
+)
+@click.option(
+    "--logs",
+    type=click.Path(path_type=Path),
+    default=LOGS,
+    show_default=True,
+    help="Where each run's output goes, one file per stage.",
+)
 @click.pass_context
-def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, executor: str,
-          address: str | None, retries: int, cpus_per_run: float, group_size: int | None,
-          logs: Path) -> None:
+def sweep(
+    ctx: click.Context,
+    targets: tuple[str, ...],
+    jobs: int | None,
+    executor: str,
+    address: str | None,
+    retries: int,
+    cpus_per_run: float,
+    group_size: int | None,
+    logs: Path,
+) -> None:
     """Run the out-of-date train stages in parallel and record each with DVC.
 
     TARGETS are stages as `dvc repro` takes them, `*` a wildcard (default: every run of
@@ -678,11 +774,14 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
     if executor == "local" and address:
         raise BadInput("--address is for --executor ray")
     if executor == "local" and ctx.get_parameter_source("retries") != ParameterSource.DEFAULT:
-        raise BadInput("--retries is for --executor ray (a local run that fails is reported, "
-                       "and the next sweep resumes it)")
+        raise BadInput(
+            "--retries is for --executor ray (a local run that fails is reported, "
+            "and the next sweep resumes it)"
+        )
     if executor == "ray":
-        check_ray_address(address or os.environ.get("RAY_ADDRESS"),
-                          name="--address" if address else "RAY_ADDRESS")
+        check_ray_address(
+            address or os.environ.get("RAY_ADDRESS"), name="--address" if address else "RAY_ADDRESS"
+        )
     params = read_params(DEFAULT_PARAMS)  # bad params end here, before anything runs
     runs = train_runs(params)
     if problem := unwritable(logs, directory=True):
@@ -690,8 +789,10 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
     try:
         Repo(".").close()
     except NotDvcRepoError:
-        raise BadInput(f"{Path.cwd()}: dvc.yaml but no DVC repository; run `dvc init` (in a git "
-                       "repository) first") from None
+        raise BadInput(
+            f"{Path.cwd()}: dvc.yaml but no DVC repository; run `dvc init` (in a git "
+            "repository) first"
+        ) from None
 
     with Repo(".") as repo:
         stages = collect_stages(repo, targets)
@@ -711,20 +812,35 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
                 stage.remove_outs(ignore_remove=False, force=False)
                 if restore_from_run_cache(stage):
                     record(stage)
-                    click.echo(tally.line("cached", stage.addressing, "restored from the run cache"))
+                    click.echo(
+                        tally.line("cached", stage.addressing, "restored from the run cache")
+                    )
                     continue
                 stage.save_deps()
             except (DvcException, OSError) as error:  # this stage only; the others go on
                 failed.append(stage.addressing)
-                click.echo(tally.line("FAILED", stage.addressing,
-                                      f"not started: {type(error).__name__}: {error}"))
+                click.echo(
+                    tally.line(
+                        "FAILED", stage.addressing, f"not started: {type(error).__name__}: {error}"
+                    )
+                )
                 continue
             log = (Path(repo.root_dir) / logs / f"{_safe(stage.addressing)}.log").resolve()
             run = runs.get(stage.addressing)
-            pending.append(Job(stage.addressing, stage_argvs(stage), repo.root_dir,
-                               stage_env(stage), str(log), runs=(run,) if run else ()))
+            pending.append(
+                Job(
+                    stage.addressing,
+                    stage_argvs(stage),
+                    repo.root_dir,
+                    stage_env(stage),
+                    str(log),
+                    runs=(run,) if run else (),
+                )
+            )
         workers = jobs or (os.cpu_count() if executor == "local" else None)
-        pending = group_jobs(pending, group_size or default_group_size(params, len(pending), workers))
+        pending = group_jobs(
+            pending, group_size or default_group_size(params, len(pending), workers)
+        )
         logs_of = {job.stage: Path(job.log) for job in pending}
         for job in pending:
             attempts_file(job).unlink(missing_ok=True)  # an earlier sweep's
@@ -738,13 +854,15 @@ def sweep(ctx: click.Context, targets: tuple[str, ...], jobs: int | None, execut
     recorded = len(stale) - len(failed)
     click.echo(f"sweep: {recorded} recorded, {len(failed)} failed", err=True)
     if failed:
-        click.echo("failed (run `ede-pipeline sweep` again to resume them): " + " ".join(failed),
-                   err=True)
+        click.echo(
+            "failed (run `ede-pipeline sweep` again to resume them): " + " ".join(failed), err=True
+        )
         ctx.exit(1)
 
 
-def _report(outcome: Outcome, by_name: dict[str, Stage], log: Path, tally: Tally,
-            failed: list[str]) -> None:
+def _report(
+    outcome: Outcome, by_name: dict[str, Stage], log: Path, tally: Tally, failed: list[str]
+) -> None:
     """Record each run of a finished job, or say why not; a line per run."""
     from dvc.exceptions import DvcException
 
@@ -762,10 +880,14 @@ def _report(outcome: Outcome, by_name: dict[str, Stage], log: Path, tally: Tally
         else:
             shared = f" (one process for {len(members)})" if len(members) > 1 else ""
             lost = outcome.attempts - 1
-            again = f" (attempt {outcome.attempts}: {lost} lost with a Ray worker or node)" \
-                if lost else ""
-            tally.echo(tally.line("ok", name, f"{outcome.seconds:.1f}s{shared}{again}",
-                                  outcome.stage))
+            again = (
+                f" (attempt {outcome.attempts}: {lost} lost with a Ray worker or node)"
+                if lost
+                else ""
+            )
+            tally.echo(
+                tally.line("ok", name, f"{outcome.seconds:.1f}s{shared}{again}", outcome.stage)
+            )
     if _problem(outcome) and log.is_file():
         tally.echo(_tail(log.read_text()))
 
@@ -778,12 +900,15 @@ def _bring_upstream_up_to_date(repo: Repo, stages: list[Stage]) -> None:
     click.echo(f"sweep: dvc repro {' '.join(stale)}", err=True)
     result = subprocess.run([dvc_executable(), "repro", *stale], check=False)
     if result.returncode != 0:
-        raise click.ClickException(f"dvc repro of the upstream stages failed "
-                                   f"(exit {result.returncode}); nothing else was run")
+        raise click.ClickException(
+            f"dvc repro of the upstream stages failed "
+            f"(exit {result.returncode}); nothing else was run"
+        )
 
 
-def _executor(kind: str, jobs: int | None, address: str | None, cpus_per_run: float,
-              retries: int) -> LocalExecutor | RayExecutor:
+def _executor(
+    kind: str, jobs: int | None, address: str | None, cpus_per_run: float, retries: int
+) -> LocalExecutor | RayExecutor:
     if kind == "local":
         return LocalExecutor(jobs or os.cpu_count() or 1)
     return RayExecutor(address, cpus_per_run, jobs, retries)
@@ -827,4 +952,3 @@ def _on_cuda(device: str) -> bool:
 
 def _safe(name: str) -> str:
     return name.replace("/", "_").replace("@", "__")
-

@@ -24,8 +24,11 @@ KIND = "folder of task records"
 
 @click.command("task-code")
 @family_option
-@click.option("--out", type=click.Path(path_type=Path),
-              help="Folder of one JSON record per task  [default: data/families/<family>/code]")
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    help="Folder of one JSON record per task  [default: data/families/<family>/code]",
+)
 @params_option
 def task_code(params: Params, family: str, out: Path | None) -> None:
     """Record the files and registration that define each task of a family."""

@@ -64,15 +64,17 @@ def read(path: str | Path) -> dict[str, Entry]:
             i += 1
         via = [line.strip()[1:].strip() for line in block if line.strip().startswith("#")]
         if via and via[0].startswith("via"):
-            via[0] = via[0][len("via"):].strip()
-        entry = Entry(normalize(match[1]), match[2], "\n".join(block) + "\n",
-                      tuple(v for v in via if v))
+            via[0] = via[0][len("via") :].strip()
+        entry = Entry(
+            normalize(match[1]), match[2], "\n".join(block) + "\n", tuple(v for v in via if v)
+        )
         entries[entry.name] = entry
     return entries
 
 
-def select(entries: dict[str, Entry], only: list[str] | None = None,
-           without: list[str] | None = None) -> str:
+def select(
+    entries: dict[str, Entry], only: list[str] | None = None, without: list[str] | None = None
+) -> str:
     names = {normalize(n) for n in only or ()} | {normalize(n) for n in without or ()}
     missing = names - entries.keys()
     if missing:
@@ -107,8 +109,11 @@ def main(argv: list[str] | None = None) -> None:
         compiled = re.search(r"pip-compile with Python (\d+\.\d+)", Path(args.lock).read_text())
         running = f"{sys.version_info[0]}.{sys.version_info[1]}"
         if compiled and compiled[1] != running:
-            print(f"lock.py: warning: {args.lock} was compiled for Python {compiled[1]}, this is "
-                  f"{running}; if the install fails, `make lock` with this Python", file=sys.stderr)
+            print(
+                f"lock.py: warning: {args.lock} was compiled for Python {compiled[1]}, this is "
+                f"{running}; if the install fails, `make lock` with this Python",
+                file=sys.stderr,
+            )
         sys.stdout.write(select(entries, args.only, args.without))
     elif args.command == "version":
         name = normalize(args.name)

@@ -29,15 +29,15 @@ def committed_params() -> dict[str, Any]:
 
 
 @pytest.fixture
-def write_params(
-    tmp_path: Path, committed_params: dict[str, Any]
-) -> Callable[..., Path]:
+def write_params(tmp_path: Path, committed_params: dict[str, Any]) -> Callable[..., Path]:
     """Write the committed params with changes applied; returns the file's path.
 
     ``write_params(edit)`` calls ``edit(data)`` on a deep copy of the committed params.
     """
 
-    def write(edit: Callable[[dict[str, Any]], None] | None = None, name: str = "params.yaml") -> Path:
+    def write(
+        edit: Callable[[dict[str, Any]], None] | None = None, name: str = "params.yaml"
+    ) -> Path:
         data = copy.deepcopy(committed_params)
         if edit is not None:
             edit(data)
@@ -55,9 +55,15 @@ def point_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
     path = tmp_path_factory.mktemp("point") / "rollouts.zarr"
     arrays = collect("ede/Point-v0", steps=4_000, num_envs=1, seed=0, workers=1)
-    attrs = {"env_id": "ede/Point-v0", "family": "point", "seed": 0, "num_envs": 1,
-             "steps": 4_000, "spaces": {"action_low": [-1.0, -1.0], "action_high": [1.0, 1.0]},
-             "params": {}}
+    attrs = {
+        "env_id": "ede/Point-v0",
+        "family": "point",
+        "seed": 0,
+        "num_envs": 1,
+        "steps": 4_000,
+        "spaces": {"action_low": [-1.0, -1.0], "action_high": [1.0, 1.0]},
+        "params": {},
+    }
     write_store(path, arrays, attrs)
     return path
 
@@ -67,8 +73,15 @@ def _tiny_pipeline(params: dict[str, Any]) -> None:
     small = {"hidden": [16, 16], "epochs": 1, "batch_size": 64}
     params["embedding"].update(small, holdout=0.5)
     params["decoder"].update(small)
-    params["td3"].update(hidden=[16, 16], batch_size=32, start_steps=50, eval_every=100,
-                         eval_episodes=1, checkpoint_every=1000, buffer_size=1000)
+    params["td3"].update(
+        hidden=[16, 16],
+        batch_size=32,
+        start_steps=50,
+        eval_every=100,
+        eval_episodes=1,
+        checkpoint_every=1000,
+        buffer_size=1000,
+    )
     params["runs"].update(seeds=[0], budgets={task: 200 for task in params["runs"]["budgets"]})
     params["report"].update(bootstrap_samples=100)
 

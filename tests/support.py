@@ -42,7 +42,10 @@ def scratch_copy(dest: Path, edit_params: Callable[[dict[str, Any]], None] | Non
     """
     files = subprocess.run(
         ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
-        cwd=REPO, capture_output=True, text=True, check=True,
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        check=True,
     ).stdout.split("\0")
     for name in filter(None, files):
         if (REPO / name).is_file():  # a deleted file is still listed until its deletion is added
@@ -57,11 +60,18 @@ def scratch_copy(dest: Path, edit_params: Callable[[dict[str, Any]], None] | Non
     return dest
 
 
-def run(copy: Path, *argv: str | Path,
-        timeout: float | None = None) -> subprocess.CompletedProcess[str]:
+def run(
+    copy: Path, *argv: str | Path, timeout: float | None = None
+) -> subprocess.CompletedProcess[str]:
     """Run a command in ``copy`` with :func:`tool_env`; its output is captured as text."""
-    return subprocess.run([str(arg) for arg in argv], cwd=copy, env=tool_env(),
-                          capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [str(arg) for arg in argv],
+        cwd=copy,
+        env=tool_env(),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def dvc(copy: Path, *args: str) -> subprocess.CompletedProcess[str]:
@@ -103,8 +113,9 @@ def one_task_upstream(dest: Path, shrink: Callable[[dict[str, Any]], None], task
     return copy
 
 
-def one_task_runs(shrink: Callable[[dict[str, Any]], None], task: str, steps: int,
-                  checkpoint_every: int) -> Callable[[dict[str, Any]], None]:
+def one_task_runs(
+    shrink: Callable[[dict[str, Any]], None], task: str, steps: int, checkpoint_every: int
+) -> Callable[[dict[str, Any]], None]:
     """An edit of params for :func:`scratch_copy`: ``shrink``'s (e.g. the tiny pipeline), then the
     runs of ``task`` only, ``steps`` each with a checkpoint every ``checkpoint_every``: runs long
     enough to be caught between their first checkpoint and their end."""

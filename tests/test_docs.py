@@ -11,16 +11,35 @@ from pathlib import Path
 import click
 import pytest
 
-from tests.support import REPO
 from ede_pipeline.cli import main
+from tests.support import REPO
 
 PAGES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)\)")
 FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
 SHELLS = {"bash", "sh", "shell", "console"}
 # Commands a page may show that are not ours: their words are theirs to check.
-OTHERS = {"dvc", "git", "docker", "podman", "pip", "source", "ray", "apt-get", "cd", "export",
-          "xargs", "aws", "mkdir", "cat", "ls", "unset", "kill", "nvidia-smi", "pytest"}
+OTHERS = {
+    "dvc",
+    "git",
+    "docker",
+    "podman",
+    "pip",
+    "source",
+    "ray",
+    "apt-get",
+    "cd",
+    "export",
+    "xargs",
+    "aws",
+    "mkdir",
+    "cat",
+    "ls",
+    "unset",
+    "kill",
+    "nvidia-smi",
+    "pytest",
+}
 
 
 def slug(heading: str) -> str:
@@ -79,17 +98,24 @@ def problems_with(line: str, defined: frozenset[str] = frozenset()) -> list[str]
         return []
     first, rest = words[0], words[1:]
     if first.startswith(".venv/"):
-        return [f"{first}: run it from the activated environment (README: source .venv/bin/activate)"]
+        return [
+            f"{first}: run it from the activated environment (README: source .venv/bin/activate)"
+        ]
     if first in defined:
         return []
     if first == "make":
-        return [f"make {w}: no such target" for w in rest if not w.startswith("-") and "=" not in w
-                and w not in make_targets()]
+        return [
+            f"make {w}: no such target"
+            for w in rest
+            if not w.startswith("-") and "=" not in w and w not in make_targets()
+        ]
     if first == "ede-pipeline":
         return _pipeline_problems(rest)
     if first == "python":
         script = next((w for w in rest if not w.startswith("-")), "")
-        return [] if rest[:1] == ["-m"] or (REPO / script).is_file() else [f"{script}: no such file"]
+        return (
+            [] if rest[:1] == ["-m"] or (REPO / script).is_file() else [f"{script}: no such file"]
+        )
     if "/" in first:
         return [] if (REPO / first).is_file() else [f"{first}: no such file"]
     return [] if first in OTHERS else [f"{first}: not a command the pages may show"]
@@ -108,8 +134,11 @@ def _pipeline_problems(words: list[str]) -> list[str]:
     if command.context_settings.get("ignore_unknown_options"):  # `experiment run`: to the sweep
         sweep = main.commands["sweep"]
         options |= {opt for param in sweep.params for opt in [*param.opts, *param.secondary_opts]}
-    return [f"{' '.join(path)} {w.split('=')[0]}: no such option" for w in words
-            if w.startswith("-") and w.split("=")[0] not in options and not re.fullmatch(r"-\d.*", w)]
+    return [
+        f"{' '.join(path)} {w.split('=')[0]}: no such option"
+        for w in words
+        if w.startswith("-") and w.split("=")[0] not in options and not re.fullmatch(r"-\d.*", w)
+    ]
 
 
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(REPO)))
@@ -122,13 +151,18 @@ def test_every_command_shown_names_something_real(page: Path) -> None:
 
 def test_the_checks_catch_what_they_are_for(tmp_path: Path) -> None:
     assert problems_with("make tset") == ["make tset: no such target"]
-    assert problems_with("ede-pipeline trian --task x") == ["ede-pipeline trian: no such subcommand"]
-    assert problems_with("ede-pipeline train --tsak x") == ["ede-pipeline train --tsak: no such option"]
+    assert problems_with("ede-pipeline trian --task x") == [
+        "ede-pipeline trian: no such subcommand"
+    ]
+    assert problems_with("ede-pipeline train --tsak x") == [
+        "ede-pipeline train --tsak: no such option"
+    ]
     assert problems_with("python benchmarks/nope.py") == ["benchmarks/nope.py: no such file"]
     assert problems_with(".venv/bin/dvc exp show") == [
-        ".venv/bin/dvc: run it from the activated environment (README: source .venv/bin/activate)"]
+        ".venv/bin/dvc: run it from the activated environment (README: source .venv/bin/activate)"
+    ]
     assert problems_with("MUJOCO_GL=egl make test") == []
     page = tmp_path / "page.md"
     page.write_text("# Title\n\n[ok](#title) [gone](#nowhere) [file](missing.md)\n")
-    with pytest.raises(AssertionError, match="no heading #nowhere in page.md"):
+    with pytest.raises(AssertionError, match=r"no heading #nowhere in page\.md"):
         test_every_relative_link_and_image_resolves(page)

@@ -53,10 +53,13 @@ def pyproject() -> dict:
 def _requirements(pyproject: dict) -> tuple[list[Requirement], list[Requirement]]:
     """The project's requirements (its dependencies and every extra) and its build requirements."""
     project = pyproject["project"]
-    listed = [*project["dependencies"], *(r for rs in project["optional-dependencies"].values()
-                                          for r in rs)]
-    return [Requirement(r) for r in listed], [Requirement(r) for r in
-                                               pyproject["build-system"]["requires"]]
+    listed = [
+        *project["dependencies"],
+        *(r for rs in project["optional-dependencies"].values() for r in rs),
+    ]
+    return [Requirement(r) for r in listed], [
+        Requirement(r) for r in pyproject["build-system"]["requires"]
+    ]
 
 
 def test_every_requirement_of_pyproject_is_locked_at_a_version_it_allows(lock, pyproject):
@@ -67,8 +70,9 @@ def test_every_requirement_of_pyproject_is_locked_at_a_version_it_allows(lock, p
         if name not in lock:
             problems.append(f"{name}: pyproject.toml asks {req}, requirements.lock has no {name}")
         elif not req.specifier.contains(lock[name].version, prereleases=True):
-            problems.append(f"{name}: pyproject.toml asks {req}, "
-                            f"requirements.lock has {lock[name].version}")
+            problems.append(
+                f"{name}: pyproject.toml asks {req}, requirements.lock has {lock[name].version}"
+            )
     assert not problems, "run `make lock`:\n" + "\n".join(problems)
 
 
@@ -77,28 +81,39 @@ def test_the_lock_holds_no_direct_requirement_pyproject_dropped(lock, pyproject)
     for source, reqs in ((FROM_PYPROJECT, requirements), (FROM_BUILD_SYSTEM, build)):
         asked = {canonicalize_name(r.name) for r in reqs}
         locked_for = {n for n, entry in lock.items() if source in entry.via}
-        stale = [f"{n}: requirements.lock has {lock[n].version} for {source}, which asks for none"
-                 for n in sorted(locked_for - asked)]
+        stale = [
+            f"{n}: requirements.lock has {lock[n].version} for {source}, which asks for none"
+            for n in sorted(locked_for - asked)
+        ]
         assert not stale, "run `make lock`:\n" + "\n".join(stale)
 
 
 def test_simulator_lock_holds_the_locks_simulator_pins(lock):
     path = REPO / "simulator.lock"
-    pins = dict(line.split("==") for line in path.read_text().splitlines()
-                if line and not line.startswith("#"))
+    pins = dict(
+        line.split("==")
+        for line in path.read_text().splitlines()
+        if line and not line.startswith("#")
+    )
     expected = {name: lock[name].version for name in lock_script.SIMULATOR if name in lock}
     assert {"mujoco", "gymnasium", "numpy"} <= expected.keys()
-    problems = [f"{name}: requirements.lock has {version}, simulator.lock has {pins.get(name)}"
-                for name, version in expected.items() if pins.get(name) != version]
-    problems += [f"{name}: simulator.lock has {pins[name]}, which is not a simulator package"
-                 for name in pins.keys() - expected.keys()]
+    problems = [
+        f"{name}: requirements.lock has {version}, simulator.lock has {pins.get(name)}"
+        for name, version in expected.items()
+        if pins.get(name) != version
+    ]
+    problems += [
+        f"{name}: simulator.lock has {pins[name]}, which is not a simulator package"
+        for name in pins.keys() - expected.keys()
+    ]
     assert not problems, "run `make lock`:\n" + "\n".join(problems)
     assert path.read_text() == lock_script.simulator(lock), "run `make lock`: simulator.lock edited"
 
 
 def test_simulator_pins_do_not_move_with_the_rest_of_the_lock(lock):
-    moved = {name: replace(entry, version=entry.version + ".post99")
-             for name, entry in lock.items()}
+    moved = {
+        name: replace(entry, version=entry.version + ".post99") for name, entry in lock.items()
+    }
     for name in lock_script.SIMULATOR:
         moved.pop(name, None)
         if name in lock:
@@ -110,7 +125,9 @@ def test_the_stages_that_step_an_environment_depend_on_the_simulator_pins():
     stages = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
     for name in STEPPING_STAGES:
         stage = stages[name].get("do", stages[name])
-        assert "simulator.lock" in stage["deps"], f"dvc.yaml: {name} does not depend on simulator.lock"
+        assert "simulator.lock" in stage["deps"], (
+            f"dvc.yaml: {name} does not depend on simulator.lock"
+        )
     for name in ("pretrain_encoder", "pretrain_decoder"):
         assert "simulator.lock" not in stages[name]["do"]["deps"], f"{name} steps no environment"
 
@@ -121,7 +138,8 @@ def test_the_images_torch_is_the_locked_one(lock):
     assert image, "Dockerfile: no ARG TORCH_VERSION"
     locked = lock["torch"].version
     assert Version(image[1]) == Version(Version(locked).public), (
-        f"torch: requirements.lock has {locked}, the Dockerfile's TORCH_VERSION is {image[1]}")
+        f"torch: requirements.lock has {locked}, the Dockerfile's TORCH_VERSION is {image[1]}"
+    )
 
 
 def test_this_interpreter_has_exactly_the_locked_versions(lock):
@@ -139,4 +157,6 @@ def test_this_interpreter_has_exactly_the_locked_versions(lock):
             want_v, have_v = Version(want_v.public), Version(have_v.public)
         if want_v != have_v:
             problems.append(f"{name}: requirements.lock has {entry.version}, installed is {have}")
-    assert not problems, f"{sys.prefix} differs from the lock (`make install`):\n" + "\n".join(problems)
+    assert not problems, f"{sys.prefix} differs from the lock (`make install`):\n" + "\n".join(
+        problems
+    )

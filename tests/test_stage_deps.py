@@ -16,8 +16,8 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from tests.support import REPO
 from ede_pipeline.closure import closure, imports_of, package_dirs
+from tests.support import REPO
 
 DIRS = package_dirs()
 ENVS = DIRS["ede_envs"]
@@ -52,7 +52,11 @@ def dispatcher_imports() -> list[str]:
 
 
 def test_the_checkout_is_what_is_imported() -> None:
-    assert DIRS == {"ede": REPO / "ede", "ede_envs": REPO / "envs", "ede_pipeline": REPO / "pipeline"}
+    assert DIRS == {
+        "ede": REPO / "ede",
+        "ede_envs": REPO / "envs",
+        "ede_pipeline": REPO / "pipeline",
+    }
 
 
 @pytest.mark.parametrize("name", list(STAGE_MODULES))
@@ -60,13 +64,18 @@ def test_a_stages_deps_cover_the_code_it_runs(name: str) -> None:
     deps = stage(name)["deps"]
     paths = [REPO / d for d in deps]
     records = TASK_RECORDS.get(name) in deps
-    needed = closure([STAGE_MODULES[name], *dispatcher_imports()], DIRS) | {DIRS["ede_pipeline"] / "cli.py"}
+    needed = closure([STAGE_MODULES[name], *dispatcher_imports()], DIRS) | {
+        DIRS["ede_pipeline"] / "cli.py"
+    }
     missing = sorted(
-        str(p.relative_to(REPO)) for p in needed
+        str(p.relative_to(REPO))
+        for p in needed
         if not any(p == d or p.is_relative_to(d) for d in paths)
         and not (p.is_relative_to(ENVS) and (records or p in REGISTRATION))
     )
-    assert not missing, f"dvc.yaml: stage {name} runs {', '.join(missing)} but does not depend on it"
+    assert not missing, (
+        f"dvc.yaml: stage {name} runs {', '.join(missing)} but does not depend on it"
+    )
 
 
 @pytest.mark.parametrize("name", list(TASK_RECORDS))
@@ -85,5 +94,8 @@ def test_the_closure_follows_imports_inside_functions() -> None:
     assert REPO / "ede/td3.py" in files and REPO / "ede/nets.py" in files
     assert REPO / "pipeline/sweep.py" not in files
     task = closure(["ede_envs.reacher_push"], DIRS)
-    assert task == {REPO / "envs/reacher_push.py", REPO / "envs/reacher.py", REPO / "envs/_numerics.py"}
-
+    assert task == {
+        REPO / "envs/reacher_push.py",
+        REPO / "envs/reacher.py",
+        REPO / "envs/_numerics.py",
+    }

@@ -54,16 +54,32 @@ def saved(tmp_path: Path, params: Path) -> tuple[Path, Path]:
     embedding, decoder = config.embedding, config.decoder
     torch.manual_seed(0)
     whitening = Whitening(np.zeros(STATES), np.ones(STATES))
-    result = EncoderResult(Encoder(embedding.k, ACTIONS, ACTIONS, embedding.hidden),
-                           Predictor(STATES, ACTIONS, embedding.hidden), whitening, whitening,
-                           Whitening(np.zeros(ACTIONS), np.ones(ACTIONS)))
+    result = EncoderResult(
+        Encoder(embedding.k, ACTIONS, ACTIONS, embedding.hidden),
+        Predictor(STATES, ACTIONS, embedding.hidden),
+        whitening,
+        whitening,
+        Whitening(np.zeros(ACTIONS), np.ones(ACTIONS)),
+    )
     recorded = {"embedding": embedding.model_dump(mode="json")}
     encoder_dir, decoder_dir = tmp_path / "encoder", tmp_path / "decoder"
-    save_encoder(encoder_dir, result, family="point", env_id=TASK, low=LOW, high=HIGH,
-                 params=recorded, data_fingerprint="f" * 64)
-    save_decoder(decoder_dir, ActionDecoder(ACTIONS, embedding.k, LOW, HIGH, decoder.hidden), 1.5,
-                 encoder_path=encoder_dir,
-                 params={"decoder": decoder.model_dump(mode="json"), **recorded})
+    save_encoder(
+        encoder_dir,
+        result,
+        family="point",
+        env_id=TASK,
+        low=LOW,
+        high=HIGH,
+        params=recorded,
+        data_fingerprint="f" * 64,
+    )
+    save_decoder(
+        decoder_dir,
+        ActionDecoder(ACTIONS, embedding.k, LOW, HIGH, decoder.hidden),
+        1.5,
+        encoder_path=encoder_dir,
+        params={"decoder": decoder.model_dump(mode="json"), **recorded},
+    )
     return encoder_dir, decoder_dir
 
 
@@ -119,16 +135,26 @@ def refused_as_edited(saved: tuple[Path, Path], part: int) -> None:
     assert "\n" not in message and "make it again" in message
 
 
-@pytest.mark.parametrize("change", [*DECODER_EDITS.values(), *DECODER_REFUSED_ONLY.values()],
-                         ids=[*DECODER_EDITS, *DECODER_REFUSED_ONLY])
-def test_an_edited_decoder_meta_is_refused_in_one_line(saved: tuple[Path, Path], change: Edit) -> None:
+@pytest.mark.parametrize(
+    "change",
+    [*DECODER_EDITS.values(), *DECODER_REFUSED_ONLY.values()],
+    ids=[*DECODER_EDITS, *DECODER_REFUSED_ONLY],
+)
+def test_an_edited_decoder_meta_is_refused_in_one_line(
+    saved: tuple[Path, Path], change: Edit
+) -> None:
     edit(saved[1], change)
     refused_as_edited(saved, 1)
 
 
-@pytest.mark.parametrize("change", [*ENCODER_EDITS.values(), *ENCODER_REFUSED_ONLY.values()],
-                         ids=[*ENCODER_EDITS, *ENCODER_REFUSED_ONLY])
-def test_an_edited_encoder_meta_is_refused_in_one_line(saved: tuple[Path, Path], change: Edit) -> None:
+@pytest.mark.parametrize(
+    "change",
+    [*ENCODER_EDITS.values(), *ENCODER_REFUSED_ONLY.values()],
+    ids=[*ENCODER_EDITS, *ENCODER_REFUSED_ONLY],
+)
+def test_an_edited_encoder_meta_is_refused_in_one_line(
+    saved: tuple[Path, Path], change: Edit
+) -> None:
     edit(saved[0], change)
     refused_as_edited(saved, 0)
     with pytest.raises(ArtifactError, match="does not match its checksum"):
@@ -136,7 +162,9 @@ def test_an_edited_encoder_meta_is_refused_in_one_line(saved: tuple[Path, Path],
 
 
 @pytest.mark.parametrize("change", DECODER_EDITS.values(), ids=DECODER_EDITS)
-def test_a_decoder_edit_sealed_again_is_another_identity(saved: tuple[Path, Path], change: Edit) -> None:
+def test_a_decoder_edit_sealed_again_is_another_identity(
+    saved: tuple[Path, Path], change: Edit
+) -> None:
     before = identity(saved)
     edit(saved[1], change, DecoderMeta)
     assert identity(saved) != before
@@ -166,7 +194,9 @@ def test_other_weights_are_another_identity(saved: tuple[Path, Path]) -> None:
 
 
 @pytest.mark.parametrize("part", [0, 1])
-def test_the_software_that_made_it_is_provenance_not_identity(saved: tuple[Path, Path], part: int) -> None:
+def test_the_software_that_made_it_is_provenance_not_identity(
+    saved: tuple[Path, Path], part: int
+) -> None:
     before = identity(saved)
     edit(saved[part], lambda data: data.update(software={"python": "2.7", "torch": "0.1"}))
     assert identity(saved) == before
@@ -179,23 +209,44 @@ def test_the_decoder_records_the_encoders_whole_identity(saved: tuple[Path, Path
 
 
 @pytest.mark.parametrize("part", [0, 1])
-def test_an_artifact_made_before_metadata_checksums_is_one_line(saved: tuple[Path, Path],
-                                                                part: int) -> None:
+def test_an_artifact_made_before_metadata_checksums_is_one_line(
+    saved: tuple[Path, Path], part: int
+) -> None:
     edit(saved[part], lambda data: data.pop("meta_sha256"))
     with pytest.raises(ArtifactError) as error:
         load_action_embedding(*saved)
-    assert str(error.value) == (f"{saved[part] / 'meta.json'}: records no meta_sha256 (made by an "
-                                "earlier version); make it again (`ede-pipeline pretrain`)")
+    assert str(error.value) == (
+        f"{saved[part] / 'meta.json'}: records no meta_sha256 (made by an "
+        "earlier version); make it again (`ede-pipeline pretrain`)"
+    )
 
 
 def train(params: Path, saved: tuple[Path, Path], out: Path):
-    return CliRunner().invoke(main, ["train", "--task", TASK, "--algo", "ede-td3", "--seed", "0",
-                                     "--out", str(out), "--encoder", str(saved[0]),
-                                     "--decoder", str(saved[1]), "--params", str(params)])
+    return CliRunner().invoke(
+        main,
+        [
+            "train",
+            "--task",
+            TASK,
+            "--algo",
+            "ede-td3",
+            "--seed",
+            "0",
+            "--out",
+            str(out),
+            "--encoder",
+            str(saved[0]),
+            "--decoder",
+            str(saved[1]),
+            "--params",
+            str(params),
+        ],
+    )
 
 
-def test_an_ede_td3_run_records_the_embeddings_identity(params: Path, saved: tuple[Path, Path],
-                                                        tmp_path: Path) -> None:
+def test_an_ede_td3_run_records_the_embeddings_identity(
+    params: Path, saved: tuple[Path, Path], tmp_path: Path
+) -> None:
     out = tmp_path / "run"
     result = train(params, saved, out)
     assert result.exit_code == 0, result.output

@@ -36,15 +36,33 @@ def saved(tmp_path: Path) -> tuple[Path, Path]:
     """A tiny untrained encoder and decoder, saved as `ede-pipeline pretrain` saves them."""
     torch.manual_seed(0)
     encoder = Encoder(K, ACTIONS, ACTIONS, EMBEDDING.hidden)
-    result = EncoderResult(encoder, Predictor(STATES, ACTIONS, EMBEDDING.hidden), whitening(STATES),
-                           whitening(STATES), whitening(ACTIONS))
+    result = EncoderResult(
+        encoder,
+        Predictor(STATES, ACTIONS, EMBEDDING.hidden),
+        whitening(STATES),
+        whitening(STATES),
+        whitening(ACTIONS),
+    )
     encoder_dir, decoder_dir = tmp_path / "encoder", tmp_path / "decoder"
     embedding_params = {"embedding": EMBEDDING.model_dump(mode="json")}
-    save_encoder(encoder_dir, result, family="point", env_id="ede/Point-v0", low=LOW, high=HIGH,
-                 params=embedding_params, data_fingerprint="f" * 64)
+    save_encoder(
+        encoder_dir,
+        result,
+        family="point",
+        env_id="ede/Point-v0",
+        low=LOW,
+        high=HIGH,
+        params=embedding_params,
+        data_fingerprint="f" * 64,
+    )
     decoder = ActionDecoder(ACTIONS, K, LOW, HIGH, DECODER.hidden)
-    save_decoder(decoder_dir, decoder, 1.0, encoder_path=encoder_dir,
-                 params={"decoder": DECODER.model_dump(mode="json"), **embedding_params})
+    save_decoder(
+        decoder_dir,
+        decoder,
+        1.0,
+        encoder_path=encoder_dir,
+        params={"decoder": DECODER.model_dump(mode="json"), **embedding_params},
+    )
     return encoder_dir, decoder_dir
 
 
@@ -63,8 +81,15 @@ def test_the_params_it_was_made_with_give_no_lines(saved: tuple[Path, Path]) -> 
 def test_where_and_how_fast_it_was_made_do_not_matter(saved: tuple[Path, Path]) -> None:
     elsewhere = {"device": "auto", "threads": 4}
     _, decoder = metas(saved)
-    assert params_mismatches(saved[1], decoder, EMBEDDING.model_copy(update=elsewhere),
-                             DECODER.model_copy(update=elsewhere)) == []
+    assert (
+        params_mismatches(
+            saved[1],
+            decoder,
+            EMBEDDING.model_copy(update=elsewhere),
+            DECODER.model_copy(update=elsewhere),
+        )
+        == []
+    )
 
 
 @pytest.mark.parametrize(
@@ -72,13 +97,26 @@ def test_where_and_how_fast_it_was_made_do_not_matter(saved: tuple[Path, Path]) 
     [
         ("k", 2, "made with embedding.k = 3, but params.yaml has embedding.k = 2"),
         ("dim", 5, "made with embedding.dim = 2, but params.yaml has embedding.dim = 5"),
-        ("beta", 1e-4, "made with embedding.beta = 0.001, but params.yaml has embedding.beta = 0.0001"),
-        ("hidden", [16, 16],
-         "made with embedding.hidden = [8], but params.yaml has embedding.hidden = [16, 16]"),
-        ("predictor_state", False,
-         "made with embedding.predictor_state = true, but params.yaml has embedding.predictor_state = false"),
-        ("change_whitening", "all",
-         "made with embedding.change_whitening = final, but params.yaml has embedding.change_whitening = all"),
+        (
+            "beta",
+            1e-4,
+            "made with embedding.beta = 0.001, but params.yaml has embedding.beta = 0.0001",
+        ),
+        (
+            "hidden",
+            [16, 16],
+            "made with embedding.hidden = [8], but params.yaml has embedding.hidden = [16, 16]",
+        ),
+        (
+            "predictor_state",
+            False,
+            "made with embedding.predictor_state = true, but params.yaml has embedding.predictor_state = false",
+        ),
+        (
+            "change_whitening",
+            "all",
+            "made with embedding.change_whitening = final, but params.yaml has embedding.change_whitening = all",
+        ),
     ],
 )
 def test_each_embedding_param_that_differs_is_one_line_naming_the_key(
@@ -104,7 +142,10 @@ def test_several_contradictions_give_a_line_each(saved: tuple[Path, Path]) -> No
     changed = EMBEDDING.model_copy(update={"k": 4, "dim": 3, "beta": 0.5})
     lines = params_mismatches(saved[0], encoder, changed)
     assert [line.split(" = ")[0].split()[-1] for line in lines] == [
-        "embedding.k", "embedding.dim", "embedding.beta"]
+        "embedding.k",
+        "embedding.dim",
+        "embedding.beta",
+    ]
 
 
 def test_a_null_dim_means_the_action_size_given(saved: tuple[Path, Path]) -> None:

@@ -20,8 +20,9 @@ from ede.runs import RunSpec
 from ede.training import _Group
 
 CPU = torch.device("cpu")
-CONFIG = TD3Config(hidden=[16, 16], batch_size=8, start_steps=0, update_schedule="step",
-                   eval_episodes=1)
+CONFIG = TD3Config(
+    hidden=[16, 16], batch_size=8, start_steps=0, update_schedule="step", eval_episodes=1
+)
 SAVED_AT = 30  # steps: inside the first episode, after updates began (a batch of 8 from step 8)
 
 
@@ -73,7 +74,8 @@ def read(path: Path, run: RunSpec | None = None) -> checkpoint.Checkpoint:
 
 def learner_state(group: _Group) -> dict[str, torch.Tensor]:
     return {f"agent.{k}": v for k, v in group.agent.state_dict(0).items()} | {
-        f"buffer.{k}": v for k, v in group.buffer.state_dict(0).items()}
+        f"buffer.{k}": v for k, v in group.buffer.state_dict(0).items()
+    }
 
 
 def test_read_gives_back_what_the_run_held(saved: Path) -> None:
@@ -118,7 +120,7 @@ def test_a_damaged_file_is_refused_by_its_checksum(copy: Path) -> None:
     data = bytearray((copy / "state.safetensors").read_bytes())
     data[-1] ^= 0xFF
     (copy / "state.safetensors").write_bytes(bytes(data))
-    with pytest.raises(CheckpointError, match="^state.safetensors does not match its checksum"):
+    with pytest.raises(CheckpointError, match=r"^state\.safetensors does not match its checksum"):
         read(copy)
 
 
@@ -130,10 +132,13 @@ def test_a_missing_file_is_named(copy: Path, name: str) -> None:
 
 
 def test_another_runs_checkpoint_names_the_first_difference(saved: Path) -> None:
-    with pytest.raises(CheckpointError, match="^another run's: seed is 0, expected 1$"):
+    with pytest.raises(CheckpointError, match=r"^another run's: seed is 0, expected 1$"):
         read(saved, spec(seed=1))
     other = CONFIG.model_copy(update={"lr": 3e-4})
-    with pytest.raises(CheckpointError, match=r"^another run's: made with td3.lr = 0.001, but the params say 0.0003$"):
+    with pytest.raises(
+        CheckpointError,
+        match=r"^another run's: made with td3.lr = 0.001, but the params say 0.0003$",
+    ):
         read(saved, spec(config=other))
 
 
@@ -141,8 +146,9 @@ def test_another_format_version_is_refused(copy: Path) -> None:
     state = json.loads((copy / "state.json").read_text())
     (copy / "state.json").write_text(json.dumps(state | {"version": 3}))
     sign(copy)
-    with pytest.raises(CheckpointError,
-                       match=f"^format version 3, this version reads {checkpoint.VERSION}$"):
+    with pytest.raises(
+        CheckpointError, match=f"^format version 3, this version reads {checkpoint.VERSION}$"
+    ):
         read(copy)
 
 
@@ -152,23 +158,36 @@ def test_a_tensor_of_other_hidden_sizes_is_refused_by_name_and_shape(copy: Path)
     expected = _Group([spec()], None, CPU).agent.state_dict(0)[name].shape
     edit_tensors(copy, lambda tensors: tensors.update({f"agent.{name}": narrower[name]}))
     shape = ", ".join(map(str, narrower[name].shape))
-    with pytest.raises(CheckpointError, match=(
+    with pytest.raises(
+        CheckpointError,
+        match=(
             rf"^agent.{name} is \[{shape}\] torch.float32, "
-            rf"expected \[{', '.join(map(str, expected))}\] torch.float32$")):
+            rf"expected \[{', '.join(map(str, expected))}\] torch.float32$"
+        ),
+    ):
         read(copy)
 
 
-@pytest.mark.parametrize(("edit", "reason"), [
-    (lambda t: t.pop("buffer.reward"), "^buffer.reward is missing$"),
-    (lambda t: t.update({"buffer.reward": t["buffer.reward"][:-1]}),
-     rf"^buffer.reward is \[{SAVED_AT - 1}\] torch.float32, "
-     rf"expected \[{SAVED_AT}\] torch.float32$"),
-    (lambda t: t.update({"buffer.terminated": t["buffer.terminated"].float()}),
-     "^buffer.terminated is .* torch.float32, expected .* torch.bool$"),
-    (lambda t: t.update({"buffer.count": torch.tensor(SAVED_AT + 1)}),
-     "^the replay buffer does not hold the run's steps$"),
-    (lambda t: t.update({"agent.extra": torch.zeros(1)}), "^agent.extra is not this run's$"),
-])
+@pytest.mark.parametrize(
+    ("edit", "reason"),
+    [
+        (lambda t: t.pop("buffer.reward"), "^buffer.reward is missing$"),
+        (
+            lambda t: t.update({"buffer.reward": t["buffer.reward"][:-1]}),
+            rf"^buffer.reward is \[{SAVED_AT - 1}\] torch.float32, "
+            rf"expected \[{SAVED_AT}\] torch.float32$",
+        ),
+        (
+            lambda t: t.update({"buffer.terminated": t["buffer.terminated"].float()}),
+            "^buffer.terminated is .* torch.float32, expected .* torch.bool$",
+        ),
+        (
+            lambda t: t.update({"buffer.count": torch.tensor(SAVED_AT + 1)}),
+            "^the replay buffer does not hold the run's steps$",
+        ),
+        (lambda t: t.update({"agent.extra": torch.zeros(1)}), "^agent.extra is not this run's$"),
+    ],
+)
 def test_a_missing_or_misshapen_tensor_is_refused(copy: Path, edit, reason: str) -> None:
     edit_tensors(copy, edit)
     with pytest.raises(CheckpointError, match=reason):
@@ -199,4 +218,3 @@ def test_a_checkpoint_that_cannot_be_used_leaves_the_live_agent_and_buffer_bit_f
     assert after.keys() == before.keys()
     assert all(torch.equal(v, after[k]) for k, v in before.items())
     assert group.runs[0].step == SAVED_AT + 10
-

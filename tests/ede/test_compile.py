@@ -33,8 +33,16 @@ def trained(mode: str) -> Agent:
     rng = np.random.default_rng(0)
     for member in range(len(SEEDS)):
         for t in range(100):
-            buffer.add(member, rng.normal(size=OBS), torch.as_tensor(rng.uniform(-1, 1, ACT)),
-                       0, float(rng.normal()), rng.normal(size=OBS), t % 40 == 39, False)
+            buffer.add(
+                member,
+                rng.normal(size=OBS),
+                torch.as_tensor(rng.uniform(-1, 1, ACT)),
+                0,
+                float(rng.normal()),
+                rng.normal(size=OBS),
+                t % 40 == 39,
+                False,
+            )
     for u in range(UPDATES):
         agent.update(buffer, np.array([True, u % 3 != 1]))  # member 1 sits some out
     return agent
@@ -50,6 +58,10 @@ def test_the_compiled_update_is_one_graph_and_computes_what_eager_computes() -> 
             if key.startswith("generator."):  # the same draws, outside the compiled function
                 assert torch.equal(value, theirs[key]), key
             else:
-                torch.testing.assert_close(theirs[key], value, **TOLERANCE,
-                                           msg=lambda m, k=key: f"member {member} {k}: {m}")
+                torch.testing.assert_close(
+                    theirs[key],
+                    value,
+                    **TOLERANCE,
+                    msg=lambda m, k=key, member=member: f"member {member} {k}: {m}",
+                )
         assert int(theirs["updates"]) == UPDATES - (UPDATES // 3) * member

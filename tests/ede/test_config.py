@@ -27,10 +27,17 @@ def test_committed_params_hold_the_papers_configuration() -> None:
     }
     td3 = params.td3
     assert (td3.hidden, td3.batch_size, td3.lr, td3.discount, td3.tau) == (
-        [400, 300], 100, 1e-3, 0.99, 0.005
+        [400, 300],
+        100,
+        1e-3,
+        0.99,
+        0.005,
     )
     assert (td3.policy_noise, td3.noise_clip, td3.policy_delay, td3.exploration_noise) == (
-        0.2, 0.5, 2, 0.1
+        0.2,
+        0.5,
+        2,
+        0.1,
     )
     assert params.families["sevendof"].source == "ede/Pusher-v0"
     assert params.runs.tasks["ede/Striker-v0"] == "sevendof"
@@ -57,109 +64,187 @@ def test_defaults_in_the_model_match_the_committed_file() -> None:
     [
         (lambda p: p.update(surprise=1), "surprise: unknown key"),
         (lambda p: p["td3"].update(batch_size="many"), "td3.batch_size: got 'many'"),
-        (lambda p: p["runs"]["budgets"].update({"ede/Pusher-v0": -5}), "runs.budgets.ede/Pusher-v0: got -5"),
+        (
+            lambda p: p["runs"]["budgets"].update({"ede/Pusher-v0": -5}),
+            "runs.budgets.ede/Pusher-v0: got -5",
+        ),
         (lambda p: p["embedding"].update(k=0), "embedding.k: got 0"),
         (lambda p: p["report"].update(bin_steps=0), "report.bin_steps: got 0"),
         (lambda p: p["td3"].update(start_steps=-1), "td3.start_steps: got -1"),
         (lambda p: p["td3"].update(eval_every=0), "td3.eval_every: got 0"),
-        (lambda p: p["runs"]["tasks"].update({"ede/Nope-v0": "reacher"}),
-         "runs.tasks.ede/Nope-v0.[key]: got 'ede/Nope-v0'"),
-        (lambda p: p["runs"]["tasks"].update({"ede/Pusher-v0": "reacher"}),
-         "runs.tasks.ede/Pusher-v0: not a task of the reacher family"),
-        (lambda p: p["runs"]["tasks"].update({"ede/Pusher-v0": "moon"}),
-         "runs.tasks.ede/Pusher-v0: got 'moon'; expected a family of `families`"),
-        (lambda p: p["runs"].update(tasks={"reacher": ["ede/ReacherVertical-v0"]}),
-         "runs.tasks: expected each task mapped to its family"),
+        (
+            lambda p: p["runs"]["tasks"].update({"ede/Nope-v0": "reacher"}),
+            "runs.tasks.ede/Nope-v0.[key]: got 'ede/Nope-v0'",
+        ),
+        (
+            lambda p: p["runs"]["tasks"].update({"ede/Pusher-v0": "reacher"}),
+            "runs.tasks.ede/Pusher-v0: not a task of the reacher family",
+        ),
+        (
+            lambda p: p["runs"]["tasks"].update({"ede/Pusher-v0": "moon"}),
+            "runs.tasks.ede/Pusher-v0: got 'moon'; expected a family of `families`",
+        ),
+        (
+            lambda p: p["runs"].update(tasks={"reacher": ["ede/ReacherVertical-v0"]}),
+            "runs.tasks: expected each task mapped to its family",
+        ),
         (lambda p: p["families"]["reacher"].pop("source"), "families.reacher.source: missing"),
-        (lambda p: p["families"]["point"].update(source="CartPole-v1"),
-         "families.point.source: got 'CartPole-v1'; not usable: its actions are Discrete(2)"),
+        (
+            lambda p: p["families"]["point"].update(source="CartPole-v1"),
+            "families.point.source: got 'CartPole-v1'; not usable: its actions are Discrete(2)",
+        ),
         (lambda p: p["td3"].update(discount=1.5), "td3.discount: got 1.5"),
-        (lambda p: p["collect"].update(saturated_episodes=1.5), "collect.saturated_episodes: got 1.5"),
+        (
+            lambda p: p["collect"].update(saturated_episodes=1.5),
+            "collect.saturated_episodes: got 1.5",
+        ),
         (lambda p: p["runs"]["budgets"].pop("ede/Striker-v0"), "no budget for ede/Striker-v0"),
-        (lambda p: p["families"].pop("sevendof"),
-         "runs.tasks.ede/Pusher-v0: got 'sevendof'; expected a family of `families`"),
+        (
+            lambda p: p["families"].pop("sevendof"),
+            "runs.tasks.ede/Pusher-v0: got 'sevendof'; expected a family of `families`",
+        ),
         (lambda p: p["runs"].update(seeds=[0, 0]), "runs.seeds: [0, 0] repeats a seed"),
         (lambda p: p["decoder"].update(z_source="posterior"), "decoder.z_source: got 'posterior'"),
         (lambda p: p["td3"].update(noise_units="percent"), "td3.noise_units: got 'percent'"),
         (lambda p: p["td3"].update(critic_action_repeat=0), "td3.critic_action_repeat: got 0"),
-        (lambda p: p["td3"].update(critic_action_repeat="twice"),
-         "td3.critic_action_repeat: got 'twice'"),
-        (lambda p: p["ede_td3"].update(target_noise_clip="none"),
-         "ede_td3.target_noise_clip: got 'none'"),
-        (lambda p: p["ede_td3"].update(plan_step_input="binary"),
-         "ede_td3.plan_step_input: got 'binary'"),
+        (
+            lambda p: p["td3"].update(critic_action_repeat="twice"),
+            "td3.critic_action_repeat: got 'twice'",
+        ),
+        (
+            lambda p: p["ede_td3"].update(target_noise_clip="none"),
+            "ede_td3.target_noise_clip: got 'none'",
+        ),
+        (
+            lambda p: p["ede_td3"].update(plan_step_input="binary"),
+            "ede_td3.plan_step_input: got 'binary'",
+        ),
         (lambda p: p["td3"].update(update_schedule="batch"), "td3.update_schedule: got 'batch'"),
         # Keys valid one by one that together leave a stage nothing to do.
-        (lambda p: p["runs"]["budgets"].update({"ede/Pusher-v0": 102}),
-         "runs.budgets.ede/Pusher-v0: got 102; expected at least 103 = max(td3.start_steps 0, "
-         "td3.batch_size 100 + embedding.k 4 - 1 (ede-td3's k-step samples)), the step of the "
-         "first update: the run would never update"),
-        (lambda p: (p["runs"]["budgets"].update({"ede/Pusher-v0": 4_999}),
-                    p["td3"].update(start_steps=5_000)),
-         "runs.budgets.ede/Pusher-v0: got 4999; expected at least 5000 = max(td3.start_steps 5000"),
-        (lambda p: (p["runs"]["budgets"].update({"ede/Pusher-v0": 99}),
-                    p["runs"].update(algos=["td3"])),
-         "runs.budgets.ede/Pusher-v0: got 99; expected at least 100 = max(td3.start_steps 0, "
-         "td3.batch_size 100), the step"),
-        (lambda p: p["runs"]["budgets"].update({"ede/ReacherVertical-v0": 999}),
-         "runs.budgets.ede/ReacherVertical-v0: got 999; expected at least td3.eval_every (1000): "
-         "the run would have only its initial and final evaluations"),
-        (lambda p: p["td3"].update(buffer_size=102),
-         "td3.buffer_size: got 102; expected at least 103 = td3.batch_size 100 + embedding.k 4 "
-         "- 1 (ede-td3's k-step samples): no batch could ever be sampled"),
-        (lambda p: (p["td3"].update(buffer_size=99), p["runs"].update(algos=["td3"])),
-         "td3.buffer_size: got 99; expected at least 100 = td3.batch_size 100: no batch"),
-        (lambda p: p["embedding"].update(batch_size=90_001),
-         "embedding.batch_size: got 90001; expected at most 90000 = collect.steps 100000 × "
-         "(1 - embedding.holdout 0.1) / embedding.window_stride 1, the most training windows"),
-        (lambda p: p["embedding"].update(window_stride=1_000),
-         "embedding.batch_size: got 128; expected at most 90 = collect.steps 100000 × "
-         "(1 - embedding.holdout 0.1) / embedding.window_stride 1000"),
-        (lambda p: p["decoder"].update(batch_size=90_001),
-         "decoder.batch_size: got 90001; expected at most 90000 = collect.steps 100000 × "
-         "(1 - embedding.holdout 0.1), the most"),
+        (
+            lambda p: p["runs"]["budgets"].update({"ede/Pusher-v0": 102}),
+            "runs.budgets.ede/Pusher-v0: got 102; expected at least 103 = max(td3.start_steps 0, "
+            "td3.batch_size 100 + embedding.k 4 - 1 (ede-td3's k-step samples)), the step of the "
+            "first update: the run would never update",
+        ),
+        (
+            lambda p: (
+                p["runs"]["budgets"].update({"ede/Pusher-v0": 4_999}),
+                p["td3"].update(start_steps=5_000),
+            ),
+            "runs.budgets.ede/Pusher-v0: got 4999; expected at least 5000 = max(td3.start_steps 5000",
+        ),
+        (
+            lambda p: (
+                p["runs"]["budgets"].update({"ede/Pusher-v0": 99}),
+                p["runs"].update(algos=["td3"]),
+            ),
+            "runs.budgets.ede/Pusher-v0: got 99; expected at least 100 = max(td3.start_steps 0, "
+            "td3.batch_size 100), the step",
+        ),
+        (
+            lambda p: p["runs"]["budgets"].update({"ede/ReacherVertical-v0": 999}),
+            "runs.budgets.ede/ReacherVertical-v0: got 999; expected at least td3.eval_every (1000): "
+            "the run would have only its initial and final evaluations",
+        ),
+        (
+            lambda p: p["td3"].update(buffer_size=102),
+            "td3.buffer_size: got 102; expected at least 103 = td3.batch_size 100 + embedding.k 4 "
+            "- 1 (ede-td3's k-step samples): no batch could ever be sampled",
+        ),
+        (
+            lambda p: (p["td3"].update(buffer_size=99), p["runs"].update(algos=["td3"])),
+            "td3.buffer_size: got 99; expected at least 100 = td3.batch_size 100: no batch",
+        ),
+        (
+            lambda p: p["embedding"].update(batch_size=90_001),
+            "embedding.batch_size: got 90001; expected at most 90000 = collect.steps 100000 × "
+            "(1 - embedding.holdout 0.1) / embedding.window_stride 1, the most training windows",
+        ),
+        (
+            lambda p: p["embedding"].update(window_stride=1_000),
+            "embedding.batch_size: got 128; expected at most 90 = collect.steps 100000 × "
+            "(1 - embedding.holdout 0.1) / embedding.window_stride 1000",
+        ),
+        (
+            lambda p: p["decoder"].update(batch_size=90_001),
+            "decoder.batch_size: got 90001; expected at most 90000 = collect.steps 100000 × "
+            "(1 - embedding.holdout 0.1), the most",
+        ),
         # Rollouts are whole episodes, at least one per sub-environment (every source: 100 steps).
-        (lambda p: p["collect"].update(steps=2_000, num_envs=2_000),
-         "collect.num_envs: got 2000; expected at most 20 = collect.steps 2000 // 100, the episode "
-         "length of ede/ReacherVertical-v0 (families.reacher.source): each sub-environment records "
-         "whole episodes, at least one, so 2000 of them would record about 200000 steps, not 2000"),
-        (lambda p: p["collect"].update(steps=299, num_envs=3),
-         "collect.num_envs: got 3; expected at most 2 = collect.steps 299 // 100"),
-        (lambda p: p["collect"].update(steps=99),
-         "collect.steps: got 99; expected at least 100, the episode length of "
-         "ede/ReacherVertical-v0 (families.reacher.source): collect records whole episodes, at "
-         "least one per sub-environment, so it would record about 100 steps, not 99"),
-        (lambda p: p["collect"].update(steps=4, num_envs=5),
-         "collect.steps: got 4; expected at least 100"),
-        (lambda p: (p["collect"].update(steps=150), p["embedding"].update(k=151)),
-         "collect.steps: got 150; expected at least embedding.k (151): no window of k actions"),
+        (
+            lambda p: p["collect"].update(steps=2_000, num_envs=2_000),
+            "collect.num_envs: got 2000; expected at most 20 = collect.steps 2000 // 100, the episode "
+            "length of ede/ReacherVertical-v0 (families.reacher.source): each sub-environment records "
+            "whole episodes, at least one, so 2000 of them would record about 200000 steps, not 2000",
+        ),
+        (
+            lambda p: p["collect"].update(steps=299, num_envs=3),
+            "collect.num_envs: got 3; expected at most 2 = collect.steps 299 // 100",
+        ),
+        (
+            lambda p: p["collect"].update(steps=99),
+            "collect.steps: got 99; expected at least 100, the episode length of "
+            "ede/ReacherVertical-v0 (families.reacher.source): collect records whole episodes, at "
+            "least one per sub-environment, so it would record about 100 steps, not 99",
+        ),
+        (
+            lambda p: p["collect"].update(steps=4, num_envs=5),
+            "collect.steps: got 4; expected at least 100",
+        ),
+        (
+            lambda p: (p["collect"].update(steps=150), p["embedding"].update(k=151)),
+            "collect.steps: got 150; expected at least embedding.k (151): no window of k actions",
+        ),
         # The longest source bounds the sub-environments (Pendulum-v1: 200 steps).
-        (lambda p: (p["families"].update(pendulum={"source": "Pendulum-v1"}),
-                    p["collect"].update(num_envs=501)),
-         "collect.num_envs: got 501; expected at most 500 = collect.steps 100000 // 200, the "
-         "episode length of Pendulum-v1 (families.pendulum.source)"),
+        (
+            lambda p: (
+                p["families"].update(pendulum={"source": "Pendulum-v1"}),
+                p["collect"].update(num_envs=501),
+            ),
+            "collect.num_envs: got 501; expected at most 500 = collect.steps 100000 // 200, the "
+            "episode length of Pendulum-v1 (families.pendulum.source)",
+        ),
         # Each task of a family once.
-        (lambda p: p["families"]["point"].update(targets=["ede/Point-v0"]),
-         "families.point.targets: ede/Point-v0 given twice in the family (its source counts); "
-         "expected each task once"),
-        (lambda p: p["families"]["reacher"].update(
-            targets=["ede/ReacherTurn-v0", "ede/ReacherPush-v0", "ede/ReacherTurn-v0"]),
-         "families.reacher.targets: ede/ReacherTurn-v0 given twice in the family"),
+        (
+            lambda p: p["families"]["point"].update(targets=["ede/Point-v0"]),
+            "families.point.targets: ede/Point-v0 given twice in the family (its source counts); "
+            "expected each task once",
+        ),
+        (
+            lambda p: p["families"]["reacher"].update(
+                targets=["ede/ReacherTurn-v0", "ede/ReacherPush-v0", "ede/ReacherTurn-v0"]
+            ),
+            "families.reacher.targets: ede/ReacherTurn-v0 given twice in the family",
+        ),
         (lambda p: p["runs"].update(algos=[]), "runs.algos: got []"),
-        (lambda p: p["runs"].update(algos=["td3", "td3"]),
-         "runs.algos: ['td3', 'td3'] repeats an algorithm"),
-        (lambda p: p["runs"].update(tasks={}), "runs.tasks: got {}; Dictionary should have at least 1"),
-        (lambda p: p["families"]["sevendof"].update(targets=["ede/Striker-v0", "ede/ReacherTurn-v0"]),
-         "families.sevendof.targets: ede/ReacherTurn-v0's actions are not ede/Pusher-v0's"),
+        (
+            lambda p: p["runs"].update(algos=["td3", "td3"]),
+            "runs.algos: ['td3', 'td3'] repeats an algorithm",
+        ),
+        (
+            lambda p: p["runs"].update(tasks={}),
+            "runs.tasks: got {}; Dictionary should have at least 1",
+        ),
+        (
+            lambda p: p["families"]["sevendof"].update(
+                targets=["ede/Striker-v0", "ede/ReacherTurn-v0"]
+            ),
+            "families.sevendof.targets: ede/ReacherTurn-v0's actions are not ede/Pusher-v0's",
+        ),
         # Numbers that are not finite mean nothing a parameter can (and are not valid JSON).
-        (lambda p: p["td3"].update(noise_clip=float("inf")),
-         "td3.noise_clip: got inf; expected a finite number"),
+        (
+            lambda p: p["td3"].update(noise_clip=float("inf")),
+            "td3.noise_clip: got inf; expected a finite number",
+        ),
         (lambda p: p["td3"].update(lr=float("nan")), "td3.lr: got nan; expected a finite number"),
         (lambda p: p["embedding"].update(beta=float("inf")), "embedding.beta: got inf"),
         (lambda p: p["decoder"].update(lam=float("nan")), "decoder.lam: got nan"),
         (lambda p: p["ede_td3"].update(bound_scale=float("inf")), "ede_td3.bound_scale: got inf"),
-        (lambda p: p["report"]["thresholds"].update({"ede/Pusher-v0": float("-inf")}),
-         "report.thresholds.ede/Pusher-v0.0: got -inf; expected a finite number"),
+        (
+            lambda p: p["report"]["thresholds"].update({"ede/Pusher-v0": float("-inf")}),
+            "report.thresholds.ede/Pusher-v0.0: got -inf; expected a finite number",
+        ),
     ],
 )
 def test_a_bad_file_names_the_key_and_value(write_params, edit, key: str) -> None:
@@ -175,8 +260,10 @@ def test_a_bad_file_names_the_key_and_value(write_params, edit, key: str) -> Non
     [
         lambda p: p["collect"].update(steps=2_000, num_envs=20),  # 100 steps each: one episode
         lambda p: p["collect"].update(steps=299, num_envs=2),
-        lambda p: (p["families"].update(pendulum={"source": "Pendulum-v1"}),
-                   p["collect"].update(num_envs=500)),
+        lambda p: (
+            p["families"].update(pendulum={"source": "Pendulum-v1"}),
+            p["collect"].update(num_envs=500),
+        ),
     ],
 )
 def test_numbers_that_just_fit_the_episodes_are_fine(write_params, edit) -> None:
@@ -213,32 +300,50 @@ def test_every_problem_is_reported_not_just_the_first(write_params) -> None:
     ("text", "expected"),
     [
         # An unclosed bracket is found at the end of the file; the problem names where it opened.
-        ("collect:\n  steps: 10\nruns:\n  seeds: [0, 1\n",
-         "line 4, column 10: not readable YAML: expected ',' or ']', but got '<stream end>' "
-         "(while parsing a flow sequence); the line reads: \"  seeds: [0, 1\""),
-        ("td3:\n\tbatch_size: 3\n",
-         "line 2, column 1: not readable YAML: found character '\\t' that cannot start any token "
-         "(while scanning for the next token); the line reads: \"\\tbatch_size: 3\""),
-        ("td3:\n  batch_size: 3\n   lr: 1\n",
-         "line 3, column 6: not readable YAML: mapping values are not allowed here; "
-         "the line reads: \"   lr: 1\""),
-        ("td3:\n  lr: 1\n bad: 2\n",
-         "line 3, column 2: not readable YAML: expected <block end>, but found "
-         "'<block mapping start>' (while parsing a block mapping from line 1, column 1); "
-         "the line reads: \" bad: 2\""),
+        (
+            "collect:\n  steps: 10\nruns:\n  seeds: [0, 1\n",
+            "line 4, column 10: not readable YAML: expected ',' or ']', but got '<stream end>' "
+            '(while parsing a flow sequence); the line reads: "  seeds: [0, 1"',
+        ),
+        (
+            "td3:\n\tbatch_size: 3\n",
+            "line 2, column 1: not readable YAML: found character '\\t' that cannot start any token "
+            '(while scanning for the next token); the line reads: "\\tbatch_size: 3"',
+        ),
+        (
+            "td3:\n  batch_size: 3\n   lr: 1\n",
+            "line 3, column 6: not readable YAML: mapping values are not allowed here; "
+            'the line reads: "   lr: 1"',
+        ),
+        (
+            "td3:\n  lr: 1\n bad: 2\n",
+            "line 3, column 2: not readable YAML: expected <block end>, but found "
+            "'<block mapping start>' (while parsing a block mapping from line 1, column 1); "
+            'the line reads: " bad: 2"',
+        ),
         # PyYAML's reader marks no line: the message stays PyYAML's first line.
-        ("a: \x07\n",
-         "not readable YAML (unacceptable character #x0007: special characters are not allowed)"),
+        (
+            "a: \x07\n",
+            "not readable YAML (unacceptable character #x0007: special characters are not allowed)",
+        ),
         ("- a list\n", "expected a mapping of sections, found list"),
         # A key given twice: PyYAML would keep the last, silently.
-        ("td3:\n  lr: 0.001\n  batch_size: 100\n  lr: 5.0\n",
-         "line 4: key 'lr' given twice, on lines 2 and 4; give it once"),
-        ("td3:\n  lr: 0.001\nembedding:\n  k: 4\ntd3:\n  lr: 5.0\n",
-         "line 5: key 'td3' given twice, on lines 1 and 5; give it once"),
-        ("runs:\n  budgets:\n    ede/Pusher-v0: 10\n    ede/Pusher-v0: 20\n",
-         "line 4: key 'ede/Pusher-v0' given twice, on lines 3 and 4; give it once"),
-        ("families: {a: {source: X}, a: {source: Y}}\n",
-         "line 1: key 'a' given twice, on line 1; give it once"),
+        (
+            "td3:\n  lr: 0.001\n  batch_size: 100\n  lr: 5.0\n",
+            "line 4: key 'lr' given twice, on lines 2 and 4; give it once",
+        ),
+        (
+            "td3:\n  lr: 0.001\nembedding:\n  k: 4\ntd3:\n  lr: 5.0\n",
+            "line 5: key 'td3' given twice, on lines 1 and 5; give it once",
+        ),
+        (
+            "runs:\n  budgets:\n    ede/Pusher-v0: 10\n    ede/Pusher-v0: 20\n",
+            "line 4: key 'ede/Pusher-v0' given twice, on lines 3 and 4; give it once",
+        ),
+        (
+            "families: {a: {source: X}, a: {source: Y}}\n",
+            "line 1: key 'a' given twice, on line 1; give it once",
+        ),
     ],
 )
 def test_unparseable_files_are_one_clear_problem(tmp_path: Path, text: str, expected: str) -> None:

@@ -61,8 +61,11 @@ def test_the_setting_found_on_entry_is_restored() -> None:
 def test_a_run_trains_with_flushing_and_leaves_it_off(tmp_path: Path) -> None:
     config = TD3Config(hidden=[16, 16], batch_size=8, start_steps=0, eval_every=50, eval_episodes=1)
     observed = []
-    train_run(RunSpec("ede/Point-v0", "td3", 0, 100, config, EdeTD3Config()), tmp_path / "run",
-              progress=lambda steps: observed.append(flushes_denormals()))
+    train_run(
+        RunSpec("ede/Point-v0", "td3", 0, 100, config, EdeTD3Config()),
+        tmp_path / "run",
+        progress=lambda steps: observed.append(flushes_denormals()),
+    )
     assert observed and all(flushing == cpu_can_flush() for flushing in observed)
     assert not flushes_denormals()
 

@@ -18,8 +18,14 @@ from ede.tasks import make
 from ede.training import Diverged, train_group, train_run
 
 CPU = torch.device("cpu")
-SMALL = dict(hidden=[16, 16], batch_size=8, eval_every=100, eval_episodes=2, checkpoint_every=200,
-             update_schedule="step")
+SMALL = dict(
+    hidden=[16, 16],
+    batch_size=8,
+    eval_every=100,
+    eval_episodes=2,
+    checkpoint_every=200,
+    update_schedule="step",
+)
 
 
 class BreaksAt(gymnasium.Wrapper):
@@ -47,9 +53,11 @@ class BreaksAt(gymnasium.Wrapper):
 
 
 for what in ("observation", "reward"):
-    gymnasium.register(f"ede_test/PointNaN{what.title()}-v0",
-                       entry_point=lambda what=what, **_: BreaksAt(what, 350, seed=1),
-                       max_episode_steps=None)
+    gymnasium.register(
+        f"ede_test/PointNaN{what.title()}-v0",
+        entry_point=lambda what=what, **_: BreaksAt(what, 350, seed=1),
+        max_episode_steps=None,
+    )
 
 
 def spec(task: str, seed: int = 0, budget: int = 600, **td3) -> RunSpec:
@@ -86,7 +94,8 @@ def test_what_the_environment_produces_is_checked_and_the_last_good_checkpoint_k
     assert str(caught.value) == (
         f"{task} td3 seed 1: diverged at step 350: the environment's {what} is not finite; stopped "
         f"there, no metrics.json written; its last checkpoint, {tmp_path / 'checkpoint'}, is at "
-        "step 200")
+        "step 200"
+    )
     assert not (tmp_path / "metrics.json").exists()
     assert [int(r["step"]) for r in rows(tmp_path / "eval.csv")] == [0, 100, 200, 300]
     state = json.loads((tmp_path / "checkpoint" / "state.json").read_text())
@@ -105,8 +114,9 @@ def test_in_a_group_the_diverged_run_stops_and_the_others_finish_as_alone(tmp_pa
     train_run(spec(task, seed=2), alone)
     for out in (outs[0], outs[2]):
         assert (out / "metrics.json").exists()
-    assert rows(outs[2] / "eval.csv") != [] and [r["mean_return"] for r in rows(outs[2] / "eval.csv")] \
-        == [r["mean_return"] for r in rows(alone / "eval.csv")]
+    assert rows(outs[2] / "eval.csv") != [] and [
+        r["mean_return"] for r in rows(outs[2] / "eval.csv")
+    ] == [r["mean_return"] for r in rows(alone / "eval.csv")]
 
 
 def test_every_json_written_is_valid_json(tmp_path: Path) -> None:

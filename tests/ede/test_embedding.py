@@ -10,7 +10,13 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from ede.artifacts import ArtifactError, load_action_embedding, load_encoder, save_decoder, save_encoder
+from ede.artifacts import (
+    ArtifactError,
+    load_action_embedding,
+    load_encoder,
+    save_decoder,
+    save_encoder,
+)
 from ede.config import DecoderConfig, EmbeddingConfig
 from ede.embedding import (
     ActionEmbedding,
@@ -68,10 +74,14 @@ def test_on_the_linear_point_the_k_step_effect_is_predicted_almost_exactly(
     assert trained.history[-1]["holdout_mse"] < trained.history[0]["holdout_mse"]
 
 
-def test_the_decoder_output_re_encodes_to_its_input(point: Rollouts, trained: EncoderResult) -> None:
+def test_the_decoder_output_re_encodes_to_its_input(
+    point: Rollouts, trained: EncoderResult
+) -> None:
     result = train_decoder(point, trained, DecoderConfig(epochs=10, **SMALL), 4, LOW, HIGH)
     assert result.metrics["inverse_error"] < 0.01, result.metrics
-    embedding = ActionEmbedding(trained.encoder, result.decoder, trained.code_whitening, result.bound)
+    embedding = ActionEmbedding(
+        trained.encoder, result.decoder, trained.code_whitening, result.bound
+    )
     z = torch.empty(256, 2).uniform_(-1.5, 1.5, generator=torch.Generator().manual_seed(0))
     actions = embedding.decode(z)
     assert actions.shape == (256, 4, 2) and actions.abs().max() <= 1.0
@@ -89,13 +99,14 @@ def test_training_is_determined_by_the_seed(point: Rollouts, trained: EncoderRes
         torch.manual_seed(noise)  # whatever the global generator holds must not matter
         encoded = train_encoder(point, EmbeddingConfig(epochs=1, seed=seed, **SMALL))
         torch.manual_seed(noise + 1)
-        decoded = train_decoder(point, encoded, DecoderConfig(epochs=1, seed=seed, **SMALL), 4,
-                                LOW, HIGH)
+        decoded = train_decoder(
+            point, encoded, DecoderConfig(epochs=1, seed=seed, **SMALL), 4, LOW, HIGH
+        )
         return [*encoded.encoder.state_dict().values(), *decoded.decoder.state_dict().values()]
 
     first, again, other = weights(0, noise=1), weights(0, noise=2), weights(1, noise=1)
-    assert all(torch.equal(a, b) for a, b in zip(first, again))
-    assert not all(torch.equal(a, b) for a, b in zip(first, other))
+    assert all(torch.equal(a, b) for a, b in zip(first, again, strict=True))
+    assert not all(torch.equal(a, b) for a, b in zip(first, other, strict=True))
 
 
 @pytest.mark.parametrize("beta", [0.0, 1e3])
@@ -113,18 +124,30 @@ def test_beta_zero_keeps_information_and_a_huge_beta_collapses_to_the_prior(
 @pytest.fixture
 def saved(tmp_path: Path, point: Rollouts, trained: EncoderResult) -> tuple[Path, Path]:
     encoder_dir, decoder_dir = tmp_path / "encoder", tmp_path / "decoder"
-    save_encoder(encoder_dir, trained, family="point", env_id="ede/Point-v0", low=LOW, high=HIGH,
-                 params={"embedding": {}}, data_fingerprint=point.attrs["fingerprint"])
+    save_encoder(
+        encoder_dir,
+        trained,
+        family="point",
+        env_id="ede/Point-v0",
+        low=LOW,
+        high=HIGH,
+        params={"embedding": {}},
+        data_fingerprint=point.attrs["fingerprint"],
+    )
     result = train_decoder(point, trained, DecoderConfig(epochs=1, **SMALL), 4, LOW, HIGH)
     save_decoder(decoder_dir, result.decoder, result.bound, encoder_path=encoder_dir, params={})
     return encoder_dir, decoder_dir
 
 
-def test_save_then_load_gives_identical_outputs(saved: tuple[Path, Path], trained: EncoderResult) -> None:
+def test_save_then_load_gives_identical_outputs(
+    saved: tuple[Path, Path], trained: EncoderResult
+) -> None:
     meta, embedding = load_action_embedding(*saved)
     _, reloaded = load_encoder(saved[0])
     actions = torch.rand(32, 4, 2) * 2 - 1
-    torch.testing.assert_close(reloaded.encoder(actions)[0], trained.encoder(actions)[0], rtol=0, atol=0)
+    torch.testing.assert_close(
+        reloaded.encoder(actions)[0], trained.encoder(actions)[0], rtol=0, atol=0
+    )
     assert meta.k == 4 and meta.dim == 2 and meta.bound > 0
     z = embedding.encode(actions)
     again = load_action_embedding(*saved)[1]
@@ -161,16 +184,27 @@ def test_a_weight_of_the_wrong_shape_is_refused_by_name(saved: tuple[Path, Path]
         load_action_embedding(*saved)
 
 
-def test_a_decoder_of_another_encoder_is_refused(saved: tuple[Path, Path], tmp_path: Path,
-                                                  point: Rollouts) -> None:
+def test_a_decoder_of_another_encoder_is_refused(
+    saved: tuple[Path, Path], tmp_path: Path, point: Rollouts
+) -> None:
     other = train_encoder(point, EmbeddingConfig(epochs=1, seed=9, **SMALL))
-    save_encoder(tmp_path / "other", other, family="point", env_id="ede/Point-v0", low=LOW,
-                 high=HIGH, params={}, data_fingerprint="x")
+    save_encoder(
+        tmp_path / "other",
+        other,
+        family="point",
+        env_id="ede/Point-v0",
+        low=LOW,
+        high=HIGH,
+        params={},
+        data_fingerprint="x",
+    )
     with pytest.raises(ArtifactError, match="another encoder"):
         load_action_embedding(tmp_path / "other", saved[1])
 
 
-def test_a_window_stride_of_k_keeps_non_overlapping_windows_from_each_episodes_start(point: Rollouts) -> None:
+def test_a_window_stride_of_k_keeps_non_overlapping_windows_from_each_episodes_start(
+    point: Rollouts,
+) -> None:
     from ede.embedding import strided
 
     every = point.window_starts(4)
@@ -211,13 +245,25 @@ def test_a_unit_range_decoder_acts_within_one_on_a_wider_box_as_the_authors_code
     config = DecoderConfig(epochs=1, **SMALL)
     z = torch.linspace(-3, 3, 64)[:, None].expand(64, 2)
     for output_range, widest in (("bounds", 2.0), ("unit", 1.0)):
-        result = train_decoder(point, trained, config.model_copy(update={"output_range": output_range}),
-                               4, low, high)
+        result = train_decoder(
+            point, trained, config.model_copy(update={"output_range": output_range}), 4, low, high
+        )
         actions = result.decoder(z)
         assert actions.abs().max() <= widest
-        encoder_dir, decoder_dir = tmp_path / output_range / "encoder", tmp_path / output_range / "decoder"
-        save_encoder(encoder_dir, trained, family="point", env_id="ede/Point-v0", low=low, high=high,
-                     params={}, data_fingerprint=point.attrs["fingerprint"])
+        encoder_dir, decoder_dir = (
+            tmp_path / output_range / "encoder",
+            tmp_path / output_range / "decoder",
+        )
+        save_encoder(
+            encoder_dir,
+            trained,
+            family="point",
+            env_id="ede/Point-v0",
+            low=low,
+            high=high,
+            params={},
+            data_fingerprint=point.attrs["fingerprint"],
+        )
         save_decoder(decoder_dir, result.decoder, result.bound, encoder_path=encoder_dir, params={})
         meta, embedding = load_action_embedding(encoder_dir, decoder_dir)
         assert meta.output_range == output_range

@@ -19,8 +19,11 @@ def members(count: int, networks: int = 1) -> list[ensemble.Params]:
     for m in range(count):
         generator = torch.Generator().manual_seed(m)
         drawn = [initial_mlp(SIZES, generator) for _ in range(networks)]
-        out.append(drawn[0] if networks == 1 else
-                   {name: torch.stack([d[name] for d in drawn]) for name in drawn[0]})
+        out.append(
+            drawn[0]
+            if networks == 1
+            else {name: torch.stack([d[name] for d in drawn]) for name in drawn[0]}
+        )
     return out
 
 
@@ -62,8 +65,10 @@ def test_a_member_not_due_keeps_its_weights_and_moments_bit_for_bit() -> None:
     adam.step(grad, adam.corrections([1, 1, 1], CPU))
     before = [t[1].clone() for t in (stack.flat, adam.exp_avg, adam.exp_avg_sq)]
     adam.step(grad, adam.corrections([2, 1, 2], CPU), torch.tensor([True, False, True]))
-    assert all(torch.equal(b, t[1]) for b, t in zip(before, (stack.flat, adam.exp_avg,
-                                                            adam.exp_avg_sq)))
+    assert all(
+        torch.equal(b, t[1])
+        for b, t in zip(before, (stack.flat, adam.exp_avg, adam.exp_avg_sq), strict=True)
+    )
     assert not torch.equal(stack.flat[0], stack.flat[1])  # the others did step
 
 
@@ -80,8 +85,7 @@ def test_adam_is_torchs_adam_for_one_member() -> None:
         for k, v in theirs.items():
             v.grad = grads[k].clone()
         optimizer.step()
-        adam.step(stack.flatten({k: g[None] for k, g in grads.items()}),
-                  adam.corrections([t], CPU))
+        adam.step(stack.flatten({k: g[None] for k, g in grads.items()}), adam.corrections([t], CPU))
     # The same arithmetic in the same order, but other kernels (a per-member tensor against
     # torch's Python scalars, addcdiv against a product then a quotient): equal bit for bit on
     # AMD EPYC (AVX2 kernels); a tolerance, since other CPUs' vector kernels may round apart.

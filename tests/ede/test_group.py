@@ -21,9 +21,14 @@ from ede.training import train_group, train_run
 pytestmark = pytest.mark.slow
 
 SEEDS = [0, 1, 2, 3]
-CONFIG = TD3Config(hidden=[64, 64], batch_size=32, eval_every=200, eval_episodes=2,
-                   update_schedule="step",
-                   checkpoint_every=200)
+CONFIG = TD3Config(
+    hidden=[64, 64],
+    batch_size=32,
+    eval_every=200,
+    eval_episodes=2,
+    update_schedule="step",
+    checkpoint_every=200,
+)
 CPU = torch.device("cpu")
 
 
@@ -34,16 +39,23 @@ def spec(seed: int, config: TD3Config = CONFIG) -> RunSpec:
 def outputs(run: Path) -> dict[str, object]:
     """What a run's result is: its returns and diagnostics (not wall times), its policy."""
     returns = [line.rsplit(",", 1)[0] for line in (run / "eval.csv").read_text().splitlines()]
-    return {"returns": returns, "diagnostics": (run / "diagnostics.csv").read_text(),
-            "policy": (run / "policy" / "policy.safetensors").read_bytes()}
+    return {
+        "returns": returns,
+        "diagnostics": (run / "diagnostics.csv").read_text(),
+        "policy": (run / "policy" / "policy.safetensors").read_bytes(),
+    }
 
 
 @pytest.fixture(scope="module")
 def group(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The four seeds trained as one group, checkpoints kept (the last at step 400)."""
     root = tmp_path_factory.mktemp("group")
-    train_group([spec(s) for s in SEEDS], [root / f"seed{s}" for s in SEEDS], device=CPU,
-                keep_checkpoint=True)
+    train_group(
+        [spec(s) for s in SEEDS],
+        [root / f"seed{s}" for s in SEEDS],
+        device=CPU,
+        keep_checkpoint=True,
+    )
     return root
 
 
@@ -57,18 +69,19 @@ def test_a_group_resumes_exactly_even_when_its_members_stopped_at_different_step
     group: Path, tmp_path: Path
 ) -> None:
     outs = [tmp_path / f"seed{s}" for s in SEEDS]
-    for seed, out in zip(SEEDS, outs):
+    for seed, out in zip(SEEDS, outs, strict=True):
         if seed != 0:  # seed 0 lost its checkpoint: it starts over and catches up alone
             shutil.copytree(group / f"seed{seed}" / "checkpoint", out / "checkpoint")
             shutil.copy(group / f"seed{seed}" / MARK, out / MARK)  # the run folder's own
     metrics = train_group([spec(s) for s in SEEDS], outs, device=CPU)
     assert [m["resumed_from_step"] for m in metrics] == [None, 400, 400, 400]
-    for seed, out in zip(SEEDS, outs):
+    for seed, out in zip(SEEDS, outs, strict=True):
         assert outputs(out) == outputs(group / f"seed{seed}"), seed
 
 
-def test_a_run_alone_resumes_in_a_group_and_a_member_resumes_alone(group: Path,
-                                                                   tmp_path: Path) -> None:
+def test_a_run_alone_resumes_in_a_group_and_a_member_resumes_alone(
+    group: Path, tmp_path: Path
+) -> None:
     alone = tmp_path / "alone2"
     train_run(spec(2), alone, device=CPU, keep_checkpoint=True)  # its checkpoint: step 400
     outs = [tmp_path / "seed2", tmp_path / "seed3"]
@@ -89,14 +102,18 @@ def test_a_group_is_one_task_and_algorithm_differing_in_seeds_only(tmp_path: Pat
         train_group([spec(0), spec(1, other)], [tmp_path / "a", tmp_path / "b"], device=CPU)
 
 
-@pytest.mark.parametrize("task", [
-    "ede/Point-v0",  # never ends early: every member's episode ends together, one batch for all
-    "InvertedPendulum-v5",  # ends when the pole falls: members are due different numbers of
-    # updates at different steps, and each is masked out of the updates it is not due
-])
+@pytest.mark.parametrize(
+    "task",
+    [
+        "ede/Point-v0",  # never ends early: every member's episode ends together, one batch for all
+        "InvertedPendulum-v5",  # ends when the pole falls: members are due different numbers of
+        # updates at different steps, and each is masked out of the updates it is not due
+    ],
+)
 def test_per_episode_batches_in_a_group_are_each_members_own(task: str, tmp_path: Path) -> None:
-    config = CONFIG.model_copy(update={"update_schedule": "episode", "eval_every": 100,
-                                       "checkpoint_every": 150})
+    config = CONFIG.model_copy(
+        update={"update_schedule": "episode", "eval_every": 100, "checkpoint_every": 150}
+    )
     specs = [RunSpec(task, "td3", seed, 300, config, EdeTD3Config()) for seed in (0, 1)]
     grouped = train_group(specs, [tmp_path / f"group{s}" for s in (0, 1)], device=CPU)
     episodes = {m["episodes"] for m in grouped}
@@ -113,9 +130,10 @@ def test_a_member_masked_out_of_an_update_keeps_its_learner_state_bit_for_bit() 
     buffer = ReplayBuffer(100, 3, 2, 1, CPU, members=3)
     rng = np.random.default_rng(0)
     for member in range(3):
-        for t in range(50):
-            buffer.add(member, rng.normal(size=3), torch.zeros(2), 0, 1.0, rng.normal(size=3),
-                       False, False)
+        for _ in range(50):
+            buffer.add(
+                member, rng.normal(size=3), torch.zeros(2), 0, 1.0, rng.normal(size=3), False, False
+            )
     agent.update(buffer)  # everyone: every member's moments are no longer zero
     before = agent.state_dict(1)
     agent.update(buffer, np.array([True, False, True]))
@@ -130,11 +148,16 @@ def test_adding_a_member_or_a_purpose_shifts_no_stream() -> None:
     """Each member's generators are seeded from (its seed, the purpose) alone."""
     from ede.td3 import PURPOSES, Streams
 
-    alone, third = Streams(7, CPU), Agent(3, IdentityAdapter(-np.ones(2), np.ones(2), CPU),
-                                          CONFIG, CPU, seeds=[5, 6, 7]).streams[2]
+    alone, third = (
+        Streams(7, CPU),
+        Agent(
+            3, IdentityAdapter(-np.ones(2), np.ones(2), CPU), CONFIG, CPU, seeds=[5, 6, 7]
+        ).streams[2],
+    )
     for purpose in Streams.SAVED:  # (the weights' stream was spent on the initial weights)
         draws = [torch.rand(4, generator=getattr(s, purpose)) for s in (alone, third)]
         assert torch.equal(*draws), purpose
-    firsts = {purpose: torch.rand(4, generator=getattr(Streams(7, CPU), purpose))
-              for purpose in PURPOSES}
+    firsts = {
+        purpose: torch.rand(4, generator=getattr(Streams(7, CPU), purpose)) for purpose in PURPOSES
+    }
     assert len({tuple(d.tolist()) for d in firsts.values()}) == len(PURPOSES)  # all apart

@@ -25,9 +25,15 @@ pytestmark = [
 ]
 
 SEEDS = [0, 1, 2, 3]
-CONFIG = TD3Config(hidden=[64, 64], batch_size=32, eval_every=100, eval_episodes=2,
-                   update_schedule="step",
-                   checkpoint_every=1000, device="cuda")
+CONFIG = TD3Config(
+    hidden=[64, 64],
+    batch_size=32,
+    eval_every=100,
+    eval_episodes=2,
+    update_schedule="step",
+    checkpoint_every=1000,
+    device="cuda",
+)
 BOUND = 1e-3  # largest |difference| of a policy weight after 300 steps (provisional)
 
 

@@ -31,7 +31,9 @@ def relative_error(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 @pytest.mark.parametrize("rows", [64, 100, 256])
-def test_bf16_matmul_is_either_fp32_or_exactly_bf16_inputs_and_only_inside_its_block(rows: int) -> None:
+def test_bf16_matmul_is_either_fp32_or_exactly_bf16_inputs_and_only_inside_its_block(
+    rows: int,
+) -> None:
     generator = torch.Generator().manual_seed(rows)
     x, w = torch.randn(rows, 256, generator=generator), torch.randn(256, 256, generator=generator)
     exact = x.double() @ w.double()
@@ -79,8 +81,16 @@ def trained_agent(precision: str, updates: int = 6) -> Agent:
     buffer = ReplayBuffer(256, 5, 2, 1, device)
     rng = np.random.default_rng(0)
     for t in range(200):
-        buffer.add(0, rng.normal(size=5), torch.as_tensor(rng.uniform(-1, 1, 2), dtype=torch.float32),
-                   0, float(rng.normal()), rng.normal(size=5), False, t % 50 == 49)
+        buffer.add(
+            0,
+            rng.normal(size=5),
+            torch.as_tensor(rng.uniform(-1, 1, 2), dtype=torch.float32),
+            0,
+            float(rng.normal()),
+            rng.normal(size=5),
+            False,
+            t % 50 == 49,
+        )
     for _ in range(updates):
         agent.update(buffer)
     return agent
@@ -93,7 +103,7 @@ def actor_weights(agent: Agent) -> list[torch.Tensor]:
 @pytest.mark.parametrize("precision", PRECISIONS)
 def test_each_precision_is_reproducible_and_keeps_fp32_weights(precision: str) -> None:
     first, second = trained_agent(precision), trained_agent(precision)
-    for a, b in zip(actor_weights(first), actor_weights(second)):
+    for a, b in zip(actor_weights(first), actor_weights(second), strict=True):
         assert a.dtype == torch.float32 and torch.equal(a, b)
     assert torch.get_float32_matmul_precision() == "highest"  # nothing leaks out of update()
 
@@ -102,7 +112,7 @@ def test_each_precision_is_reproducible_and_keeps_fp32_weights(precision: str) -
 def test_reduced_precisions_change_the_updates_only_slightly(precision: str) -> None:
     reference = actor_weights(trained_agent("fp32"))
     reduced = actor_weights(trained_agent(precision))
-    errors = [relative_error(r, f) for r, f in zip(reduced, reference)]
+    errors = [relative_error(r, f) for r, f in zip(reduced, reference, strict=True)]
     assert max(errors) < 0.05, errors
     if precision == "bf16" or medium_rounds_to_bf16():
         assert max(errors) > 0, "the setting had no effect"

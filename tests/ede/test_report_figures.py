@@ -18,34 +18,52 @@ def cut_off(figure: Figure) -> list[str]:
     are left out: matplotlib keeps labels of ticks outside the view, which it does not draw)."""
     figure.canvas.draw()
     renderer = figure.canvas.get_renderer()
-    ticks = {id(label) for ax in figure.axes for axis in (ax.xaxis, ax.yaxis)
-             for tick in axis.get_major_ticks() + axis.get_minor_ticks()
-             for label in (tick.label1, tick.label2)}
+    ticks = {
+        id(label)
+        for ax in figure.axes
+        for axis in (ax.xaxis, ax.yaxis)
+        for tick in axis.get_major_ticks() + axis.get_minor_ticks()
+        for label in (tick.label1, tick.label2)
+    }
     outside = []
     for text in figure.findobj(Text):
         if text.get_visible() and text.get_text() and id(text) not in ticks:
             box = text.get_window_extent(renderer)
-            if box.x0 < 0 or box.x1 > figure.bbox.width or box.y0 < 0 or box.y1 > figure.bbox.height:
+            if (
+                box.x0 < 0
+                or box.x1 > figure.bbox.width
+                or box.y0 < 0
+                or box.y1 > figure.bbox.height
+            ):
                 outside.append(text.get_text())
     return outside
 
 
 @pytest.mark.parametrize(
-    "tasks", [["HalfCheetah-v5"], ["ede/ReacherVertical-v0", "ede/ReacherTurn-v0", "ede/ReacherPush-v0"]]
+    "tasks",
+    [["HalfCheetah-v5"], ["ede/ReacherVertical-v0", "ede/ReacherTurn-v0", "ede/ReacherPush-v0"]],
 )
 def test_the_learning_curves_titles_fit_one_task_or_many(tasks: list[str]) -> None:
-    curves = {(task, algo): [Curve(seed, STEPS, np.linspace(-500.0, 2000.0, len(STEPS)) + seed)
-                             for seed in range(3)]
-              for task in tasks for algo in ("td3", "ede-td3")}
-    figure = learning_curve_figure("halfcheetah", tasks, curves, 0.95, 200,
-                                   np.random.default_rng(0), bin_steps=2_500)
+    curves = {
+        (task, algo): [
+            Curve(seed, STEPS, np.linspace(-500.0, 2000.0, len(STEPS)) + seed) for seed in range(3)
+        ]
+        for task in tasks
+        for algo in ("td3", "ede-td3")
+    }
+    figure = learning_curve_figure(
+        "halfcheetah", tasks, curves, 0.95, 200, np.random.default_rng(0), bin_steps=2_500
+    )
     assert cut_off(figure) == []
 
 
 @pytest.mark.parametrize("tasks", [["Hopper-v5"], ["Pusher-v5", "ede/Striker-v0"]])
 def test_the_diagnostics_titles_fit_one_task_or_many(tasks: list[str]) -> None:
-    run = {"step": STEPS, "mean_q": np.linspace(0.0, 30.0, len(STEPS)),
-           "critic_loss": np.linspace(0.1, 2.0, len(STEPS))}
+    run = {
+        "step": STEPS,
+        "mean_q": np.linspace(0.0, 30.0, len(STEPS)),
+        "critic_loss": np.linspace(0.1, 2.0, len(STEPS)),
+    }
     figure = diagnostics_figure("hopper", tasks, {(task, "td3"): [run] for task in tasks})
     assert cut_off(figure) == []
 
@@ -60,8 +78,12 @@ def test_across_tasks_on_hand_built_runs_whose_aggregates_are_known() -> None:
         return [Curve(s, steps, np.array([-10.0, -5.0, -2.0]) + offset + 0.1 * s) for s in seeds]
 
     lows = {"a": -20.0, "b": -30.0}
-    better = {("a", "td3"): runs(0, range(3)), ("a", "ede-td3"): runs(5, range(3)),
-              ("b", "td3"): runs(-10, range(4)), ("b", "ede-td3"): runs(-3, range(1, 4))}
+    better = {
+        ("a", "td3"): runs(0, range(3)),
+        ("a", "ede-td3"): runs(5, range(3)),
+        ("b", "td3"): runs(-10, range(4)),
+        ("b", "ede-td3"): runs(-3, range(1, 4)),
+    }
     found = across_tasks_section(better, lows, 0.95, 300, seed=0)
     # Each algorithm keeps its fewest seeds on any task, each task's lowest: 3 of each here, so
     # b's TD3 seed 3 is named as left out; EDE-TD3 keeps b's seeds 1-3, all it has there.
@@ -74,7 +96,9 @@ def test_across_tasks_on_hand_built_runs_whose_aggregates_are_known() -> None:
         assert found.aggregates[score]["iqm_ours"].low > found.aggregates[score]["iqm_theirs"].high
     assert found.figure.axes[0].get_xlabel().startswith("normalised final return")
     same = {key: runs(0, range(3)) for key in better}
-    p = across_tasks_section(same, lows, 0.95, 300, seed=0).aggregates["auc"]["probability_of_improvement"]
+    p = across_tasks_section(same, lows, 0.95, 300, seed=0).aggregates["auc"][
+        "probability_of_improvement"
+    ]
     assert p.mean == 0.5 and p.low < 0.5 < p.high
     assert across_tasks_section({("a", "td3"): runs(0, range(2))}, lows, 0.95, 300, 0) is None
 
@@ -85,9 +109,10 @@ def test_unequal_run_counts_of_the_two_algorithms_are_all_used() -> None:
 
     steps = np.array([0.0, 1000.0])
     # TD3's 2 seeds end at 0 and 2, EDE-TD3's 4 at 1, 3, 3, 3: of the 8 pairs EDE-TD3 wins 7.
-    curves = {("a", "td3"): [Curve(s, steps, np.array([0.0, 2.0 * s])) for s in range(2)],
-              ("a", "ede-td3"): [Curve(s, steps, np.array([0.0, 1.0 + 2 * min(s, 1)]))
-                                 for s in range(4)]}
+    curves = {
+        ("a", "td3"): [Curve(s, steps, np.array([0.0, 2.0 * s])) for s in range(2)],
+        ("a", "ede-td3"): [Curve(s, steps, np.array([0.0, 1.0 + 2 * min(s, 1)])) for s in range(4)],
+    }
     found = across_tasks_section(curves, {"a": -1.0}, 0.95, 300, seed=0)
     assert found.runs == {"ede-td3": 4, "td3": 2} and found.left_out == []
     assert found.aggregates["final_return"]["probability_of_improvement"].mean == 7 / 8
@@ -113,8 +138,11 @@ def test_a_task_no_run_lifted_above_a_random_policy_is_left_out_by_name() -> Non
     from ede.runs import Curve
 
     steps = np.array([0.0, 1000.0])
-    good = {(t, a): [Curve(s, steps, np.array([-9.0, -1.0 - s - (a == "td3")])) for s in range(3)]
-            for t in ("a", "b") for a in ("td3", "ede-td3")}
+    good = {
+        (t, a): [Curve(s, steps, np.array([-9.0, -1.0 - s - (a == "td3")])) for s in range(3)]
+        for t in ("a", "b")
+        for a in ("td3", "ede-td3")
+    }
     found = across_tasks_section(good, {"a": -10.0, "b": -1.0}, 0.9, 300, seed=0)
     assert found.tasks == ["a"]
     assert found.left_out == ["b (its best evaluation, -1, is not above the random policy's -1)"]
@@ -127,8 +155,10 @@ def test_the_performance_profile_band_has_the_reports_confidence() -> None:
 
     steps = np.array([0.0, 1000.0])
     rng = np.random.default_rng(5)
-    curves = {("a", a): [Curve(s, steps, np.array([-9.0, -5 + rng.normal()])) for s in range(6)]
-              for a in ("td3", "ede-td3")}
+    curves = {
+        ("a", a): [Curve(s, steps, np.array([-9.0, -5 + rng.normal()])) for s in range(6)]
+        for a in ("td3", "ede-td3")
+    }
 
     def band_area(confidence: float) -> float:  # of both algorithms' bands, by the shoelace
         found = across_tasks_section(curves, {"a": -10.0}, confidence, 500, seed=0)
@@ -142,12 +172,30 @@ def test_the_performance_profile_band_has_the_reports_confidence() -> None:
 
 
 def test_a_band_given_is_drawn_as_it_is_and_the_others_computed() -> None:
-    curves = {("HalfCheetah-v5", algo): [Curve(seed, STEPS, np.linspace(0.0, 100.0, len(STEPS)) + seed)
-                                         for seed in range(3)] for algo in ("td3", "ede-td3")}
-    given = (STEPS, np.full(len(STEPS), 7.0), np.full(len(STEPS), 6.0), np.full(len(STEPS), 8.0),
-             np.full(len(STEPS), 3.0))
-    figure = learning_curve_figure("halfcheetah", ["HalfCheetah-v5"], curves, 0.95, 200,
-                                   np.random.default_rng(0), bands={("HalfCheetah-v5", "ede-td3"): given})
+    curves = {
+        ("HalfCheetah-v5", algo): [
+            Curve(seed, STEPS, np.linspace(0.0, 100.0, len(STEPS)) + seed) for seed in range(3)
+        ]
+        for algo in ("td3", "ede-td3")
+    }
+    given = (
+        STEPS,
+        np.full(len(STEPS), 7.0),
+        np.full(len(STEPS), 6.0),
+        np.full(len(STEPS), 8.0),
+        np.full(len(STEPS), 3.0),
+    )
+    figure = learning_curve_figure(
+        "halfcheetah",
+        ["HalfCheetah-v5"],
+        curves,
+        0.95,
+        200,
+        np.random.default_rng(0),
+        bands={("HalfCheetah-v5", "ede-td3"): given},
+    )
     drawn = {line.get_label().split(" (")[0]: line.get_ydata() for line in figure.axes[0].lines}
     assert np.array_equal(drawn["EDE-TD3"], given[1])  # not the curves' mean, 1 to 101
-    assert np.allclose(drawn["TD3"], np.linspace(0.0, 100.0, len(STEPS)) + 1.0)  # computed: the mean
+    assert np.allclose(
+        drawn["TD3"], np.linspace(0.0, 100.0, len(STEPS)) + 1.0
+    )  # computed: the mean

@@ -133,8 +133,10 @@ def test_saturated_episodes_are_bang_bang_and_chosen_episode_by_episode() -> Non
     env.close()
     uniform = collect("ede/Point-v0", 2_000, 2, seed=0, workers=1)
     mixed = collect("ede/Point-v0", 2_000, 2, seed=0, workers=1, saturated=0.5)
-    np.testing.assert_array_equal(mixed["action"],  # the worker count changes nothing
-                                  collect("ede/Point-v0", 2_000, 2, 0, 2, saturated=0.5)["action"])
+    np.testing.assert_array_equal(
+        mixed["action"],  # the worker count changes nothing
+        collect("ede/Point-v0", 2_000, 2, 0, 2, saturated=0.5)["action"],
+    )
     cornered = np.all((mixed["action"] == low) | (mixed["action"] == high), axis=1)
     episodes = [cornered[mixed["episode"] == e] for e in range(mixed["episode"][-1] + 1)]
     assert all(e.all() or not e.any() for e in episodes)  # whole episodes, one kind each
@@ -145,7 +147,7 @@ def test_saturated_episodes_are_bang_bang_and_chosen_episode_by_episode() -> Non
     np.testing.assert_array_equal(mixed["action"][~saturated], uniform["action"][~saturated])
     everything = collect("ede/Point-v0", 200, 1, seed=0, workers=1, saturated=1.0)["action"]
     assert np.all((everything == low) | (everything == high))
-    with pytest.raises(ValueError, match="saturated is a share of episodes in \\[0, 1\\], got 1.5"):
+    with pytest.raises(ValueError, match=r"saturated is a share of episodes in \[0, 1\], got 1\.5"):
         collect("ede/Point-v0", 200, 1, seed=0, workers=1, saturated=1.5)
 
 
@@ -208,7 +210,9 @@ def test_change_whitening_pooled_over_every_step_as_the_authors_code(tmp_path: P
 
 def test_same_seed_same_store_byte_for_byte_other_seed_differs(tmp_path: Path) -> None:
     def files(path: Path) -> dict[str, bytes]:
-        return {str(f.relative_to(path)): f.read_bytes() for f in sorted(path.rglob("*")) if f.is_file()}
+        return {
+            str(f.relative_to(path)): f.read_bytes() for f in sorted(path.rglob("*")) if f.is_file()
+        }
 
     one = store_of(tmp_path / "a.zarr", collect("ede/Point-v0", 300, 3, seed=1, workers=1))
     two = store_of(tmp_path / "b.zarr", collect("ede/Point-v0", 300, 3, seed=1, workers=2))
@@ -219,7 +223,7 @@ def test_same_seed_same_store_byte_for_byte_other_seed_differs(tmp_path: Path) -
 
 def test_a_foreign_store_is_refused(tmp_path: Path) -> None:
     path = store_of(tmp_path / "r.zarr", ragged([5]))
-    with pytest.raises(RolloutsError, match="collected on ede/Point-v0.*expected ede/Pusher-v0"):
+    with pytest.raises(RolloutsError, match=r"collected on ede/Point-v0.*expected ede/Pusher-v0"):
         Rollouts.open(path, env_id="ede/Pusher-v0")
 
 
@@ -235,10 +239,17 @@ def test_a_store_missing_a_chunk_is_refused(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(
     ("key", "value"),
-    [("env_id", "ede/PointMass-v0"), ("family", "pointmass"), ("params", {"collect": {"seed": 1}}),
-     ("seed", 1), ("spaces", {"action_low": [-2.0, -2.0]})],
+    [
+        ("env_id", "ede/PointMass-v0"),
+        ("family", "pointmass"),
+        ("params", {"collect": {"seed": 1}}),
+        ("seed", 1),
+        ("spaces", {"action_low": [-2.0, -2.0]}),
+    ],
 )
-def test_a_store_whose_attributes_were_edited_is_refused(tmp_path: Path, key: str, value: object) -> None:
+def test_a_store_whose_attributes_were_edited_is_refused(
+    tmp_path: Path, key: str, value: object
+) -> None:
     path = store_of(tmp_path / "r.zarr", ragged([5, 5]))
     Rollouts.open(path)  # untouched, it opens
     zarr.open_group(path, mode="a").attrs[key] = value  # same arrays, same shapes

@@ -25,10 +25,21 @@ SPEC = RunSpec("ede/Point-v0", "td3", 3, 2_000, TD3Config(), EdeTD3Config())
 
 
 def finished(out: Path, spec: RunSpec = SPEC) -> None:
-    history = [{"step": s, "episode": s // 100, "mean_return": -50.0 + s / 100, "std_return": 1.0,
-                "wall_seconds": s / 1e3} for s in (0, 1_000, 2_000)]
-    write_curves(out, history, [{"step": 1_000, "updates": 900, "critic_loss": 0.5,
-                                 "actor_loss": 2.0, "mean_q": -2.0}])
+    history = [
+        {
+            "step": s,
+            "episode": s // 100,
+            "mean_return": -50.0 + s / 100,
+            "std_return": 1.0,
+            "wall_seconds": s / 1e3,
+        }
+        for s in (0, 1_000, 2_000)
+    ]
+    write_curves(
+        out,
+        history,
+        [{"step": 1_000, "updates": 900, "critic_loss": 0.5, "actor_loss": 2.0, "mean_q": -2.0}],
+    )
     write_finished(out, spec, {"final_return": -30.0}, torch.device("cpu"))
 
 
@@ -52,8 +63,11 @@ def test_a_run_without_metrics_is_not_finished(tmp_path: Path) -> None:
 def test_another_runs_folder_is_rejected_naming_the_first_difference(tmp_path: Path) -> None:
     finished(tmp_path)
     other = RunSpec("ede/Point-v0", "td3", 3, 2_000, TD3Config(tau=0.01), EdeTD3Config())
-    with pytest.raises(RunRejected, match=r"run.json: made with td3.tau = 0.005, but the params "
-                                          r"say 0.01$"):
+    with pytest.raises(
+        RunRejected,
+        match=r"run.json: made with td3.tau = 0.005, but the params "
+        r"say 0.01$",
+    ):
         read_run(tmp_path, other.identity())
     with pytest.raises(RunRejected, match=r"run.json: seed is 3, expected 4$"):
         read_run(tmp_path, {"seed": 4})
@@ -64,10 +78,13 @@ def test_identity_difference_names_one_key_in_words() -> None:
     assert identity_difference(identity, identity) is None
     assert identity_difference(None, identity) == "its identity is not recorded"
     assert identity_difference(identity, {"algo": "ede-td3"}) == 'algo is "td3", expected "ede-td3"'
-    assert identity_difference(identity, {"embedding": "abc"}).startswith("made with another embedding")
+    assert identity_difference(identity, {"embedding": "abc"}).startswith(
+        "made with another embedding"
+    )
     other = RunSpec("ede/Point-v0", "td3", 3, 2_000, TD3Config(hidden=[64]), EdeTD3Config())
     assert identity_difference(identity, other.identity()) == (
-        "made with td3.hidden = [400, 300], but the params say [64]")
+        "made with td3.hidden = [400, 300], but the params say [64]"
+    )
 
 
 def test_run_json_names_the_code_and_the_machine(tmp_path: Path) -> None:
@@ -75,8 +92,9 @@ def test_run_json_names_the_code_and_the_machine(tmp_path: Path) -> None:
     finished(tmp_path)
     made = json.loads((tmp_path / "run.json").read_text())
     root = Path(provenance.__file__).resolve().parents[1]
-    head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True,
-                          text=True, check=True).stdout.strip()
+    head = subprocess.run(
+        ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
+    ).stdout.strip()
     assert made["code"]["commit"] == head
     assert isinstance(made["code"]["modified"], bool)
     machine = made["machine"]
@@ -86,7 +104,7 @@ def test_run_json_names_the_code_and_the_machine(tmp_path: Path) -> None:
 
 
 def test_outside_a_checkout_the_commit_comes_from_the_build(
-    monkeypatch: pytest.MonkeyPatch
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     def no_git(*args: object, **kwargs: object) -> None:
         raise FileNotFoundError("git")

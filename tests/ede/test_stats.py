@@ -67,8 +67,10 @@ def test_bootstrap_interval_covers_the_mean_and_shrinks_with_more_seeds() -> Non
 
 def test_a_seed_that_never_reaches_the_threshold_shows_in_the_interval() -> None:
     steps = np.array([0, 100, 200])
-    reached = [steps_to_threshold(steps, np.array(r), 1.0) for r in
-               ([0.0, 1.0, 2.0], [0.0, 0.5, 1.5], [0.0, 0.0, 0.0])]
+    reached = [
+        steps_to_threshold(steps, np.array(r), 1.0)
+        for r in ([0.0, 1.0, 2.0], [0.0, 0.5, 1.5], [0.0, 0.0, 0.0])
+    ]
     assert reached == [100.0, 200.0, math.inf]
     interval = bootstrap_mean(np.array(reached), 0.95, 2000, np.random.default_rng(3))
     assert interval.mean == math.inf and interval.high == math.inf
@@ -85,8 +87,12 @@ def test_steps_read_as_whole_steps_where_significant_digits_would_round_them() -
 
 
 def test_curves_of_unequal_length_align_on_the_union_of_steps() -> None:
-    steps, table = align_curves([(np.array([0, 10, 20]), np.array([1.0, 2.0, 3.0])),
-                                 (np.array([0, 10]), np.array([4.0, 5.0]))])
+    steps, table = align_curves(
+        [
+            (np.array([0, 10, 20]), np.array([1.0, 2.0, 3.0])),
+            (np.array([0, 10]), np.array([4.0, 5.0])),
+        ]
+    )
     np.testing.assert_array_equal(steps, [0, 10, 20])
     np.testing.assert_array_equal(table, [[1.0, 2.0, 3.0], [4.0, 5.0, np.nan]])
 
@@ -111,7 +117,10 @@ def test_binned_band_is_the_mean_over_seeds_of_each_seeds_bin_means() -> None:
     from ede.runs import Curve
 
     steps = np.array([0, 1000, 2000, 3000, 4000, 5000])
-    curves = [Curve(0, steps, np.array([0.0, 1, 2, 3, 4, 5])), Curve(1, steps, np.array([2.0, 2, 2, 9, 9, 9]))]
+    curves = [
+        Curve(0, steps, np.array([0.0, 1, 2, 3, 4, 5])),
+        Curve(1, steps, np.array([2.0, 2, 2, 9, 9, 9])),
+    ]
     rng = np.random.default_rng(0)
     binned, mean, low, high, n = curve_band(curves, 0.95, 200, rng, bin_steps=2500)
     assert binned.tolist() == [2500, 5000] and n.tolist() == [2, 2]
@@ -126,8 +135,11 @@ def test_a_band_over_runs_of_unequal_length_uses_the_seeds_each_point_has() -> N
     from ede.runs import Curve
 
     steps = np.array([0, 1000, 2000])
-    curves = [Curve(0, steps, np.array([0.0, 4.0, 8.0])), Curve(1, steps[:2], np.array([2.0, 6.0])),
-              Curve(2, steps[:2], np.array([4.0, 8.0]))]
+    curves = [
+        Curve(0, steps, np.array([0.0, 4.0, 8.0])),
+        Curve(1, steps[:2], np.array([2.0, 6.0])),
+        Curve(2, steps[:2], np.array([4.0, 8.0])),
+    ]
     _, mean, low, high, n = curve_band(curves, 0.95, 500, np.random.default_rng(0))
     assert n.tolist() == [3, 3, 1] and mean.tolist() == [2.0, 6.0, 8.0]
     assert (low[2], high[2]) == (8.0, 8.0)  # one seed left: no spread to resample
@@ -205,8 +217,9 @@ def test_across_tasks_is_determined_by_its_seed_and_refuses_mismatched_tables() 
 
 def test_normalised_scores_run_from_low_to_high_per_task() -> None:
     scores = np.array([[-10.0, 5.0], [0.0, 15.0]])
-    np.testing.assert_allclose(normalised(scores, np.array([-10.0, 5.0]), np.array([0.0, 15.0])),
-                               [[0.0, 0.0], [1.0, 1.0]])
+    np.testing.assert_allclose(
+        normalised(scores, np.array([-10.0, 5.0]), np.array([0.0, 15.0])), [[0.0, 0.0], [1.0, 1.0]]
+    )
     with pytest.raises(ValueError, match=r"tasks \[1\]: high not above low"):
         normalised(scores, np.array([-10.0, 5.0]), np.array([0.0, 5.0]))
 

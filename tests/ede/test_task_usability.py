@@ -49,10 +49,14 @@ def test_box_tasks_with_or_without_mujoco_physics_can_be_used(task_id: str) -> N
     ("task_id", "reason"),
     [
         ("CartPole-v1", "its actions are Discrete(2); ede needs a flat Box action space"),
-        ("ede-test/Camera-v0",
-         "its observations are images of shape (8, 8, 3); ede needs flat observation vectors"),
-        ("ede-test/Unbounded-v0",
-         "its actions are unbounded; ede draws uniform random actions from bounded ones"),
+        (
+            "ede-test/Camera-v0",
+            "its observations are images of shape (8, 8, 3); ede needs flat observation vectors",
+        ),
+        (
+            "ede-test/Unbounded-v0",
+            "its actions are unbounded; ede draws uniform random actions from bounded ones",
+        ),
     ],
 )
 def test_other_tasks_are_refused_in_one_phrase(task_id: str, reason: str) -> None:

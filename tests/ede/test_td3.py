@@ -68,13 +68,15 @@ def batch_at(buffer: ReplayBuffer, index: int):
 
 def target(agent: Agent, batch) -> torch.Tensor:
     """Equation 1 without target noise (the agents here have policy_noise 0)."""
-    return agent.td3.target(agent.actor_target.params, agent.critic_target.params, batch,
-                            torch.zeros_like(batch.code))
+    return agent.td3.target(
+        agent.actor_target.params, agent.critic_target.params, batch, torch.zeros_like(batch.code)
+    )
 
 
 def q_min(agent: Agent, obs: torch.Tensor, code: torch.Tensor, i: int) -> float:
-    q1, q2 = agent.td3.critic(agent.critic_target.params, obs[None, None], code[None, None],
-                              torch.tensor([[i]]))
+    q1, q2 = agent.td3.critic(
+        agent.critic_target.params, obs[None, None], code[None, None], torch.tensor([[i]])
+    )
     return torch.minimum(q1, q2).item()
 
 
@@ -142,11 +144,19 @@ def test_with_k_1_the_target_is_td3s() -> None:
     agent = agent_for(adapter)
     buffer = ReplayBuffer(8, OBS, CODE, 1, torch.device("cpu"))
     for t in range(4):
-        buffer.add(0, np.full(OBS, t, dtype=np.float32), torch.zeros(CODE), 0, float(t), 
-                   np.full(OBS, t + 1, dtype=np.float32), t == 2, False)
+        buffer.add(
+            0,
+            np.full(OBS, t, dtype=np.float32),
+            torch.zeros(CODE),
+            0,
+            float(t),
+            np.full(OBS, t + 1, dtype=np.float32),
+            t == 2,
+            False,
+        )
     batch = buffer.sample(64, [torch.Generator().manual_seed(1)])
     targets = target(agent, batch)
-    for obs, y, reward in zip(batch.obs[0], targets[0], batch.rewards[0, :, 0]):
+    for obs, y, reward in zip(batch.obs[0], targets[0], batch.rewards[0, :, 0], strict=True):
         t = int(obs[0].item())
         s1 = torch.full((OBS,), t + 1.0)
         bootstrap = 0.0 if t == 2 else GAMMA * q_min(agent, s1, next_code(agent, s1), 0)
@@ -183,7 +193,9 @@ def test_the_actor_learns_only_through_the_critic_at_i_0(monkeypatch: pytest.Mon
     agent.update(buffer)
     assert len(seen_i) == 1 and torch.all(seen_i[0] == 0)
     assert not torch.equal(actor_before, agent.actor.flat)
-    assert torch.equal(agent.critic.flat, critic_after_its_step["flat"])  # the actor step left Q alone
+    assert torch.equal(
+        agent.critic.flat, critic_after_its_step["flat"]
+    )  # the actor step left Q alone
 
 
 def test_actor_updates_wait_for_the_policy_delay_and_targets_move_by_tau() -> None:
@@ -194,8 +206,9 @@ def test_actor_updates_wait_for_the_policy_delay_and_targets_move_by_tau() -> No
     assert torch.equal(actor_before, agent.actor.flat)
     assert torch.equal(target_before, agent.critic_target.flat)
     agent.update(buffer)  # update 2: actor, targets
-    torch.testing.assert_close(agent.critic_target.flat,
-                               0.75 * target_before + 0.25 * agent.critic.flat)
+    torch.testing.assert_close(
+        agent.critic_target.flat, 0.75 * target_before + 0.25 * agent.critic.flat
+    )
     assert not torch.equal(agent.critic_target.flat, target_before)
 
 
@@ -215,20 +228,31 @@ def largest_target_noise(adapter, noise_clip: float = 0.5, **overrides) -> float
     buffer = filled_buffer(REWARDS) if adapter.k == K else filled_buffer_k1()
     seen = []
     critic = agent.td3.critic
-    agent.td3.critic = lambda params, obs, code, i: seen.append((obs, code)) or critic(
-        params, obs, code, i)
+    agent.td3.critic = lambda params, obs, code, i: (
+        seen.append((obs, code)) or critic(params, obs, code, i)
+    )
     batch = buffer.sample(64, [torch.Generator().manual_seed(0)])
     noise = torch.randn(batch.code.shape, generator=torch.Generator().manual_seed(1))
     agent.td3.target(agent.actor_target.params, agent.critic_target.params, batch, noise)
     obs, code = seen[0]
-    return (code - agent.td3.clip(agent.td3.actor(agent.actor_target.params, obs))).abs().max().item()
+    return (
+        (code - agent.td3.clip(agent.td3.actor(agent.actor_target.params, obs))).abs().max().item()
+    )
 
 
 def filled_buffer_k1() -> ReplayBuffer:
     buffer = ReplayBuffer(32, OBS, CODE, 1, torch.device("cpu"))
     for t in range(8):
-        buffer.add(0, np.full(OBS, t, dtype=np.float32), torch.zeros(CODE), 0, 0.0,
-                   np.full(OBS, t + 1, dtype=np.float32), False, False)
+        buffer.add(
+            0,
+            np.full(OBS, t, dtype=np.float32),
+            torch.zeros(CODE),
+            0,
+            0.0,
+            np.full(OBS, t + 1, dtype=np.float32),
+            False,
+            False,
+        )
     return buffer
 
 
@@ -258,8 +282,8 @@ def test_critic_sees_the_plan_step_as_a_one_hot_or_a_scalar() -> None:
     obs, code, i = torch.zeros(3, OBS), torch.ones(3, CODE), torch.tensor([0, 2, 3])
     onehot = Critic(OBS, CODE, K, [8], "onehot").inputs(obs, code, i)
     scalar = Critic(OBS, CODE, K, [8], "scalar").inputs(obs, code, i)
-    assert onehot[:, OBS + CODE:].tolist() == torch.eye(K)[i].tolist()
-    assert scalar[:, OBS + CODE:].tolist() == [[0.0], [2.0], [3.0]]
+    assert onehot[:, OBS + CODE :].tolist() == torch.eye(K)[i].tolist()
+    assert scalar[:, OBS + CODE :].tolist() == [[0.0], [2.0], [3.0]]
 
 
 @pytest.mark.parametrize(
@@ -272,15 +296,18 @@ def test_critic_sees_the_plan_step_as_a_one_hot_or_a_scalar() -> None:
         (10, 2, 1, "onehot", 3, 3),  # a number is taken as it is
     ],
 )
-def test_critic_repeats_its_action_input_as_asked(obs_size, code_size, k, plan_step, repeat,
-                                                  copies) -> None:
+def test_critic_repeats_its_action_input_as_asked(
+    obs_size, code_size, k, plan_step, repeat, copies
+) -> None:
     critic = Critic(obs_size, code_size, k, [8], plan_step, repeat)
     step_size = 0 if k == 1 else (k if plan_step == "onehot" else 1)
     assert critic.sizes[0] == obs_size + copies * (code_size + step_size)
     obs, code = torch.randn(2, obs_size), torch.randn(2, code_size)
     x = critic.inputs(obs, code, torch.tensor([0, k - 1]))
     pair = x[:, obs_size:].reshape(2, copies, -1)
-    assert torch.equal(pair, pair[:, :1].expand_as(pair)) and torch.equal(pair[:, 0, :code_size], code)
+    assert torch.equal(pair, pair[:, :1].expand_as(pair)) and torch.equal(
+        pair[:, 0, :code_size], code
+    )
 
 
 # The executor of codes ----------------------------------------------------------------------
@@ -306,7 +333,13 @@ class StepEnv(gymnasium.Env):
         self.actions.append(np.array(action))
         self.t += 1
         over = self.t == self.length
-        return np.array([float(self.t)]), 1.0, over and not self.truncate, over and self.truncate, {}
+        return (
+            np.array([float(self.t)]),
+            1.0,
+            over and not self.truncate,
+            over and self.truncate,
+            {},
+        )
 
 
 class StepAdapter(FixedAdapter):
@@ -340,12 +373,14 @@ def test_a_codes_k_actions_are_executed_in_order_and_the_next_code_is_chosen_at_
     assert policy.chosen_at == [0.0, 4.0, 8.0]  # at i = 0 only
     expected = [[10 * n + m, -10 * n + m] for n in range(3) for m in range(K)][: 2 * K + 1]
     assert np.array_equal(np.array(env.actions), expected)
-    assert [step.code.tolist() for step in steps[K:2 * K]] == [[1.0, -1.0]] * K
+    assert [step.code.tolist() for step in steps[K : 2 * K]] == [[1.0, -1.0]] * K
     assert executor.i == 1
 
 
 @pytest.mark.parametrize("truncate", [False, True])
-def test_an_episode_end_inside_a_code_cuts_it_and_the_next_episode_chooses_anew(truncate: bool) -> None:
+def test_an_episode_end_inside_a_code_cuts_it_and_the_next_episode_chooses_anew(
+    truncate: bool,
+) -> None:
     env, policy = StepEnv(length=K + 2, truncate=truncate), CountingPolicy()
     executor = CodeExecutor(env, StepAdapter())
     steps = list(executor.episode(env.reset()[0], policy))
@@ -361,7 +396,9 @@ def test_an_episode_end_inside_a_code_cuts_it_and_the_next_episode_chooses_anew(
 
 def test_with_k_1_every_step_chooses_a_code_that_is_the_action() -> None:
     env, policy = StepEnv(length=3), CountingPolicy()
-    executor = CodeExecutor(env, IdentityAdapter(-np.ones(CODE), np.ones(CODE), torch.device("cpu")))
+    executor = CodeExecutor(
+        env, IdentityAdapter(-np.ones(CODE), np.ones(CODE), torch.device("cpu"))
+    )
     steps = list(executor.episode(env.reset()[0], policy))
     assert [step.i for step in steps] == [0, 0, 0] and policy.chosen_at == [0.0, 1.0, 2.0]
     assert np.array_equal(np.array(env.actions), [[0, 0], [1, -1], [2, -2]])

@@ -53,15 +53,18 @@ def copy_weights(source: torch.nn.Module, target: Params, twin: int | None = Non
                 (ours if twin is None else ours[twin]).copy_(getattr(layer, name))
 
 
-def assert_same(ours: Params, theirs: torch.nn.Module, what: str, twin: int | None = None,
-                grads: bool = False) -> None:
+def assert_same(
+    ours: Params, theirs: torch.nn.Module, what: str, twin: int | None = None, grads: bool = False
+) -> None:
     """One member's parameters (or gradients; of twin ``twin``) against an SB3 network's."""
     for j, layer in enumerate(linears(theirs)):
         for name in ("weight", "bias"):
             x = ours[f"{2 * j}.{name}"]
             x = x if twin is None else x[twin]
             y = getattr(layer, name).grad if grads else getattr(layer, name)
-            torch.testing.assert_close(x, y, **TOLERANCE, msg=lambda m: f"{what} layer {j} {name}: {m}")
+            torch.testing.assert_close(
+                x, y, **TOLERANCE, msg=lambda m, j=j, name=name: f"{what} layer {j} {name}: {m}"
+            )
 
 
 def test_k1_updates_equal_stable_baselines3_td3() -> None:
@@ -69,10 +72,20 @@ def test_k1_updates_equal_stable_baselines3_td3() -> None:
     obs_size, act_size = env.observation_space.shape[0], env.action_space.shape[0]
     config = TD3Config(hidden=HIDDEN, batch_size=BATCH)
     torch.set_num_threads(1)
-    theirs = sb3.TD3("MlpPolicy", env, learning_rate=config.lr, batch_size=BATCH, tau=config.tau,
-                     gamma=config.discount, policy_delay=config.policy_delay,
-                     target_policy_noise=config.policy_noise, target_noise_clip=config.noise_clip,
-                     policy_kwargs={"net_arch": HIDDEN}, seed=SEED, device="cpu")
+    theirs = sb3.TD3(
+        "MlpPolicy",
+        env,
+        learning_rate=config.lr,
+        batch_size=BATCH,
+        tau=config.tau,
+        gamma=config.discount,
+        policy_delay=config.policy_delay,
+        target_policy_noise=config.policy_noise,
+        target_noise_clip=config.noise_clip,
+        policy_kwargs={"net_arch": HIDDEN},
+        seed=SEED,
+        device="cpu",
+    )
     theirs.set_logger(configure(None, []))
     adapter = IdentityAdapter(env.action_space.low, env.action_space.high, torch.device("cpu"))
     ours = Agent(obs_size, adapter, config, torch.device("cpu"), seeds=[SEED])
@@ -86,8 +99,9 @@ def test_k1_updates_equal_stable_baselines3_td3() -> None:
     for name in ("actor", "critic"):
         adam = getattr(ours, f"{name}_adam")
         step = adam.step
-        adam.step = (lambda grad, *args, name=name, step=step, adam=adam:
-                     grads.__setitem__(name, adam.stack.views(grad[0])) or step(grad, *args))
+        adam.step = lambda grad, *args, name=name, step=step, adam=adam: (
+            grads.__setitem__(name, adam.stack.views(grad[0])) or step(grad, *args)
+        )
 
     rng = np.random.default_rng(0)
     ours_batches, their_batches = [], []
@@ -97,10 +111,19 @@ def test_k1_updates_equal_stable_baselines3_td3() -> None:
         rewards = torch.as_tensor(rng.normal(size=(BATCH, 1)), dtype=torch.float32)
         terminated = torch.as_tensor(rng.random((BATCH, 1)) < 0.2)
         next_obs = torch.as_tensor(rng.normal(size=(BATCH, obs_size)), dtype=torch.float32)
-        batch = ReplayBatch(obs, actions, torch.zeros(BATCH, dtype=torch.int64), rewards,
-                            terminated, torch.zeros_like(terminated), next_obs[:, None])
+        batch = ReplayBatch(
+            obs,
+            actions,
+            torch.zeros(BATCH, dtype=torch.int64),
+            rewards,
+            terminated,
+            torch.zeros_like(terminated),
+            next_obs[:, None],
+        )
         ours_batches.append(ReplayBatch(*(t[None] for t in batch)))  # one member
-        their_batches.append(ReplayBufferSamples(obs, actions, next_obs, terminated.float(), rewards))
+        their_batches.append(
+            ReplayBufferSamples(obs, actions, next_obs, terminated.float(), rewards)
+        )
     theirs.replay_buffer = FixedBatches(their_batches)
 
     for step, batch in enumerate(ours_batches, start=1):
@@ -113,17 +136,38 @@ def test_k1_updates_equal_stable_baselines3_td3() -> None:
         theirs.train(gradient_steps=1, batch_size=BATCH)
         actor_step = step % config.policy_delay == 0
         for j in range(2):
-            if not actor_step:  # SB3's actor loss adds into the critic's gradients; ours spares them
-                assert_same(grads["critic"], theirs.critic.q_networks[j],
-                            f"update {step} critic {j} grad", j, grads=True)
-            assert_same(ours.critic.member(0), theirs.critic.q_networks[j], f"update {step} critic {j}", j)
-            assert_same(ours.critic_target.member(0), theirs.critic_target.q_networks[j],
-                        f"update {step} target {j}", j)
+            if (
+                not actor_step
+            ):  # SB3's actor loss adds into the critic's gradients; ours spares them
+                assert_same(
+                    grads["critic"],
+                    theirs.critic.q_networks[j],
+                    f"update {step} critic {j} grad",
+                    j,
+                    grads=True,
+                )
+            assert_same(
+                ours.critic.member(0), theirs.critic.q_networks[j], f"update {step} critic {j}", j
+            )
+            assert_same(
+                ours.critic_target.member(0),
+                theirs.critic_target.q_networks[j],
+                f"update {step} target {j}",
+                j,
+            )
         assert_same(ours.actor.member(0), theirs.actor.mu, f"update {step} actor")
-        assert_same(ours.actor_target.member(0), theirs.actor_target.mu, f"update {step} actor target")
+        assert_same(
+            ours.actor_target.member(0), theirs.actor_target.mu, f"update {step} actor target"
+        )
         if actor_step:  # its gradients too
             assert_same(grads["actor"], theirs.actor.mu, f"update {step} actor grad", grads=True)
     # The updates did move the weights (the comparison above is not between untouched copies).
     first = ours.actor.member(0)["0.weight"]
-    assert not torch.equal(first, linears(sb3.TD3("MlpPolicy", env, policy_kwargs={"net_arch": HIDDEN},
-                                                 seed=SEED, device="cpu").actor.mu)[0].weight)
+    assert not torch.equal(
+        first,
+        linears(
+            sb3.TD3(
+                "MlpPolicy", env, policy_kwargs={"net_arch": HIDDEN}, seed=SEED, device="cpu"
+            ).actor.mu
+        )[0].weight,
+    )

@@ -21,7 +21,9 @@ def run_of(config: TD3Config, budget: int = 1_000):
 
 def schedule(start_steps: int, steps: int, monkeypatch: pytest.MonkeyPatch) -> tuple[list, list]:
     """Which behaviour chose each step's code, and at which steps updates ran."""
-    config = TD3Config(hidden=[16, 16], batch_size=8, start_steps=start_steps, update_schedule="step")
+    config = TD3Config(
+        hidden=[16, 16], batch_size=8, start_steps=start_steps, update_schedule="step"
+    )
     run, group = run_of(config)
     chosen_by, updated_at = [], []
     act, random_code, update = group.agent.act, group.agent.random_code, group.agent.update
@@ -67,8 +69,11 @@ def test_the_episode_schedule_updates_once_per_step_when_an_episode_ends(
     run, group = run_of(config)
     updated_at = []
     update = group.agent.update
-    monkeypatch.setattr(group.agent, "update",
-                        lambda buffer, due: (updated_at.append(run.step), update(buffer, due)))
+    monkeypatch.setattr(
+        group.agent,
+        "update",
+        lambda buffer, due: (updated_at.append(run.step), update(buffer, due)),
+    )
     for _ in range(150):
         group.advance()
     assert run.episodes == 1 and updated_at == [100] * 100  # Point-v0's episodes are 100 steps
@@ -77,8 +82,9 @@ def test_the_episode_schedule_updates_once_per_step_when_an_episode_ends(
 def test_diagnostics_are_the_means_of_the_updates_since_the_last_evaluation(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    config = TD3Config(hidden=[16, 16], batch_size=8, start_steps=0, eval_episodes=1,
-                       update_schedule="step")
+    config = TD3Config(
+        hidden=[16, 16], batch_size=8, start_steps=0, eval_episodes=1, update_schedule="step"
+    )
     run, group = run_of(config)
     losses = []  # what each step added to the sums
 
@@ -88,10 +94,10 @@ def test_diagnostics_are_the_means_of_the_updates_since_the_last_evaluation(
         losses.append((group.agent.loss_sums[:, 0] - before).tolist())
     run.evaluate()
     (row,) = run.diagnostics
-    steps = [l for l in losses if l[1]]  # the updates (from step 8 on)
+    steps = [loss for loss in losses if loss[1]]  # the updates (from step 8 on)
     assert row["step"] == 20 and row["updates"] == len(steps) == 13
-    assert row["critic_loss"] == pytest.approx(sum(l[0] for l in steps) / 13)
-    actor = [l[2] for l in steps if l[3]]
+    assert row["critic_loss"] == pytest.approx(sum(loss[0] for loss in steps) / 13)
+    actor = [loss[2] for loss in steps if loss[3]]
     assert len(actor) == 6 and row["mean_q"] == pytest.approx(-sum(actor) / 6)
     assert row["actor_loss"] == pytest.approx(-row["mean_q"])
     assert group.agent.loss_sums.abs().sum() == 0  # taken: the next interval starts from zero
@@ -115,7 +121,9 @@ def test_building_an_agent_or_an_embedding_reseeds_nothing_outside(point_store) 
     assert torch.equal(first.critic.flat, second.critic.flat)
 
 
-def test_a_checkpoint_taken_inside_a_code_resumes_its_remaining_actions(point_store, tmp_path) -> None:
+def test_a_checkpoint_taken_inside_a_code_resumes_its_remaining_actions(
+    point_store, tmp_path
+) -> None:
     from ede.config import DecoderConfig, EmbeddingConfig
     from ede.embedding import ActionEmbedding, train_decoder, train_encoder
     from ede.rollouts import Rollouts
@@ -124,9 +132,18 @@ def test_a_checkpoint_taken_inside_a_code_resumes_its_remaining_actions(point_st
     small = {"hidden": [8], "epochs": 1}
     encoded = train_encoder(rollouts, EmbeddingConfig(**small))
     decoded = train_decoder(rollouts, encoded, DecoderConfig(**small), 4, -np.ones(2), np.ones(2))
-    embedding = ActionEmbedding(encoded.encoder, decoded.decoder, encoded.code_whitening, decoded.bound)
-    spec = RunSpec("ede/Point-v0", "ede-td3", 0, 1_000, TD3Config(hidden=[16, 16], batch_size=8),
-                   EdeTD3Config(), "test")
+    embedding = ActionEmbedding(
+        encoded.encoder, decoded.decoder, encoded.code_whitening, decoded.bound
+    )
+    spec = RunSpec(
+        "ede/Point-v0",
+        "ede-td3",
+        0,
+        1_000,
+        TD3Config(hidden=[16, 16], batch_size=8),
+        EdeTD3Config(),
+        "test",
+    )
 
     def actions_after(group: _Group, steps: int) -> list[np.ndarray]:
         for _ in range(steps):
@@ -144,4 +161,4 @@ def test_a_checkpoint_taken_inside_a_code_resumes_its_remaining_actions(point_st
     assert resumed.executor.i == 2 and np.array_equal(resumed.executor.plan, run.executor.plan)
     assert torch.equal(resumed.executor.code, run.executor.code)
     ahead, again = actions_after(group, 6), actions_after(again, 6)
-    assert all(np.array_equal(a, b) for a, b in zip(ahead, again))
+    assert all(np.array_equal(a, b) for a, b in zip(ahead, again, strict=True))

@@ -36,9 +36,11 @@ FINGERPRINTS = {
 def fingerprint(task: str) -> str:
     """SHA-256 of a seeded rollout of uniform random actions: observations, state and rewards."""
     env = make(task)
-    actions = np.random.default_rng(0).uniform(
-        env.action_space.low, env.action_space.high, size=(STEPS, *env.action_space.shape)
-    ).astype(np.float32)
+    actions = (
+        np.random.default_rng(0)
+        .uniform(env.action_space.low, env.action_space.high, size=(STEPS, *env.action_space.shape))
+        .astype(np.float32)
+    )
     digest = hashlib.sha256()
 
     def record(*arrays: object) -> None:

@@ -31,7 +31,7 @@ def rollout(task: str, seed: int, steps: int = 30) -> tuple[np.ndarray, np.ndarr
     obs, _ = env.reset(seed=seed)
     observations, rewards, infos = [obs], [], []
     for action in actions:
-        obs, reward, terminated, truncated, info = env.step(action.astype(np.float32))
+        obs, reward, terminated, _truncated, info = env.step(action.astype(np.float32))
         observations.append(obs)
         rewards.append(reward)
         infos.append(info)

@@ -26,12 +26,20 @@ def tiny(params: dict) -> None:
     params["collect"].update(steps=4_000, num_envs=1)
     for section in ("embedding", "decoder"):
         params[section].update(hidden=[64, 64], epochs=6, lr=1e-3)
-    params["td3"].update(hidden=[64, 64], batch_size=64, start_steps=0, eval_every=500,
-                         eval_episodes=3, checkpoint_every=400)
-    params["runs"].update(tasks={TASK: "point"}, algos=["td3", "ede-td3"], seeds=[0],
-                          budgets={TASK: BUDGET})
-    params["report"].update(bootstrap_samples=100, effect_space_family="point",
-                            exploration_family=None)
+    params["td3"].update(
+        hidden=[64, 64],
+        batch_size=64,
+        start_steps=0,
+        eval_every=500,
+        eval_episodes=3,
+        checkpoint_every=400,
+    )
+    params["runs"].update(
+        tasks={TASK: "point"}, algos=["td3", "ede-td3"], seeds=[0], budgets={TASK: BUDGET}
+    )
+    params["report"].update(
+        bootstrap_samples=100, effect_space_family="point", exploration_family=None
+    )
 
 
 def stage_args(name: str, out: Path, ref: Path) -> list[str]:
@@ -39,19 +47,66 @@ def stage_args(name: str, out: Path, ref: Path) -> list[str]:
     embedding = ref / "embedding"
     return {
         "collect": ["collect", "--family", "point", "--out", str(out / "rollouts.zarr")],
-        "encoder": ["pretrain", "encoder", "--family", "point",
-                    "--rollouts", str(ref / "rollouts.zarr"), "--out", str(out / "encoder"),
-                    "--metrics", str(out / "encoder.json"), "--plots", str(out / "encoder.csv")],
-        "decoder": ["pretrain", "decoder", "--family", "point",
-                    "--rollouts", str(ref / "rollouts.zarr"),
-                    "--encoder", str(embedding / "encoder"), "--out", str(out / "decoder"),
-                    "--metrics", str(out / "decoder.json"), "--plots", str(out / "decoder.csv")],
-        "train": ["train", "--task", TASK, "--algo", "ede-td3", "--seed", "0",
-                  "--out", str(out / "run"), "--encoder", str(embedding / "encoder"),
-                  "--decoder", str(embedding / "decoder")],
-        "report": ["report", "--runs", str(ref / "runs"), "--embedding", f"point={embedding}",
-                   "--rollouts", f"point={ref / 'rollouts.zarr'}", "--out", str(out / "report"),
-                   "--metrics", str(out / "report.json"), "--curves", str(out / "curves")],
+        "encoder": [
+            "pretrain",
+            "encoder",
+            "--family",
+            "point",
+            "--rollouts",
+            str(ref / "rollouts.zarr"),
+            "--out",
+            str(out / "encoder"),
+            "--metrics",
+            str(out / "encoder.json"),
+            "--plots",
+            str(out / "encoder.csv"),
+        ],
+        "decoder": [
+            "pretrain",
+            "decoder",
+            "--family",
+            "point",
+            "--rollouts",
+            str(ref / "rollouts.zarr"),
+            "--encoder",
+            str(embedding / "encoder"),
+            "--out",
+            str(out / "decoder"),
+            "--metrics",
+            str(out / "decoder.json"),
+            "--plots",
+            str(out / "decoder.csv"),
+        ],
+        "train": [
+            "train",
+            "--task",
+            TASK,
+            "--algo",
+            "ede-td3",
+            "--seed",
+            "0",
+            "--out",
+            str(out / "run"),
+            "--encoder",
+            str(embedding / "encoder"),
+            "--decoder",
+            str(embedding / "decoder"),
+        ],
+        "report": [
+            "report",
+            "--runs",
+            str(ref / "runs"),
+            "--embedding",
+            f"point={embedding}",
+            "--rollouts",
+            f"point={ref / 'rollouts.zarr'}",
+            "--out",
+            str(out / "report"),
+            "--metrics",
+            str(out / "report.json"),
+            "--curves",
+            str(out / "curves"),
+        ],
     }[name]
 
 
@@ -68,8 +123,9 @@ class Workdir:
     seconds: dict[str, float]  # each stage's uninterrupted wall time, process start included
 
     def run(self, *args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run(command(*args), cwd=self.path, capture_output=True, text=True,
-                              timeout=600)
+        return subprocess.run(
+            command(*args), cwd=self.path, capture_output=True, text=True, timeout=600
+        )
 
 
 @pytest.fixture(scope="session")

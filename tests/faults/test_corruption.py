@@ -22,8 +22,22 @@ pytestmark = pytest.mark.slow
 
 
 def train_args(out: Path, algo: str = "td3", seed: int = 0, *extra: str) -> list[str]:
-    return ["train", "--task", TASK, "--algo", algo, "--seed", str(seed), "--out", str(out),
-            "--encoder", "ref/embedding/encoder", "--decoder", "ref/embedding/decoder", *extra]
+    return [
+        "train",
+        "--task",
+        TASK,
+        "--algo",
+        algo,
+        "--seed",
+        str(seed),
+        "--out",
+        str(out),
+        "--encoder",
+        "ref/embedding/encoder",
+        "--decoder",
+        "ref/embedding/decoder",
+        *extra,
+    ]
 
 
 def returns(run: Path) -> list[str]:
@@ -151,8 +165,13 @@ def test_a_second_writer_of_a_run_is_refused_with_the_holders_pid(
     workdir: Workdir, tmp_path: Path
 ) -> None:
     out = tmp_path / "run"
-    first = subprocess.Popen(command(*train_args(out, "ede-td3")), cwd=workdir.path,
-                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    first = subprocess.Popen(
+        command(*train_args(out, "ede-td3")),
+        cwd=workdir.path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     lock = lock_path(out)
     while not (lock.exists() and lock.read_text().strip()) and first.poll() is None:
         time.sleep(0.05)

@@ -26,8 +26,13 @@ pytestmark = pytest.mark.slow
 
 
 def kill_midway(work: Workdir, args: list[str], seconds: float) -> None:
-    process = subprocess.Popen(command(*args), cwd=work.path, stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL, start_new_session=True)
+    process = subprocess.Popen(
+        command(*args),
+        cwd=work.path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     time.sleep(seconds)
     process.send_signal(signal.SIGKILL)
     process.wait()
@@ -54,18 +59,22 @@ def same_outputs(name: str, out: Path, ref: Path) -> None:
             np.testing.assert_array_equal(value, b.arrays()[key])
     elif name in ("encoder", "decoder"):
         assert weights(out / name) == weights(ref / "embedding" / name)
-        assert (json.loads((out / f"{name}.json").read_text())
-                == json.loads((ref / "embedding" / f"{name}.json").read_text()))
+        assert json.loads((out / f"{name}.json").read_text()) == json.loads(
+            (ref / "embedding" / f"{name}.json").read_text()
+        )
     elif name == "train":
         reference = ref / "runs" / TASK / "ede-td3" / "seed0"
         assert returns(out / "run") == returns(reference)  # step, episode, mean and std
-        assert (out / "run" / "diagnostics.csv").read_text() == \
-            (reference / "diagnostics.csv").read_text()
-        assert (out / "run" / "policy" / "policy.safetensors").read_bytes() == \
-            (reference / "policy" / "policy.safetensors").read_bytes()
+        assert (out / "run" / "diagnostics.csv").read_text() == (
+            reference / "diagnostics.csv"
+        ).read_text()
+        assert (out / "run" / "policy" / "policy.safetensors").read_bytes() == (
+            reference / "policy" / "policy.safetensors"
+        ).read_bytes()
     elif name == "report":
-        assert json.loads((out / "report.json").read_text()) == \
-            json.loads((ref / "report.json").read_text())
+        assert json.loads((out / "report.json").read_text()) == json.loads(
+            (ref / "report.json").read_text()
+        )
         for curve in (ref / "curves").iterdir():
             assert (out / "curves" / curve.name).read_text() == curve.read_text()
         assert (out / "report" / "index.html").is_file()

@@ -23,9 +23,12 @@ TASK = "ede/ReacherVertical-v0"
 
 
 @pytest.fixture(scope="module")
-def upstream(tmp_path_factory: pytest.TempPathFactory,
-             tiny_pipeline: Callable[[dict[str, Any]], None]) -> Path:
-    return one_task_upstream(tmp_path_factory.mktemp("sweep-kill") / "upstream", tiny_pipeline, TASK)
+def upstream(
+    tmp_path_factory: pytest.TempPathFactory, tiny_pipeline: Callable[[dict[str, Any]], None]
+) -> Path:
+    return one_task_upstream(
+        tmp_path_factory.mktemp("sweep-kill") / "upstream", tiny_pipeline, TASK
+    )
 
 
 def test_a_killed_sweep_resumes_to_what_dvc_repro_records(
@@ -42,14 +45,21 @@ def test_a_killed_sweep_resumes_to_what_dvc_repro_records(
     fraction = random.Random(fault_seed).uniform(0.2, 0.9)
     where = f"EDE_FAULT_SEED={fault_seed}: killed after {fraction:.0%} of the sweep"
     sweep = [str(BIN / "ede-pipeline"), "sweep", "train", "--jobs", "2"]
-    process = subprocess.Popen(sweep, cwd=copy, env=tool_env(), stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL, start_new_session=True)
+    process = subprocess.Popen(
+        sweep,
+        cwd=copy,
+        env=tool_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     time.sleep(fraction * seconds)
     os.killpg(process.pid, signal.SIGKILL)
     process.wait()
 
-    again = subprocess.run(sweep, cwd=copy, env=tool_env(), capture_output=True, text=True,
-                           timeout=600)
+    again = subprocess.run(
+        sweep, cwd=copy, env=tool_env(), capture_output=True, text=True, timeout=600
+    )
     assert again.returncode == 0, f"{where}: {again.stdout[-2000:]}{again.stderr[-2000:]}"
     assert train_record(copy) == train_record(reference), where
     assert "up to date" in ok(dvc(copy, "status", "train")), where

@@ -12,5 +12,6 @@ from tests.support import scratch_copy
 @pytest.fixture
 def repo_copy(tmp_path: Path) -> Path:
     """The repository's files in a fresh git repository, collecting 200 steps with one env."""
-    return scratch_copy(tmp_path / "repo",
-                        lambda params: params["collect"].update(steps=200, num_envs=1))
+    return scratch_copy(
+        tmp_path / "repo", lambda params: params["collect"].update(steps=200, num_envs=1)
+    )

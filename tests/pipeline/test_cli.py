@@ -13,8 +13,8 @@ import pytest
 from click.testing import CliRunner
 
 import ede_envs
-from tests.support import REPO
 from ede_pipeline.cli import experiment_name, main
+from tests.support import REPO
 
 
 def test_validate_accepts_the_committed_params() -> None:
@@ -60,11 +60,15 @@ def test_envs_lists_every_task_with_its_family_and_shapes() -> None:
 
 def test_set_params_turns_an_override_file_into_dvc_set_param_arguments(tmp_path) -> None:
     overrides = tmp_path / "quick.yaml"
-    overrides.write_text("td3:\n  start_steps: 5\nruns:\n  seeds: [0, 1]\n"
-                         "  budgets: {ede/ReacherVertical-v0: 1000, ede/ReacherTurn-v0: 1000,\n"
-                         "            ede/ReacherPush-v0: 1000, ede/Pusher-v0: 1000, ede/Striker-v0: 1000}\n")
-    result = CliRunner().invoke(main, ["set-params", str(overrides), "--name", "look", "--params",
-                                       str(REPO / "params.yaml")])
+    overrides.write_text(
+        "td3:\n  start_steps: 5\nruns:\n  seeds: [0, 1]\n"
+        "  budgets: {ede/ReacherVertical-v0: 1000, ede/ReacherTurn-v0: 1000,\n"
+        "            ede/ReacherPush-v0: 1000, ede/Pusher-v0: 1000, ede/Striker-v0: 1000}\n"
+    )
+    result = CliRunner().invoke(
+        main,
+        ["set-params", str(overrides), "--name", "look", "--params", str(REPO / "params.yaml")],
+    )
     assert result.exit_code == 0, result.output
     lines = result.stdout.splitlines()
     assert lines[0::2] == ["--name"] + ["-S"] * 3
@@ -80,8 +84,9 @@ def test_set_params_turns_an_override_file_into_dvc_set_param_arguments(tmp_path
 def test_set_params_refuses_overrides_that_make_bad_params(tmp_path) -> None:
     overrides = tmp_path / "quick.yaml"
     overrides.write_text("td3:\n  batch_size: 0\n")
-    result = CliRunner().invoke(main, ["set-params", str(overrides), "--params",
-                                       str(REPO / "params.yaml")])
+    result = CliRunner().invoke(
+        main, ["set-params", str(overrides), "--params", str(REPO / "params.yaml")]
+    )
     assert result.exit_code == 2 and "td3.batch_size" in result.stderr
 
 
@@ -96,15 +101,17 @@ def test_set_params_refuses_overrides_that_make_bad_params(tmp_path) -> None:
 def test_set_params_refuses_an_override_file_that_means_two_things(tmp_path, text, line) -> None:
     overrides = tmp_path / "quick.yaml"
     overrides.write_text(text)
-    result = CliRunner().invoke(main, ["set-params", str(overrides), "--params",
-                                       str(REPO / "params.yaml")])
+    result = CliRunner().invoke(
+        main, ["set-params", str(overrides), "--params", str(REPO / "params.yaml")]
+    )
     assert result.exit_code == 2 and line in result.stderr and result.stdout == ""
     assert len(result.stderr.strip().splitlines()) == 1
 
 
 def test_the_quick_configuration_is_valid_and_each_run_of_it_a_new_experiment() -> None:
-    result = CliRunner().invoke(main, ["set-params", str(REPO / "params-quick.yaml"), "--params",
-                                       str(REPO / "params.yaml")])
+    result = CliRunner().invoke(
+        main, ["set-params", str(REPO / "params-quick.yaml"), "--params", str(REPO / "params.yaml")]
+    )
     assert result.exit_code == 0, result.output
     flag, name = result.stdout.splitlines()[:2]
     assert flag == "--name" and re.fullmatch(r"quick-\d{8}-\d{6}", name), name
@@ -118,16 +125,24 @@ def test_an_experiments_default_name_is_the_files_and_the_time() -> None:
 
 def pipeline(*args: str, **env: str) -> subprocess.CompletedProcess:
     """``python -m ede_pipeline`` in a fresh process: MuJoCo reads MUJOCO_GL when first imported."""
-    return subprocess.run([sys.executable, "-m", "ede_pipeline", *args], capture_output=True,
-                          text=True, env={**os.environ, **env}, cwd=REPO, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "ede_pipeline", *args],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **env},
+        cwd=REPO,
+        timeout=600,
+    )
 
 
 def test_an_invalid_mujoco_gl_is_one_line_naming_what_works_here() -> None:
     result = pipeline("validate", MUJOCO_GL="foo")
     assert result.returncode == 2 and result.stdout == ""
-    assert result.stderr.startswith("Error: MUJOCO_GL=foo: MuJoCo cannot start with it (invalid "
-                                    "value for environment variable MUJOCO_GL: foo); this machine "
-                                    "supports "), result.stderr
+    assert result.stderr.startswith(
+        "Error: MUJOCO_GL=foo: MuJoCo cannot start with it (invalid "
+        "value for environment variable MUJOCO_GL: foo); this machine "
+        "supports "
+    ), result.stderr
     assert result.stderr.endswith(", disable, or leave it unset: no stage renders\n")
     assert len(result.stderr.splitlines()) == 1
 

@@ -36,8 +36,12 @@ def test_collect_writes_a_store_the_reader_accepts(tmp_path: Path, write_params)
     assert len(rollouts) == 400 and rollouts.num_episodes == 4
     attrs = rollouts.attrs
     assert (attrs["family"], attrs["seed"], attrs["num_envs"]) == ("reacher", 0, 2)
-    assert attrs["params"]["collect"] == {"steps": 400, "num_envs": 2, "seed": 0,
-                                          "saturated_episodes": 0.0}
+    assert attrs["params"]["collect"] == {
+        "steps": 400,
+        "num_envs": 2,
+        "seed": 0,
+        "saturated_episodes": 0.0,
+    }
     assert attrs["spaces"]["action_low"] == [-1.0, -1.0]
     assert attrs["state_source"] == "physics"
     assert len(attrs["fingerprint"]) == 64
@@ -66,8 +70,9 @@ def test_a_task_without_mujoco_physics_is_collected_with_its_observation_as_stat
     assert rollouts.attrs["spaces"]["state_size"] == 3
     np.testing.assert_array_equal(rollouts.state, rollouts.obs)
 
-    summary = run("inspect", "--family", "pendulum", "--rollouts", str(out),
-                  "--params", str(params))
+    summary = run(
+        "inspect", "--family", "pendulum", "--rollouts", str(out), "--params", str(params)
+    )
     assert summary.exit_code == 0 and "400 steps in 2 episodes" in summary.output, summary.output
 
 
@@ -75,7 +80,9 @@ def test_rerunning_with_the_same_params_gives_the_same_arrays(tmp_path: Path, wr
     params = write_params(tiny)
     stores = []
     for name in ("a.zarr", "b.zarr"):
-        result = run("collect", "--family", "point", "--out", str(tmp_path / name), "--params", str(params))
+        result = run(
+            "collect", "--family", "point", "--out", str(tmp_path / name), "--params", str(params)
+        )
         assert result.exit_code == 0, result.output
         stores.append(Rollouts.open(tmp_path / name))
     for key, value in stores[0].arrays().items():
@@ -102,7 +109,9 @@ def test_a_collection_killed_midway_leaves_nothing_a_reader_accepts(
     with pytest.raises(RolloutsError):
         Rollouts.open(out)
 
-    result = run("collect", "--family", "reacher", "--out", str(out), "--params", str(write_params(tiny)))
+    result = run(
+        "collect", "--family", "reacher", "--out", str(out), "--params", str(write_params(tiny))
+    )
     assert result.exit_code == 0, result.output
     assert len(Rollouts.open(out)) == 400
 
@@ -146,7 +155,11 @@ def test_a_store_killed_while_being_written_is_never_accepted(tmp_path: Path) ->
     [
         (["--family", "cartpole"], None, "--family 'cartpole': unknown"),
         (["--family", "point"], lambda p: p["collect"].update(steps=0), "collect.steps: got 0"),
-        (["--family", "point"], lambda p: p["collect"].update(num_envs=-1), "collect.num_envs: got -1"),
+        (
+            ["--family", "point"],
+            lambda p: p["collect"].update(num_envs=-1),
+            "collect.num_envs: got -1",
+        ),
     ],
 )
 def test_bad_collect_input_is_one_line_exit_2_and_writes_nothing(
@@ -164,9 +177,14 @@ def test_bad_collect_input_is_one_line_exit_2_and_writes_nothing(
 def test_a_truncated_or_foreign_store_is_one_line_exit_2(tmp_path: Path, write_params) -> None:
     params = write_params(tiny)
     out = tmp_path / "point.zarr"
-    assert run("collect", "--family", "point", "--out", str(out), "--params", str(params)).exit_code == 0
+    assert (
+        run("collect", "--family", "point", "--out", str(out), "--params", str(params)).exit_code
+        == 0
+    )
 
-    foreign = run("inspect", "--family", "pointmass", "--rollouts", str(out), "--params", str(params))
+    foreign = run(
+        "inspect", "--family", "pointmass", "--rollouts", str(out), "--params", str(params)
+    )
     assert foreign.exit_code == 2 and foreign.stderr.count("\n") == 1
     assert "collected on ede/Point-v0 (family point), expected ede/PointMass-v0" in foreign.stderr
 

@@ -40,8 +40,9 @@ def test_make_quicks_experiments_leave_the_workspace_alone_until_applied(
     paper = (repo_copy / "params.yaml").read_text()
     names = []
     for _ in range(2):
-        printed = CliRunner().invoke(main, ["set-params", str(overrides), "--params",
-                                            str(repo_copy / "params.yaml")])
+        printed = CliRunner().invoke(
+            main, ["set-params", str(overrides), "--params", str(repo_copy / "params.yaml")]
+        )
         assert printed.exit_code == 0, printed.output
         arguments = printed.stdout.splitlines()
         names.append(arguments[1])
@@ -63,8 +64,11 @@ def stale(copy: Path) -> set[str]:
     """The stages ``dvc status`` reports out of date."""
     result = dvc(copy, "status")
     assert result.returncode == 0, result.stdout + result.stderr
-    return {line[:-1] for line in result.stdout.splitlines() if line and not line[0].isspace()
-            and line.endswith(":")}
+    return {
+        line[:-1]
+        for line in result.stdout.splitlines()
+        if line and not line[0].isspace() and line.endswith(":")
+    }
 
 
 @pytest.mark.slow
@@ -80,12 +84,17 @@ def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
     assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
     # Nothing a user cannot act on: DVC's and the libraries' warnings are dealt with at the source
     # (an empty __init__.py among the stages' dependencies once printed one per stage and file).
-    warned = [line for line in (first.stdout + first.stderr).splitlines()
-              if "warn" in line.lower()]
+    warned = [line for line in (first.stdout + first.stderr).splitlines() if "warn" in line.lower()]
     assert warned == [], warned[:5]
     page = (repo_copy / "data/report/index.html").read_text()
-    for section in ("Learning curves", "Across tasks", "Figure 6", "Figure 7", "Missing and excluded runs",
-                    "Provenance"):
+    for section in (
+        "Learning curves",
+        "Across tasks",
+        "Figure 6",
+        "Figure 7",
+        "Missing and excluded runs",
+        "Provenance",
+    ):
         assert section in page
     assert "None: every run the params name is here." in page
     # curves and diagnostics per family, the performance profile across tasks, Figures 6 and 7
@@ -97,11 +106,17 @@ def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
     params_file.write_text(yaml.safe_dump(faster, sort_keys=False))
     assert stale(repo_copy) == set()
     # One task's budget: that task's runs and the report, nothing else.
-    longer = {**params, "runs": {**params["runs"], "budgets": {**params["runs"]["budgets"],
-                                                               "ede/ReacherTurn-v0": 300}}}
+    longer = {
+        **params,
+        "runs": {
+            **params["runs"],
+            "budgets": {**params["runs"]["budgets"], "ede/ReacherTurn-v0": 300},
+        },
+    }
     params_file.write_text(yaml.safe_dump(longer, sort_keys=False))
     assert stale(repo_copy) == {"report"} | {
-        f"train@ede/ReacherTurn-v0-{algo}-0" for algo in params["runs"]["algos"]}
+        f"train@ede/ReacherTurn-v0-{algo}-0" for algo in params["runs"]["algos"]
+    }
 
     params_file.write_text(yaml.safe_dump(params, sort_keys=False))
     # One task's code: the record task_code writes after an edit of envs/reacher_push.py (whose
@@ -120,7 +135,11 @@ def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
     params_file.write_text(yaml.safe_dump(params, sort_keys=False))
     second = dvc(repo_copy, "repro")
     assert second.returncode == 0, second.stdout[-3000:] + second.stderr[-3000:]
-    ran = {line.split("'")[1] for line in second.stdout.splitlines() if line.startswith("Running stage")}
+    ran = {
+        line.split("'")[1]
+        for line in second.stdout.splitlines()
+        if line.startswith("Running stage")
+    }
     runs = len(params["runs"]["tasks"]) * len(params["runs"]["algos"])
     assert len(ran) == runs + 1 and "report" in ran, sorted(ran)
     assert all(stage.startswith("train@") for stage in ran - {"report"}), sorted(ran)
@@ -141,8 +160,9 @@ def test_every_param_that_changes_a_result_is_tracked_by_key() -> None:
         for field in model.model_fields:
             key = f"{section}.{field}"
             if field in neutral:
-                assert key not in tracked and section not in tracked, \
+                assert key not in tracked and section not in tracked, (
                     f"{key} changes no result but dvc.yaml tracks it"
+                )
             else:
                 assert key in tracked or section in tracked, f"dvc.yaml does not track {key}"
     assert {"threads", "device"} <= untracked  # the marks are read at all

@@ -19,12 +19,25 @@ from tests.support import BIN, dvc, ok, run, scratch_copy, tool_env
 pytestmark = pytest.mark.slow
 
 TASK = "ede/Point-v0"
-EXPERIMENT = "# Point at two seeds, TD3 only: a tiny experiment.\nruns:\n  algos: [td3]\n  seeds: [0, 1]\n"
+EXPERIMENT = (
+    "# Point at two seeds, TD3 only: a tiny experiment.\nruns:\n  algos: [td3]\n  seeds: [0, 1]\n"
+)
 
 
 def commit(repo: Path) -> None:
-    for command in (["git", "add", "-A"], ["git", "-c", "user.email=t@example.org", "-c",
-                                           "user.name=t", "commit", "-qm", "experiments"]):
+    for command in (
+        ["git", "add", "-A"],
+        [
+            "git",
+            "-c",
+            "user.email=t@example.org",
+            "-c",
+            "user.name=t",
+            "commit",
+            "-qm",
+            "experiments",
+        ],
+    ):
         subprocess.run(command, cwd=repo, check=True, capture_output=True)
 
 
@@ -46,13 +59,19 @@ def experiment(repo: Path, *args: str) -> subprocess.CompletedProcess[str]:
     return run(repo, BIN / "ede-pipeline", "experiment", *args, timeout=900)
 
 
-@pytest.mark.parametrize(("args", "line"), [
-    (["run", "bad"], "experiments/bad.yaml: td3.batch_size: "),
-    (["run", "nothing"], "experiment 'nothing': no experiments/nothing.yaml; the experiments "
-                         "are: ablation-epochs6, ablation-step, "),
-    (["run", "two-seeds", "--jobs", "0"], "sweep options: Invalid value for '-j' / '--jobs'"),
-    (["export", "two-seeds-lr"], "experiment two-seeds-lr: not run here yet"),
-])
+@pytest.mark.parametrize(
+    ("args", "line"),
+    [
+        (["run", "bad"], "experiments/bad.yaml: td3.batch_size: "),
+        (
+            ["run", "nothing"],
+            "experiment 'nothing': no experiments/nothing.yaml; the experiments "
+            "are: ablation-epochs6, ablation-step, ",
+        ),
+        (["run", "two-seeds", "--jobs", "0"], "sweep options: Invalid value for '-j' / '--jobs'"),
+        (["export", "two-seeds-lr"], "experiment two-seeds-lr: not run here yet"),
+    ],
+)
 def test_bad_input_is_one_line_and_makes_nothing(repo: Path, args: list[str], line: str) -> None:
     before = sorted(p.name for p in (repo / ".dvc").iterdir())
     result = experiment(repo, *args)
@@ -66,8 +85,14 @@ def test_bad_input_is_one_line_and_makes_nothing(repo: Path, args: list[str], li
 def test_a_killed_experiment_resumes_is_recorded_and_exports_its_runs(repo: Path) -> None:
     workspace = repo / ".dvc" / "tmp" / "experiments" / "two-seeds"
     command = [str(BIN / "ede-pipeline"), "experiment", "run", "two-seeds", "--jobs", "2"]
-    process = subprocess.Popen(command, cwd=repo, env=tool_env(), stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL, start_new_session=True)
+    process = subprocess.Popen(
+        command,
+        cwd=repo,
+        env=tool_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     runs = workspace / "data" / "runs" / TASK / "td3"
     deadline = time.monotonic() + 600
     while not list(runs.glob("seed*/checkpoint/state.json")):  # killed between checkpoints
@@ -78,8 +103,10 @@ def test_a_killed_experiment_resumes_is_recorded_and_exports_its_runs(repo: Path
     assert not list(runs.glob("seed*/metrics.json")), "both runs finished before the kill"
 
     ok(experiment(repo, "run", "two-seeds", "--jobs", "2"))
-    resumed = [json.loads((runs / f"seed{s}" / "metrics.json").read_text())["resumed_from_step"]
-               for s in (0, 1)]
+    resumed = [
+        json.loads((runs / f"seed{s}" / "metrics.json").read_text())["resumed_from_step"]
+        for s in (0, 1)
+    ]
     assert any(step is not None and step > 0 for step in resumed), resumed
     # The workspace keeps this checkout's params and code; the experiment's changes on top.
     params = yaml.safe_load((workspace / "params.yaml").read_text())
@@ -89,8 +116,12 @@ def test_a_killed_experiment_resumes_is_recorded_and_exports_its_runs(repo: Path
     listed = dvc(repo, "exp", "show", "--json")
     assert listed.returncode == 0, listed.stderr
     shown = json.loads(listed.stdout)
-    saved = {rev.get("name"): rev for commit_ in shown for exp in commit_.get("experiments") or []
-             for rev in exp.get("revs") or []}
+    saved = {
+        rev.get("name"): rev
+        for commit_ in shown
+        for exp in commit_.get("experiments") or []
+        for rev in exp.get("revs") or []
+    }
     assert "two-seeds" in saved
     metrics = saved["two-seeds"]["data"]["metrics"]["data/report-metrics.json"]["data"]
     assert metrics[TASK]["td3"]["seeds"] == 2
@@ -104,11 +135,24 @@ def test_a_killed_experiment_resumes_is_recorded_and_exports_its_runs(repo: Path
         assert not (out / TASK / "td3" / f"seed{seed}" / "policy").exists()
     source = json.loads((out / TASK / "source.json").read_text())
     made = json.loads((runs / "seed0" / "run.json").read_text())
-    assert source == {"experiment": "experiments/two-seeds.yaml", "commit": made["code"]["commit"],
-                      "seeds": [0, 1]}
+    assert source == {
+        "experiment": "experiments/two-seeds.yaml",
+        "commit": made["code"]["commit"],
+        "seeds": [0, 1],
+    }
 
-    drawn = ok(run(repo, BIN / "ede-pipeline", "results", "--runs", out, "--figures",
-                   repo / "figures", timeout=600))
+    drawn = ok(
+        run(
+            repo,
+            BIN / "ede-pipeline",
+            "results",
+            "--runs",
+            out,
+            "--figures",
+            repo / "figures",
+            timeout=600,
+        )
+    )
     assert f"### {TASK}" in drawn and "experiment `experiments/two-seeds.yaml`" in drawn
     assert f"{made['machine']['cpu']} (" in drawn and ": 2" in drawn  # the CPU of both runs
     assert (repo / "figures" / "point.png").is_file()

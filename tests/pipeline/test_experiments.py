@@ -5,16 +5,15 @@ from __future__ import annotations
 import json
 import subprocess
 from pathlib import Path
-
 from typing import Any
 
 import pytest
 import yaml
 from click.testing import CliRunner
 
-from tests.support import tool_env
 from ede_pipeline.cli import main
 from ede_pipeline.experiments import WIDTH, experiment_blocks
+from tests.support import tool_env
 
 TASK = "ede/ReacherVertical-v0"
 
@@ -53,30 +52,44 @@ def repo(tmp_path_factory: pytest.TempPathFactory) -> Path:
     git(root, "config", "user.name", "test")
     (root / "data").mkdir()
     (root / "data" / ".gitkeep").write_text("")
-    (root / "params.yaml").write_text(yaml.safe_dump(
-        {"td3": {"lr": 0.001, "batch_size": 100}, "runs": {"seeds": [0, 1]}}))
+    (root / "params.yaml").write_text(
+        yaml.safe_dump({"td3": {"lr": 0.001, "batch_size": 100}, "runs": {"seeds": [0, 1]}})
+    )
     (root / "stage.py").write_text(STAGE)
-    (root / "dvc.yaml").write_text(yaml.safe_dump({"stages": {"report": {
-        "cmd": "python stage.py",
-        "deps": ["stage.py"],
-        "params": ["td3.lr", "td3.batch_size", "runs.seeds"],
-        "metrics": [{"data/report-metrics.json": {"cache": False}},
-                    {"data/other.json": {"cache": False}}],
-    }}}))
+    (root / "dvc.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "stages": {
+                    "report": {
+                        "cmd": "python stage.py",
+                        "deps": ["stage.py"],
+                        "params": ["td3.lr", "td3.batch_size", "runs.seeds"],
+                        "metrics": [
+                            {"data/report-metrics.json": {"cache": False}},
+                            {"data/other.json": {"cache": False}},
+                        ],
+                    }
+                }
+            }
+        )
+    )
     env = tool_env()
     subprocess.run(["dvc", "init", "-q"], cwd=root, check=True, env=env)
     git(root, "add", "-A")
     git(root, "commit", "-qm", "base")
-    for name, overrides in [("smaller-lr", ["td3.lr=0.0003"]),
-                            ("three-seeds", ["runs.seeds=[0,1,2]", "td3.batch_size=256"])]:
+    for name, overrides in [
+        ("smaller-lr", ["td3.lr=0.0003"]),
+        ("three-seeds", ["runs.seeds=[0,1,2]", "td3.batch_size=256"]),
+    ]:
         sets = [arg for override in overrides for arg in ("-S", override)]
         args = ["dvc", "exp", "run", "--temp", "--name", name, *sets]
         subprocess.run(args, cwd=root, check=True, env=env, capture_output=True)
     return root
 
 
-def test_each_experiment_shows_its_changes_and_returns_in_80_columns(repo: Path,
-                                                                     monkeypatch) -> None:
+def test_each_experiment_shows_its_changes_and_returns_in_80_columns(
+    repo: Path, monkeypatch
+) -> None:
     monkeypatch.chdir(repo)
     result = CliRunner().invoke(main, ["experiment", "show"])
     assert result.exit_code == 0, result.output
@@ -99,20 +112,26 @@ def test_each_experiment_shows_its_changes_and_returns_in_80_columns(repo: Path,
 
 def test_an_experiment_without_a_report_says_so() -> None:
     def entry(rev: str, name: str, lr: float, metrics: dict) -> dict:
-        return {"rev": rev, "name": name, "error": None, "data": {
-            "params": {"params.yaml": {"data": {"td3": {"lr": lr}}}}, "metrics": metrics}}
+        return {
+            "rev": rev,
+            "name": name,
+            "error": None,
+            "data": {"params": {"params.yaml": {"data": {"td3": {"lr": lr}}}}, "metrics": metrics},
+        }
 
     missing = {"data/report-metrics.json": {"error": {"type": "FileNotFoundError"}}}
     commit = entry("0123456789", "main", 0.001, missing)
     commit["experiments"] = [{"revs": [entry("abc1234567", "no-report", 0.002, missing)]}]
     assert experiment_blocks([entry("workspace", None, 0.1, {}), commit]) == [
-        "no-report  (abc1234, from main)", "  changed: td3.lr: 0.001 → 0.002", "  no report yet",
+        "no-report  (abc1234, from main)",
+        "  changed: td3.lr: 0.001 → 0.002",
+        "  no report yet",
     ]
     assert experiment_blocks([{**commit, "experiments": None}]) == []
 
 
 def test_every_committed_experiment_is_valid_params_and_learns_only_what_it_uses(
-    monkeypatch: pytest.MonkeyPatch
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     from ede_pipeline.experiments import EXPERIMENTS, experiment_params
     from tests.support import REPO
@@ -123,14 +142,15 @@ def test_every_committed_experiment_is_valid_params_and_learns_only_what_it_uses
     for name in names:
         params = experiment_params(name)
         families = set(params["runs"]["tasks"].values()) | {
-            params["report"][k] for k in ("effect_space_family", "exploration_family")} - {None}
+            params["report"][k] for k in ("effect_space_family", "exploration_family")
+        } - {None}
         assert set(params["families"]) == families, name
         first = (REPO / EXPERIMENTS / f"{name}.yaml").read_text().splitlines()[0]
         assert first.startswith("# "), f"{name}: its first line says what it is"
 
 
 def test_every_published_run_was_made_with_its_experiments_params(
-    monkeypatch: pytest.MonkeyPatch
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """A task folder of docs/results/ whose source.json names an experiment file holds runs of
     exactly that file's params (its runs' run.json identities), so the file reproduces them;
@@ -164,19 +184,33 @@ def _check_runs(folder: Path, params, seeds: list[int]) -> int:
     for record in sorted(folder.glob("*/seed*/run.json")):
         run = json.loads(record.read_text())
         if run["seed"] in seeds:
-            spec = RunSpec(run["task"], run["algo"], run["seed"], params.runs.budgets[run["task"]],
-                           params.td3, params.ede_td3)
+            spec = RunSpec(
+                run["task"],
+                run["algo"],
+                run["seed"],
+                params.runs.budgets[run["task"]],
+                params.td3,
+                params.ede_td3,
+            )
             expected = {k: v for k, v in spec.identity().items() if k != "embedding"}
-            assert identity_difference(run, expected) is None, (record, identity_difference(run, expected))
+            assert identity_difference(run, expected) is None, (
+                record,
+                identity_difference(run, expected),
+            )
             assert run["algo"] in params.runs.algos, record
             checked += 1
     return checked
 
 
-def finished_workspace(root: Path, name: str, seeds: list[int], algos: list[str],
-                       tasks: tuple[str, ...] = ("ede/ReacherVertical-v0",),
-                       finished: tuple[str, ...] = ("ede/ReacherVertical-v0",),
-                       embedding: str = "e0" * 32) -> Path:
+def finished_workspace(
+    root: Path,
+    name: str,
+    seeds: list[int],
+    algos: list[str],
+    tasks: tuple[str, ...] = ("ede/ReacherVertical-v0",),
+    finished: tuple[str, ...] = ("ede/ReacherVertical-v0",),
+    embedding: str = "e0" * 32,
+) -> Path:
     """``experiments/NAME.yaml`` and its working copy as ``experiment run`` leaves it: the runs
     of ``seeds`` finished on the ``finished`` tasks (none yet on the rest of ``tasks``), their
     EDE-TD3 runs made with the embedding of checksum ``embedding``, whose metrics are the reacher
@@ -205,10 +239,29 @@ def finished_workspace(root: Path, name: str, seeds: list[int], algos: list[str]
         out = workspace / layout.run(task, algo, seed)
         out.mkdir(parents=True)
         budget = loaded.runs.budgets[task]
-        write_curves(out, [{"step": s, "episode": 0, "mean_return": -9.0, "std_return": 0.0,
-                            "wall_seconds": 0.0} for s in (0, budget)], [])
-        spec = RunSpec(task, algo, seed, budget, loaded.td3, loaded.ede_td3,
-                       embedding if algo == "ede-td3" else "")
+        write_curves(
+            out,
+            [
+                {
+                    "step": s,
+                    "episode": 0,
+                    "mean_return": -9.0,
+                    "std_return": 0.0,
+                    "wall_seconds": 0.0,
+                }
+                for s in (0, budget)
+            ],
+            [],
+        )
+        spec = RunSpec(
+            task,
+            algo,
+            seed,
+            budget,
+            loaded.td3,
+            loaded.ede_td3,
+            embedding if algo == "ede-td3" else "",
+        )
         write_finished(out, spec, {"final_return": -9.0}, torch.device("cpu"))
     return workspace
 
@@ -221,16 +274,22 @@ def test_export_publishes_the_finished_runs_of_each_task_and_skips_a_task_with_n
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.chdir(tmp_path)
-    finished_workspace(tmp_path, "two-tasks", [0, 1], ["td3"],
-                       tasks=("ede/ReacherVertical-v0", "ede/ReacherTurn-v0"))
+    finished_workspace(
+        tmp_path,
+        "two-tasks",
+        [0, 1],
+        ["td3"],
+        tasks=("ede/ReacherVertical-v0", "ede/ReacherTurn-v0"),
+    )
     result = export("two-tasks")
     assert result.exit_code == 0, result.output
     assert "ede/ReacherTurn-v0: no run finished yet; nothing exported" in result.stderr
     source = json.loads((tmp_path / "published/ede/ReacherVertical-v0/source.json").read_text())
     assert source["experiment"] == "experiments/two-tasks.yaml" and source["seeds"] == [0, 1]
     assert source["thresholds"] == [-15, -10]
-    assert sorted(p.name for p in (tmp_path / "published/ede/ReacherVertical-v0/td3").iterdir()) \
-        == ["seed0", "seed1"]
+    assert sorted(
+        p.name for p in (tmp_path / "published/ede/ReacherVertical-v0/td3").iterdir()
+    ) == ["seed0", "seed1"]
     assert not (tmp_path / "published/ede/ReacherVertical-v0/embedding").exists()  # no EDE-TD3
     assert not (tmp_path / "published/ede/ReacherTurn-v0").exists()
 
@@ -256,18 +315,24 @@ def test_an_experiment_adding_seeds_exports_beside_the_published_ones(
     folder = layout.task_runs(task, Path("published"))
     parts = json.loads((folder / "source.json").read_text())
     assert [(p["experiment"], p["seeds"]) for p in parts] == [
-        ("experiments/first.yaml", [0, 1]), ("experiments/more.yaml", [2, 3])]
+        ("experiments/first.yaml", [0, 1]),
+        ("experiments/more.yaml", [2, 3]),
+    ]
     assert read_source(folder).seeds == [0, 1, 2, 3]
     assert sorted(p.name for p in (folder / "ede-td3").iterdir()) == [f"seed{s}" for s in range(4)]
     for checksum in (first, second):
         kept = layout.published_embedding(task, checksum, Path("published"))
-        assert json.loads((kept / "decoder_metrics.json").read_text()) == {"of": ["decoder", checksum]}
+        assert json.loads((kept / "decoder_metrics.json").read_text()) == {
+            "of": ["decoder", checksum]
+        }
     before = {p: p.read_bytes() for p in Path("published").rglob("*") if p.is_file()}
     result = export("again")
     assert result.exit_code == 2 and "Traceback" not in result.output
-    assert result.stderr.strip().endswith("source.json: seeds [1] are already published by "
-                                          "experiment `experiments/first.yaml`; an experiment "
-                                          "adds seeds the task has not")
+    assert result.stderr.strip().endswith(
+        "source.json: seeds [1] are already published by "
+        "experiment `experiments/first.yaml`; an experiment "
+        "adds seeds the task has not"
+    )
     assert {p: p.read_bytes() for p in Path("published").rglob("*") if p.is_file()} == before
 
 
@@ -284,23 +349,31 @@ def test_an_experiments_tools_run_the_code_of_its_working_copy(
 
     workspace = tmp_path / "copy"
     for folder in ("ede", "pipeline", "envs"):
-        shutil.copytree(REPO / folder, workspace / folder,
-                        ignore=shutil.ignore_patterns("__pycache__"))
+        shutil.copytree(
+            REPO / folder, workspace / folder, ignore=shutil.ignore_patterns("__pycache__")
+        )
     (workspace / "params.yaml").write_text("td3: {lr: 0.001}\n")
-    for args in (["init", "-q"], ["add", "-A"],
-                 ["-c", "user.email=t@example.org", "-c", "user.name=t", "commit", "-qm", "copy"]):
+    for args in (
+        ["init", "-q"],
+        ["add", "-A"],
+        ["-c", "user.email=t@example.org", "-c", "user.name=t", "commit", "-qm", "copy"],
+    ):
         git(workspace, *args)
-    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=workspace, capture_output=True,
-                          text=True, check=True).stdout.strip()
+    head = subprocess.run(
+        ["git", "rev-parse", "HEAD"], cwd=workspace, capture_output=True, text=True, check=True
+    ).stdout.strip()
     (workspace / "params.yaml").write_text("td3: {lr: 0.0003}\n")  # the experiment's params
     monkeypatch.chdir(REPO)  # where `experiment run` runs: pyproject.toml names the packages
-    show = ("import json, ede, ede_envs, ede_pipeline; from ede.provenance import code_version; "
-            "print(json.dumps([[m.__file__ for m in (ede, ede_envs, ede_pipeline)], code_version()]))")
+    show = (
+        "import json, ede, ede_envs, ede_pipeline; from ede.provenance import code_version; "
+        "print(json.dumps([[m.__file__ for m in (ede, ede_envs, ede_pipeline)], code_version()]))"
+    )
     capfd.readouterr()
     assert _tool(workspace, "python", "-c", show) == 0
     files, code = json.loads(capfd.readouterr().out.strip().splitlines()[-1])
     assert [Path(f).resolve().parent for f in files] == [
-        (workspace / folder).resolve() for folder in ("ede", "envs", "pipeline")]
+        (workspace / folder).resolve() for folder in ("ede", "envs", "pipeline")
+    ]
     assert code == {"commit": head, "modified": False}
     (workspace / "ede" / "nets.py").write_text("# edited\n", encoding="utf-8")
     assert _tool(workspace, "python", "-c", show) == 0

@@ -13,8 +13,8 @@ import yaml
 from click.testing import CliRunner
 
 from ede.atomic import unwritable
-from tests.support import REPO
 from ede_pipeline.cli import main
+from tests.support import REPO
 
 # /sys takes no new file, even from root (sysfs): a read-only location on every Linux machine.
 READ_ONLY = Path("/sys/ede-test-output")
@@ -28,15 +28,20 @@ def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
     params["collect"].update(steps=2_000, num_envs=1)
     for section in ("embedding", "decoder"):
         params[section].update(hidden=[16], epochs=1)
-    params["runs"].update(tasks={"ede/Point-v0": "point"}, seeds=[0], budgets={"ede/Point-v0": 1000})
+    params["runs"].update(
+        tasks={"ede/Point-v0": "point"}, seeds=[0], budgets={"ede/Point-v0": 1000}
+    )
     params["report"].update(effect_space_family=None, exploration_family=None)
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     cwd = os.getcwd()
     os.chdir(root)
     try:
-        for command in (["collect", "--family", "point"], ["pretrain", "encoder", "--family", "point"],
-                        ["pretrain", "decoder", "--family", "point"],
-                        ["task-code", "--family", "point"]):
+        for command in (
+            ["collect", "--family", "point"],
+            ["pretrain", "encoder", "--family", "point"],
+            ["pretrain", "decoder", "--family", "point"],
+            ["task-code", "--family", "point"],
+        ):
             result = CliRunner().invoke(main, command)
             assert result.exit_code == 0, result.output
     finally:
@@ -72,17 +77,22 @@ FOLDER_STAGES = {
 }
 PLACES = {
     "a file in the way": ("afile", "afile: a file is in the way; expected a directory there"),
-    "a file among its parents": ("afile/out", "afile/out: cannot be created: afile is a file, "
-                                 "not a directory"),
-    "a read-only location": (str(READ_ONLY / "out"), f"{READ_ONLY / 'out'}: cannot be written: "
-                             "/sys does not take new files"),
+    "a file among its parents": (
+        "afile/out",
+        "afile/out: cannot be created: afile is a file, not a directory",
+    ),
+    "a read-only location": (
+        str(READ_ONLY / "out"),
+        f"{READ_ONLY / 'out'}: cannot be written: /sys does not take new files",
+    ),
 }
 
 
 @pytest.mark.parametrize("place", PLACES)
 @pytest.mark.parametrize("stage", FOLDER_STAGES)
-def test_an_output_that_cannot_be_written_is_refused_before_work(workdir: Path, stage: str,
-                                                                 place: str) -> None:
+def test_an_output_that_cannot_be_written_is_refused_before_work(
+    workdir: Path, stage: str, place: str
+) -> None:
     out, message = PLACES[place]
     before = listing(workdir)
     result = CliRunner().invoke(main, [a.replace("{out}", out) for a in FOLDER_STAGES[stage]])
@@ -95,16 +105,24 @@ def test_an_output_that_cannot_be_written_is_refused_before_work(workdir: Path, 
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["pretrain", "encoder", "--family", "point", "--out", "e", "--metrics", "afile/m.json"],
-         "afile/m.json: cannot be created: afile is a file"),
-        (["pretrain", "decoder", "--family", "point", "--out", "d", "--plots", "h.csv/x"],
-         "h.csv/x: cannot be created"),
+        (
+            ["pretrain", "encoder", "--family", "point", "--out", "e", "--metrics", "afile/m.json"],
+            "afile/m.json: cannot be created: afile is a file",
+        ),
+        (
+            ["pretrain", "decoder", "--family", "point", "--out", "d", "--plots", "h.csv/x"],
+            "h.csv/x: cannot be created",
+        ),
         (["report", "--out", "r", "--curves", "afile"], "afile: a file is in the way"),
-        (["report", "--out", "r", "--metrics", str(READ_ONLY / "m.json")], "does not take new files"),
+        (
+            ["report", "--out", "r", "--metrics", str(READ_ONLY / "m.json")],
+            "does not take new files",
+        ),
     ],
 )
-def test_every_output_of_a_stage_is_checked_not_only_its_folder(workdir: Path, args: list[str],
-                                                                 message: str) -> None:
+def test_every_output_of_a_stage_is_checked_not_only_its_folder(
+    workdir: Path, args: list[str], message: str
+) -> None:
     (workdir / "h.csv").write_text("")
     before = listing(workdir)
     result = CliRunner().invoke(main, args)
@@ -116,10 +134,12 @@ def test_every_output_of_a_stage_is_checked_not_only_its_folder(workdir: Path, a
 def test_an_unwritable_progress_file_is_named_by_its_variable(workdir: Path) -> None:
     before = listing(workdir)
     result = CliRunner(env={"EDE_PROGRESS": str(READ_ONLY / "progress.json")}).invoke(
-        main, STAGES["collect"][:-2] + ["--out", "store"])
+        main, [*STAGES["collect"][:-2], "--out", "store"]
+    )
     assert result.exit_code == 2
-    assert result.stderr.startswith(f"Error: EDE_PROGRESS={READ_ONLY / 'progress.json'}: cannot be "
-                                    "written")
+    assert result.stderr.startswith(
+        f"Error: EDE_PROGRESS={READ_ONLY / 'progress.json'}: cannot be written"
+    )
     assert listing(workdir) == before
 
 
@@ -129,7 +149,7 @@ def test_a_full_location_is_refused(workdir: Path, monkeypatch: pytest.MonkeyPat
 
     monkeypatch.setattr(os, "fsync", full)
     before = listing(workdir)
-    result = CliRunner().invoke(main, STAGES["train"][:-1] + ["run"])
+    result = CliRunner().invoke(main, [*STAGES["train"][:-1], "run"])
     assert result.exit_code == 2
     assert "run: cannot be written: . does not take data (No space left on device)" in result.stderr
     assert listing(workdir) == before
@@ -139,8 +159,20 @@ def test_several_seeds_are_all_checked_before_any_lock(workdir: Path) -> None:
     (workdir / "runs").mkdir()
     (workdir / "runs" / "seed2").write_text("in the way\n")
     before = listing(workdir)
-    result = CliRunner().invoke(main, ["train", "--task", "ede/Point-v0", "--algo", "td3", "--seed",
-                                       "0-2", "--out", "runs/seed{seed}"])
+    result = CliRunner().invoke(
+        main,
+        [
+            "train",
+            "--task",
+            "ede/Point-v0",
+            "--algo",
+            "td3",
+            "--seed",
+            "0-2",
+            "--out",
+            "runs/seed{seed}",
+        ],
+    )
     assert result.exit_code == 2 and "runs/seed2: a file is in the way" in result.stderr
     assert listing(workdir) == before  # no lock of seed 0 or 1 left behind
 
@@ -150,12 +182,14 @@ def test_unwritable_says_nothing_where_all_is_well_and_leaves_nothing(tmp_path: 
     assert unwritable(tmp_path / "m.json", directory=False) is None
     (tmp_path / "d").mkdir()
     assert unwritable(tmp_path / "d", directory=False) == (
-        f"{tmp_path / 'd'}: a directory is in the way; expected a file there, or nothing")
+        f"{tmp_path / 'd'}: a directory is in the way; expected a file there, or nothing"
+    )
     assert listing(tmp_path) == ["d"]
 
 
-def test_a_sweeps_log_folder_is_checked_before_anything_runs(tmp_path: Path,
-                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_sweeps_log_folder_is_checked_before_anything_runs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     shutil.copy(REPO / "params.yaml", tmp_path)
     shutil.copy(REPO / "dvc.yaml", tmp_path)
     (tmp_path / "afile").write_text("")
@@ -163,7 +197,10 @@ def test_a_sweeps_log_folder_is_checked_before_anything_runs(tmp_path: Path,
     before = listing(tmp_path)
     result = CliRunner().invoke(main, ["sweep", "--logs", "afile/logs"])
     assert result.exit_code == 2
-    assert result.stderr == "Error: --logs afile/logs: cannot be created: afile is a file, not a directory\n"
+    assert (
+        result.stderr
+        == "Error: --logs afile/logs: cannot be created: afile is a file, not a directory\n"
+    )
     assert listing(tmp_path) == before
 
 
@@ -176,7 +213,9 @@ ENCODER = "data/families/point/embedding/encoder"
 
 def contents(root: Path) -> dict[str, bytes]:
     """Every file under ``root`` with its bytes: what a stage must leave as it was."""
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
 
 
 def refused(args: list[str], workdir: Path, *message: str) -> None:
@@ -198,14 +237,18 @@ def test_no_stage_deletes_a_folder_of_a_users_files(workdir: Path, stage: str) -
     rollouts and a user's notes; both stay, byte for byte."""
     shutil.copytree(ROLLOUTS, "mine/rollouts.zarr")
     (workdir / "mine" / "NOTES.txt").write_text("a week of thoughts\n")
-    refused(run(stage, "mine"), workdir, "mine: holds NOTES.txt, rollouts.zarr, which no ede stage "
-            "wrote there")
+    refused(
+        run(stage, "mine"),
+        workdir,
+        "mine: holds NOTES.txt, rollouts.zarr, which no ede stage wrote there",
+    )
 
 
 @pytest.mark.parametrize("stage", FOLDER_STAGES)
 @pytest.mark.parametrize("place", [".", "..", "../.."])
-def test_no_stage_writes_over_the_working_directory_or_above(workdir: Path, stage: str,
-                                                              place: str) -> None:
+def test_no_stage_writes_over_the_working_directory_or_above(
+    workdir: Path, stage: str, place: str
+) -> None:
     refused(run(stage, place), workdir, "the working directory")
 
 
@@ -227,42 +270,91 @@ def test_a_training_run_resumes_in_its_own_folder_but_keeps_off_a_users_file(wor
     refused(args, workdir, "run: holds NOTES.txt beside the training run")
 
 
-@pytest.mark.parametrize(("stage", "other", "kinds"), [
-    ("encoder", "data/families/point/embedding/decoder", "holds a decoder, not an encoder"),
-    ("decoder", "records", "holds a folder of task records, not a decoder"),
-    ("collect", ENCODER, "holds an encoder, not a rollouts store"),
-    ("report", "records", "holds a folder of task records, not a report"),
-    ("train", ROLLOUTS, "holds a rollouts store, not a training run"),
-])
-def test_a_stage_never_replaces_another_stages_output(workdir: Path, stage: str, other: str,
-                                                       kinds: str) -> None:
+@pytest.mark.parametrize(
+    ("stage", "other", "kinds"),
+    [
+        ("encoder", "data/families/point/embedding/decoder", "holds a decoder, not an encoder"),
+        ("decoder", "records", "holds a folder of task records, not a decoder"),
+        ("collect", ENCODER, "holds an encoder, not a rollouts store"),
+        ("report", "records", "holds a folder of task records, not a report"),
+        ("train", ROLLOUTS, "holds a rollouts store, not a training run"),
+    ],
+)
+def test_a_stage_never_replaces_another_stages_output(
+    workdir: Path, stage: str, other: str, kinds: str
+) -> None:
     assert CliRunner().invoke(main, run("task-code", "records")).exit_code == 0
     refused(run(stage, other), workdir, kinds)
 
 
-@pytest.mark.parametrize(("args", "message"), [
-    (["pretrain", "encoder", "--family", "point", "--out", "data/families/point"],
-     f"data/families/point: holds the stage's input {ROLLOUTS}"),
-    (["pretrain", "encoder", "--family", "point", "--out", "e", "--metrics",
-      f"{ROLLOUTS}/zarr.json"], f"{ROLLOUTS}/zarr.json: lies inside the stage's input {ROLLOUTS}"),
-    (["pretrain", "decoder", "--family", "point", "--out", "d", "--plots", f"{ENCODER}/meta.json"],
-     f"lies inside the stage's input {ENCODER}"),
-    (["report", "--out", "r", "--curves", "data"], "data: holds the stage's input data/runs"),
-    (["report", "--out", "r", "--metrics", "data/runs/m.json"],
-     "data/runs/m.json: lies inside the stage's input data/runs"),
-    (["task-inputs", "--task", "ede/Point-v0", "--out", "data/families/point/embedding"],
-     "data/families/point/embedding: is the stage's input data/families/point/embedding"),
-])
-def test_no_output_is_holds_or_lies_inside_an_input(workdir: Path, args: list[str],
-                                                     message: str) -> None:
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            ["pretrain", "encoder", "--family", "point", "--out", "data/families/point"],
+            f"data/families/point: holds the stage's input {ROLLOUTS}",
+        ),
+        (
+            [
+                "pretrain",
+                "encoder",
+                "--family",
+                "point",
+                "--out",
+                "e",
+                "--metrics",
+                f"{ROLLOUTS}/zarr.json",
+            ],
+            f"{ROLLOUTS}/zarr.json: lies inside the stage's input {ROLLOUTS}",
+        ),
+        (
+            [
+                "pretrain",
+                "decoder",
+                "--family",
+                "point",
+                "--out",
+                "d",
+                "--plots",
+                f"{ENCODER}/meta.json",
+            ],
+            f"lies inside the stage's input {ENCODER}",
+        ),
+        (["report", "--out", "r", "--curves", "data"], "data: holds the stage's input data/runs"),
+        (
+            ["report", "--out", "r", "--metrics", "data/runs/m.json"],
+            "data/runs/m.json: lies inside the stage's input data/runs",
+        ),
+        (
+            ["task-inputs", "--task", "ede/Point-v0", "--out", "data/families/point/embedding"],
+            "data/families/point/embedding: is the stage's input data/families/point/embedding",
+        ),
+    ],
+)
+def test_no_output_is_holds_or_lies_inside_an_input(
+    workdir: Path, args: list[str], message: str
+) -> None:
     (workdir / "data" / "runs").mkdir(exist_ok=True)
     (workdir / "data" / "families" / "point" / "code").mkdir(exist_ok=True)
     refused(args, workdir, message)
 
 
 def test_ede_td3_refuses_a_run_folder_inside_its_embedding(workdir: Path) -> None:
-    refused(["train", "--task", "ede/Point-v0", "--algo", "ede-td3", "--seed", "0", "--out",
-             f"{ENCODER}/run"], workdir, f"{ENCODER}/run: lies inside the stage's input {ENCODER}")
+    refused(
+        [
+            "train",
+            "--task",
+            "ede/Point-v0",
+            "--algo",
+            "ede-td3",
+            "--seed",
+            "0",
+            "--out",
+            f"{ENCODER}/run",
+        ],
+        workdir,
+        f"{ENCODER}/run: lies inside the stage's input {ENCODER}",
+    )
 
 
 def test_the_library_refuses_too(tmp_path: Path) -> None:
@@ -271,7 +363,7 @@ def test_the_library_refuses_too(tmp_path: Path) -> None:
 
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "NOTES.txt").write_text("mine\n")
-    with pytest.raises(NotOurs, match="holds NOTES.txt, which no ede stage wrote there"):
+    with pytest.raises(NotOurs, match=r"holds NOTES\.txt, which no ede stage wrote there"):
         write_atomically(tmp_path / "mine", lambda t: (t / "x").write_text("x"), "thing")
     assert listing(tmp_path) == ["mine", "mine/NOTES.txt"]
 
@@ -288,25 +380,40 @@ main()
 """
 
 
-@pytest.mark.parametrize(("args", "limit", "out"), [
-    (["collect", "--family", "point", "--out", "r.zarr"], 2_000, "r.zarr"),
-    (["pretrain", "encoder", "--family", "point", "--out", "e"], 2_000, "e"),
-    (["report", "--runs", "empty", "--out", "r"], 2_000, "r"),
-])
+@pytest.mark.parametrize(
+    ("args", "limit", "out"),
+    [
+        (["collect", "--family", "point", "--out", "r.zarr"], 2_000, "r.zarr"),
+        (["pretrain", "encoder", "--family", "point", "--out", "e"], 2_000, "e"),
+        (["report", "--runs", "empty", "--out", "r"], 2_000, "r"),
+    ],
+)
 def test_a_write_that_fails_midway_is_one_line_and_leaves_nothing(
-    workdir: Path, args: list[str], limit: int, out: str,
+    workdir: Path,
+    args: list[str],
+    limit: int,
+    out: str,
 ) -> None:
     import subprocess
     import sys
 
     (workdir / "empty").mkdir()
     before = listing(workdir)
-    result = subprocess.run([sys.executable, "-c", LIMITED.format(limit=limit), *args],
-                            capture_output=True, text=True, timeout=600)
+    result = subprocess.run(
+        [sys.executable, "-c", LIMITED.format(limit=limit), *args],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert result.returncode == 1, result.stderr
     errors = [line for line in result.stderr.splitlines() if line.startswith("Error:")]
-    assert errors == [line for line in result.stderr.splitlines() if "Traceback" in line or
-                      line.startswith("Error:")], result.stderr  # no traceback
-    assert len(errors) == 1 and f"{out}" in errors[0] and "not written (File too large)" in errors[0]
+    assert errors == [
+        line
+        for line in result.stderr.splitlines()
+        if "Traceback" in line or line.startswith("Error:")
+    ], result.stderr  # no traceback
+    assert (
+        len(errors) == 1 and f"{out}" in errors[0] and "not written (File too large)" in errors[0]
+    )
     left = sorted(set(listing(workdir)) - set(before))
     assert left == [], left  # no temporary, no lock, no half an output

@@ -22,7 +22,9 @@ pytestmark = pytest.mark.slow
 FAMILIES = {"cheetah": "HalfCheetah-v5", "pendulum": "Pendulum-v1"}
 
 
-def own_families(tiny_pipeline: Callable[[dict[str, Any]], None]) -> Callable[[dict[str, Any]], None]:
+def own_families(
+    tiny_pipeline: Callable[[dict[str, Any]], None],
+) -> Callable[[dict[str, Any]], None]:
     def edit(params: dict[str, Any]) -> None:
         params["families"] = {family: {"source": task} for family, task in FAMILIES.items()}
         params["runs"]["tasks"] = {task: family for family, task in FAMILIES.items()}

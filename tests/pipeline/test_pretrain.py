@@ -43,7 +43,10 @@ def test_encoder_then_decoder_write_artifacts_metrics_and_curves(collected: Path
     metrics = json.loads((folder / "encoder_metrics.json").read_text())
     assert metrics["prediction_ratio"] < 1.0
     assert set(json.loads((folder / "decoder_metrics.json").read_text())) == {
-        "inverse_error", "at_bounds", "bound"}
+        "inverse_error",
+        "at_bounds",
+        "bound",
+    }
     assert (folder / "encoder_history.csv").read_text().splitlines()[0].startswith("epoch,")
     assert len((folder / "decoder_history.csv").read_text().splitlines()) == 3  # header + 2 epochs
     meta, embedding = load_action_embedding(folder / "encoder", folder / "decoder")
@@ -68,8 +71,14 @@ def test_missing_rollouts_are_one_line(tmp_path: Path, write_params, monkeypatch
 
 
 def test_rollouts_of_another_family_are_one_line(collected: Path) -> None:
-    result = run("pretrain", "encoder", "--family", "point",
-                 "--rollouts", "data/families/pointmass/rollouts.zarr")
+    result = run(
+        "pretrain",
+        "encoder",
+        "--family",
+        "point",
+        "--rollouts",
+        "data/families/pointmass/rollouts.zarr",
+    )
     bad(result, "collected on ede/PointMass-v0 (family pointmass), expected ede/Point-v0")
     assert not (collected / "data/families/point/embedding").exists()
 
@@ -82,8 +91,14 @@ def test_episodes_shorter_than_k_are_one_line(collected: Path, write_params) -> 
 def test_a_decoder_needs_its_familys_encoder(collected: Path) -> None:
     bad(run("pretrain", "decoder", "--family", "point"), "no encoder here")
     assert run("pretrain", "encoder", "--family", "pointmass").exit_code == 0
-    result = run("pretrain", "decoder", "--family", "point",
-                 "--encoder", "data/families/pointmass/embedding/encoder")
+    result = run(
+        "pretrain",
+        "decoder",
+        "--family",
+        "point",
+        "--encoder",
+        "data/families/pointmass/embedding/encoder",
+    )
     bad(result, "trained on family pointmass's rollouts")
     assert not (collected / "data/families/point/embedding/decoder").exists()
 
@@ -91,6 +106,7 @@ def test_a_decoder_needs_its_familys_encoder(collected: Path) -> None:
 def test_rollouts_of_one_episode_are_one_line(tmp_path: Path, write_params, monkeypatch) -> None:
     """One episode leaves nothing to hold out: the line says to collect more."""
     monkeypatch.chdir(tmp_path)
+
     def one_episode(params: dict) -> None:
         tiny(params)
         params["collect"]["steps"] = 100  # one of ede/Point-v0's 100-step episodes

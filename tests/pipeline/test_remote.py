@@ -37,8 +37,11 @@ def s3_endpoint() -> Iterator[str]:
         host, port = server.get_host_and_port()
         endpoint = f"http://{host}:{port}"
         boto3.client(
-            "s3", endpoint_url=endpoint, region_name="us-east-1",
-            aws_access_key_id="testing", aws_secret_access_key="testing",
+            "s3",
+            endpoint_url=endpoint,
+            region_name="us-east-1",
+            aws_access_key_id="testing",
+            aws_secret_access_key="testing",
         ).create_bucket(Bucket=BUCKET)
         yield endpoint
     finally:
@@ -62,7 +65,8 @@ def digest(path: Path) -> dict[str, str]:
     """SHA-256 of every file under ``path``, by relative name."""
     return {
         str(file.relative_to(path)): hashlib.sha256(file.read_bytes()).hexdigest()
-        for file in sorted(path.rglob("*")) if file.is_file()
+        for file in sorted(path.rglob("*"))
+        if file.is_file()
     }
 
 

@@ -27,8 +27,9 @@ from ede_pipeline.cli import main
 TASKS = {"ede/ReacherVertical-v0": "reacher", "ede/Pusher-v0": "sevendof"}
 
 
-def fake_run(root: Path, task: str, algo: str, seed: int, returns: list[float],
-             every: int = 1000) -> Path:
+def fake_run(
+    root: Path, task: str, algo: str, seed: int, returns: list[float], every: int = 1000
+) -> Path:
     """A finished run as ``train`` leaves it, of the params in ``root``: eval.csv (an evaluation
     every ``every`` steps), run.json and metrics.json."""
     out = root / "data/runs" / task / algo / f"seed{seed}"
@@ -52,19 +53,43 @@ def embedding(root: Path, family: str, env_id: str) -> None:
     """A family's rollouts and a small trained embedding, where the pipeline would put them."""
     torch.set_num_threads(1)
     store = root / layout.rollouts(family)
-    write_store(store, collect(env_id, 2_000, 1, 0, workers=1),
-                {"env_id": env_id, "family": family, "seed": 0, "num_envs": 1, "steps": 2000,
-                 "spaces": {}, "params": {}, "software": software_versions()})
+    write_store(
+        store,
+        collect(env_id, 2_000, 1, 0, workers=1),
+        {
+            "env_id": env_id,
+            "family": family,
+            "seed": 0,
+            "num_envs": 1,
+            "steps": 2000,
+            "spaces": {},
+            "params": {},
+            "software": software_versions(),
+        },
+    )
     rollouts = Rollouts.open(store)
     small = {"hidden": [32, 32], "epochs": 3, "lr": 1e-3}
     encoded = train_encoder(rollouts, EmbeddingConfig(**small))
     low, high = -np.ones(2), np.ones(2)
     decoded = train_decoder(rollouts, encoded, DecoderConfig(**small), 4, low, high)
     folder = root / layout.embedding(family)
-    save_encoder(folder / "encoder", encoded, family=family, env_id=env_id, low=low, high=high,
-                 params={}, data_fingerprint=rollouts.attrs["fingerprint"])
-    save_decoder(folder / "decoder", decoded.decoder, decoded.bound,
-                 encoder_path=folder / "encoder", params={})
+    save_encoder(
+        folder / "encoder",
+        encoded,
+        family=family,
+        env_id=env_id,
+        low=low,
+        high=high,
+        params={},
+        data_fingerprint=rollouts.attrs["fingerprint"],
+    )
+    save_decoder(
+        folder / "decoder",
+        decoded.decoder,
+        decoded.bound,
+        encoder_path=folder / "encoder",
+        params={},
+    )
 
 
 @pytest.fixture(scope="module")
@@ -78,10 +103,14 @@ def embeddings(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture
 def project(tmp_path: Path, write_params, monkeypatch: pytest.MonkeyPatch) -> Path:
     def edit(params: dict) -> None:
-        params["runs"].update(tasks=TASKS, seeds=[0, 1, 2], budgets={"ede/ReacherVertical-v0": 2000,
-                                                                     "ede/Pusher-v0": 2000})
-        params["report"].update(thresholds={"ede/ReacherVertical-v0": [-5.0, -3.0]},
-                                bootstrap_samples=200)
+        params["runs"].update(
+            tasks=TASKS,
+            seeds=[0, 1, 2],
+            budgets={"ede/ReacherVertical-v0": 2000, "ede/Pusher-v0": 2000},
+        )
+        params["report"].update(
+            thresholds={"ede/ReacherVertical-v0": [-5.0, -3.0]}, bootstrap_samples=200
+        )
 
     write_params(edit)
     monkeypatch.chdir(tmp_path)
@@ -102,29 +131,59 @@ def test_every_section_with_runs_missing_and_one_cut_short(project: Path, embedd
     fake_run(project, "ede/ReacherVertical-v0", "ede-td3", 1, [-19, -5, -3])
     fake_run(project, "ede/ReacherVertical-v0", "ede-td3", 2, [-18, -7, -2])
     _, page = report(project)
-    for section in ("Learning curves", "reacher family", "sevendof family", "Figure 6", "R² =",
-                    "Figure 7", "of the arena", "Missing and excluded runs", "Provenance",
-                    "thresholds -5, -3", "steps to -5", "steps to -3"):
+    for section in (
+        "Learning curves",
+        "reacher family",
+        "sevendof family",
+        "Figure 6",
+        "R² =",
+        "Figure 7",
+        "of the arena",
+        "Missing and excluded runs",
+        "Provenance",
+        "thresholds -5, -3",
+        "steps to -5",
+        "steps to -3",
+    ):
         assert section in page, section
-    for image in ("curves-reacher", "curves-sevendof", "diagnostics-reacher", "effect-space",
-                  "exploration", "performance-profile"):
+    for image in (
+        "curves-reacher",
+        "curves-sevendof",
+        "diagnostics-reacher",
+        "effect-space",
+        "exploration",
+        "performance-profile",
+    ):
         assert f'id="{image}"' in page and (project / f"data/report/{image}.png").is_file()
     assert 'id="diagnostics-sevendof"' not in page  # no run of that family has diagnostics
     assert page.count("data:image/png;base64,") == 6  # self-contained
     # 12 runs expected (2 tasks x 2 algos x 3 seeds); 5 exist, one of them cut short.
     assert "7 of 12 runs have no results" in page
-    assert ("1 finished runs are left out of the figures and tables:</p><ul><li>data/runs/ede/"
-            "ReacherVertical-v0/td3/seed1/eval.csv: the last evaluation is at step 1000, not at "
-            "the run&#x27;s budget 2000</li>") in page
+    assert (
+        "1 finished runs are left out of the figures and tables:</p><ul><li>data/runs/ede/"
+        "ReacherVertical-v0/td3/seed1/eval.csv: the last evaluation is at step 1000, not at "
+        "the run&#x27;s budget 2000</li>"
+    ) in page
     # provenance: each input's SHA-256 beside the versions that made it
     here = describe_software(software_versions())
     meta = json.loads((project / "data/families/point/embedding/encoder/meta.json").read_text())
-    assert f"<td>point encoder weights</td><td><code>{meta['weights_sha256']}</code></td><td>{here}</td>" in page
-    assert f"<td>point rollouts</td><td><code>{meta['data_fingerprint']}</code></td><td>{here}</td>" in page
+    assert (
+        f"<td>point encoder weights</td><td><code>{meta['weights_sha256']}</code></td><td>{here}</td>"
+        in page
+    )
+    assert (
+        f"<td>point rollouts</td><td><code>{meta['data_fingerprint']}</code></td><td>{here}</td>"
+        in page
+    )
     assert "reacher encoder weights" not in page  # every family in data/families: none there
-    assert "<td>4 training runs</td><td></td><td>" + here.replace(
-        software_versions()["torch"], "9.9") in page
-    assert "data/runs/ede/Pusher-v0/td3/seed0" in page and "data/runs/ede/ReacherVertical-v0/td3/seed2" in page
+    assert (
+        "<td>4 training runs</td><td></td><td>" + here.replace(software_versions()["torch"], "9.9")
+        in page
+    )
+    assert (
+        "data/runs/ede/Pusher-v0/td3/seed0" in page
+        and "data/runs/ede/ReacherVertical-v0/td3/seed2" in page
+    )
     metrics = json.loads((project / "data/report-metrics.json").read_text())
     assert metrics["missing_runs"] == 7 and metrics["excluded_runs"] == 1
     # Across tasks: only ReacherVertical has runs of both, all 3 of EDE-TD3's seeds and TD3's
@@ -134,8 +193,11 @@ def test_every_section_with_runs_missing_and_one_cut_short(project: Path, embedd
     assert across["runs_per_task"] == {"ede-td3": 3, "td3": 1}
     assert across["final_return"]["probability_of_improvement"]["value"] == 1.0
     assert "P(EDE-TD3 &gt; TD3)" in page
-    assert metrics["ede/ReacherVertical-v0"]["td3"] == {"final_return": -8.0, "auc": pytest.approx(
-        (-20 + -12) / 2 * 0.5 + (-12 + -8) / 2 * 0.5), "seeds": 1}
+    assert metrics["ede/ReacherVertical-v0"]["td3"] == {
+        "final_return": -8.0,
+        "auc": pytest.approx((-20 + -12) / 2 * 0.5 + (-12 + -8) / 2 * 0.5),
+        "seeds": 1,
+    }
     assert metrics["ede/ReacherVertical-v0"]["ede-td3"]["final_return"] == -3.0
     assert metrics["ede/Pusher-v0"]["td3"]["seeds"] == 0
     curve = (project / "data/report-curves/ede_ReacherVertical-v0.csv").read_text().splitlines()
@@ -143,10 +205,13 @@ def test_every_section_with_runs_missing_and_one_cut_short(project: Path, embedd
     assert curve[3] == "2000,-8,-3"
 
 
-def test_one_seed_and_no_pictures_where_the_params_name_no_family(project: Path, write_params) -> None:
+def test_one_seed_and_no_pictures_where_the_params_name_no_family(
+    project: Path, write_params
+) -> None:
     def no_pictures(params: dict) -> None:
-        params["runs"].update(tasks=TASKS, seeds=[0], budgets={"ede/ReacherVertical-v0": 2000,
-                                                               "ede/Pusher-v0": 2000})
+        params["runs"].update(
+            tasks=TASKS, seeds=[0], budgets={"ede/ReacherVertical-v0": 2000, "ede/Pusher-v0": 2000}
+        )
         params["report"].update(effect_space_family=None, exploration_family=None)
 
     write_params(no_pictures)
@@ -170,21 +235,30 @@ def test_the_inputs_are_the_command_lines_and_the_figures_families_the_params(
     shutil.move(project / "data/runs", project / "elsewhere/runs")
 
     def swapped(params: dict) -> None:
-        params["runs"].update(tasks=TASKS, seeds=[0], budgets={"ede/ReacherVertical-v0": 2000,
-                                                               "ede/Pusher-v0": 2000})
+        params["runs"].update(
+            tasks=TASKS, seeds=[0], budgets={"ede/ReacherVertical-v0": 2000, "ede/Pusher-v0": 2000}
+        )
         params["report"].update(effect_space_family="pointmass", exploration_family="pointmass")
 
     write_params(swapped)
-    _, page = report(project, "--runs", "elsewhere/runs",
-                     "--embedding", "pointmass=elsewhere/families/pointmass/embedding",
-                     "--rollouts", "pointmass=elsewhere/families/pointmass/rollouts.zarr")
+    _, page = report(
+        project,
+        "--runs",
+        "elsewhere/runs",
+        "--embedding",
+        "pointmass=elsewhere/families/pointmass/embedding",
+        "--rollouts",
+        "pointmass=elsewhere/families/pointmass/rollouts.zarr",
+    )
     assert "random 4-step sequences on ede/PointMass-v0" in page and "Positions over ten" in page
     assert "pointmass rollouts" in page and "point encoder weights" not in page
     # Without --embedding, every family found in --families: both, in the provenance.
     _, page = report(project, "--runs", "elsewhere/runs", "--families", "elsewhere/families")
     assert "pointmass rollouts" in page and "point encoder weights" in page
     assert "<code>elsewhere/runs/ede/Pusher-v0/td3/seed0</code>" in page  # missing, by its path
-    assert set(plt.get_fignums()) <= open_before  # every figure closed once drawn: two reports add none
+    assert (
+        set(plt.get_fignums()) <= open_before
+    )  # every figure closed once drawn: two reports add none
     metrics = json.loads((project / "data/report-metrics.json").read_text())
     assert metrics["ede/ReacherVertical-v0"]["td3"]["seeds"] == 1
 
@@ -198,19 +272,37 @@ def bad(result: Result, message: str) -> None:
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--runs", "nowhere"], "--runs nowhere: no such directory; expected the folder of the runs"),
+        (
+            ["--runs", "nowhere"],
+            "--runs nowhere: no such directory; expected the folder of the runs",
+        ),
         (["--embedding", "point=nowhere"], "--embedding point=nowhere: no such directory"),
-        (["--embedding", "data/families/point/embedding"], "--embedding 'data/families/point/embedding': expected "
-         "FAMILY=PATH"),
+        (
+            ["--embedding", "data/families/point/embedding"],
+            "--embedding 'data/families/point/embedding': expected FAMILY=PATH",
+        ),
         (["--embedding", "moon=data/families/point/embedding"], "unknown family 'moon'"),
-        (["--embedding", "pointmass=data/families/pointmass/embedding"],
-         "report.effect_space_family: point, but no --embedding point=DIR is given"),
-        (["--embedding", "point=data/families/pointmass/embedding", "--embedding",
-          "pointmass=data/families/pointmass/embedding"], "the embedding of family pointmass, not point"),
-        (["--rollouts", "point=data/families/pointmass/rollouts.zarr"],
-         "but the point embedding was trained on"),
-        (["--rollouts", "point=data/families/point/embedding"], "--rollouts point=data/families/point/embedding: no "
-         "rollouts store here"),
+        (
+            ["--embedding", "pointmass=data/families/pointmass/embedding"],
+            "report.effect_space_family: point, but no --embedding point=DIR is given",
+        ),
+        (
+            [
+                "--embedding",
+                "point=data/families/pointmass/embedding",
+                "--embedding",
+                "pointmass=data/families/pointmass/embedding",
+            ],
+            "the embedding of family pointmass, not point",
+        ),
+        (
+            ["--rollouts", "point=data/families/pointmass/rollouts.zarr"],
+            "but the point embedding was trained on",
+        ),
+        (
+            ["--rollouts", "point=data/families/point/embedding"],
+            "--rollouts point=data/families/point/embedding: no rollouts store here",
+        ),
     ],
 )
 def test_bad_input_is_one_line_exit_2_and_writes_nothing(
@@ -225,30 +317,52 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(
 def test_a_figures_family_must_be_a_family_of_the_params(project: Path, write_params) -> None:
     write_params(lambda params: params["report"].update(exploration_family="moon"))
     (project / "data/runs").mkdir(parents=True)
-    bad(CliRunner().invoke(main, ["report"]), "report.exploration_family: got 'moon'; expected a "
-        "family of `families`")
+    bad(
+        CliRunner().invoke(main, ["report"]),
+        "report.exploration_family: got 'moon'; expected a family of `families`",
+    )
     assert not (project / "data/report").exists()
 
 
 @pytest.mark.skipif(shutil.which("chromium") is None, reason="Debian's chromium is not installed")
-def test_the_page_opens_in_headless_chromium_with_its_figures(project: Path, embeddings: Path) -> None:
+def test_the_page_opens_in_headless_chromium_with_its_figures(
+    project: Path, embeddings: Path
+) -> None:
     shutil.copytree(embeddings / "data", project / "data")
     fake_run(project, "ede/ReacherVertical-v0", "td3", 0, [-20, -12, -8])
     report(project)
     page = project / "data/report/index.html"
     shot = project / "shot.png"
-    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-             "--disable-background-networking", "--disable-component-update", "--disable-sync",
-             f"--user-data-dir={project / 'chrome-profile'}"]
+    flags = [
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        f"--user-data-dir={project / 'chrome-profile'}",
+    ]
     result = subprocess.run(
         ["chromium", *flags, f"--screenshot={shot}", "--window-size=1200,2400", page.as_uri()],
-        capture_output=True, text=True, timeout=120, env={**os.environ, "HOME": str(project)},
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "HOME": str(project)},
     )
     assert result.returncode == 0, result.stderr
     assert shot.is_file() and shot.stat().st_size > 20_000
-    dom = subprocess.run(["chromium", *flags, "--dump-dom", page.as_uri()], capture_output=True,
-                         text=True, timeout=120, env={**os.environ, "HOME": str(project)})
-    assert dom.returncode == 0 and dom.stdout.count("<img") == 5  # curves x2, diagnostics, Figures 6 and 7
+    dom = subprocess.run(
+        ["chromium", *flags, "--dump-dom", page.as_uri()],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "HOME": str(project)},
+    )
+    assert (
+        dom.returncode == 0 and dom.stdout.count("<img") == 5
+    )  # curves x2, diagnostics, Figures 6 and 7
 
 
 def _edit_json(path: Path, change) -> None:
@@ -265,41 +379,66 @@ DAMAGE = {
     # what was done to td3 seed 1: (how, the reason named)
     "an EDE-TD3 run in a TD3 slot": (
         lambda run: _edit_json(run / "run.json", lambda d: d.update(algo="ede-td3")),
-        'run.json: algo is "ede-td3", expected "td3"'),
+        'run.json: algo is "ede-td3", expected "td3"',
+    ),
     "another budget's run": (
         lambda run: _edit_json(run / "run.json", lambda d: d.update(budget=6000)),
-        "run.json: budget is 6000, expected 2000"),
+        "run.json: budget is 6000, expected 2000",
+    ),
     "another seed's run": (
         lambda run: _edit_json(run / "run.json", lambda d: d.update(seed=0)),
-        "run.json: seed is 0, expected 1"),
+        "run.json: seed is 0, expected 1",
+    ),
     "other params": (
         lambda run: _edit_json(run / "run.json", lambda d: d["params"]["td3"].update(lr=0.01)),
-        "run.json: made with td3.lr = 0.01, but the params say 0.001"),
-    "a garbled run.json": (lambda run: (run / "run.json").write_text('{"task": '),
-                           "run.json: not readable JSON"),
+        "run.json: made with td3.lr = 0.01, but the params say 0.001",
+    ),
+    "a garbled run.json": (
+        lambda run: (run / "run.json").write_text('{"task": '),
+        "run.json: not readable JSON",
+    ),
     "no run.json": (lambda run: (run / "run.json").unlink(), "run.json: missing"),
-    "an empty eval.csv": (lambda run: (run / "eval.csv").write_text(""),
-                          "eval.csv: no column step, mean_return; found none"),
-    "a header alone": (lambda run: (run / "eval.csv").write_text(
-        "step,episode,mean_return,std_return,wall_seconds\n"), "eval.csv: no rows"),
-    "a NaN return": (lambda run: _rewrite(run / "eval.csv", ",-12,", ",nan,"),
-                     "eval.csv: line 3, mean_return: nan, not a finite number"),
-    "text for a number": (lambda run: _rewrite(run / "eval.csv", ",-12,", ",abc,"),
-                          "eval.csv: line 3, mean_return: 'abc' is not a number"),
-    "a missing column": (lambda run: (run / "eval.csv").write_text("step,return\n0,-1\n2000,-2\n"),
-                         "eval.csv: no column mean_return; found step, return"),
-    "steps past the budget": (lambda run: _rewrite(run / "eval.csv", "\n2000,", "\n3000,"),
-                              "eval.csv: the last evaluation is at step 3000, not at the run's "
-                              "budget 2000"),
-    "steps out of order": (lambda run: _rewrite(run / "eval.csv", "\n1000,", "\n2500,"),
-                           "eval.csv: steps must start at 0 and rise; found [0, 2500, 2000]"),
-    "damaged diagnostics": (lambda run: _rewrite(run / "diagnostics.csv", "1000,1000,", "1000,x,"),
-                            "diagnostics.csv: line 2, updates: 'x' is not a number"),
+    "an empty eval.csv": (
+        lambda run: (run / "eval.csv").write_text(""),
+        "eval.csv: no column step, mean_return; found none",
+    ),
+    "a header alone": (
+        lambda run: (run / "eval.csv").write_text(
+            "step,episode,mean_return,std_return,wall_seconds\n"
+        ),
+        "eval.csv: no rows",
+    ),
+    "a NaN return": (
+        lambda run: _rewrite(run / "eval.csv", ",-12,", ",nan,"),
+        "eval.csv: line 3, mean_return: nan, not a finite number",
+    ),
+    "text for a number": (
+        lambda run: _rewrite(run / "eval.csv", ",-12,", ",abc,"),
+        "eval.csv: line 3, mean_return: 'abc' is not a number",
+    ),
+    "a missing column": (
+        lambda run: (run / "eval.csv").write_text("step,return\n0,-1\n2000,-2\n"),
+        "eval.csv: no column mean_return; found step, return",
+    ),
+    "steps past the budget": (
+        lambda run: _rewrite(run / "eval.csv", "\n2000,", "\n3000,"),
+        "eval.csv: the last evaluation is at step 3000, not at the run's budget 2000",
+    ),
+    "steps out of order": (
+        lambda run: _rewrite(run / "eval.csv", "\n1000,", "\n2500,"),
+        "eval.csv: steps must start at 0 and rise; found [0, 2500, 2000]",
+    ),
+    "damaged diagnostics": (
+        lambda run: _rewrite(run / "diagnostics.csv", "1000,1000,", "1000,x,"),
+        "diagnostics.csv: line 2, updates: 'x' is not a number",
+    ),
 }
 
 
 @pytest.mark.parametrize("case", DAMAGE)
-def test_a_run_that_is_not_what_the_params_name_is_left_out_by_name(project: Path, case: str) -> None:
+def test_a_run_that_is_not_what_the_params_name_is_left_out_by_name(
+    project: Path, case: str
+) -> None:
     two_seeds_no_pictures(project, budget=2000)
     fake_run(project, "ede/ReacherVertical-v0", "td3", 0, [-20, -12, -8])
     damaged = fake_run(project, "ede/ReacherVertical-v0", "td3", 1, [-21, -12, -9])
@@ -307,7 +446,9 @@ def test_a_run_that_is_not_what_the_params_name_is_left_out_by_name(project: Pat
     damage(damaged)
     result, page = report(project)
     left_out = [line for line in result.stderr.splitlines() if line.startswith("left out: ")]
-    assert len(left_out) == 1 and left_out[0].startswith(f"left out: {damaged.relative_to(project)}/")
+    assert len(left_out) == 1 and left_out[0].startswith(
+        f"left out: {damaged.relative_to(project)}/"
+    )
     assert reason in left_out[0], left_out[0]
     assert "Traceback" not in result.output
     assert "1 finished runs are left out of the figures and tables" in page
@@ -324,8 +465,9 @@ def two_seeds_no_pictures(root: Path, budget: int) -> None:
     from tests.support import REPO
 
     params = yaml.safe_load((REPO / "params.yaml").read_text())
-    params["runs"].update(tasks=TASKS, seeds=[0, 1], budgets={"ede/ReacherVertical-v0": budget,
-                                                              "ede/Pusher-v0": 2000})
+    params["runs"].update(
+        tasks=TASKS, seeds=[0, 1], budgets={"ede/ReacherVertical-v0": budget, "ede/Pusher-v0": 2000}
+    )
     params["report"].update(effect_space_family=None, exploration_family=None)
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
 
@@ -339,16 +481,22 @@ def test_a_seed_that_falls_and_stays_below_its_best_is_flagged(project: Path) ->
     fake_run(project, "ede/ReacherVertical-v0", "ede-td3", 0, rises)
     _, page = report(project)
     # Binned per 2,500 steps: the best bin (7.5K, 10K] averages -14, -12, -10.
-    assert "Fell and stayed below their best (diverged, in the paper's sense): TD3 seed 0 " \
-           "(best -12 at step 10,000, last quarter -33.5)." in page
+    assert (
+        "Fell and stayed below their best (diverged, in the paper's sense): TD3 seed 0 "
+        "(best -12 at step 10,000, last quarter -33.5)." in page
+    )
     assert page.count("Fell and stayed below their best") == 1  # the others rise
 
 
 def test_a_tasks_intervals_do_not_depend_on_the_runs_of_tasks_before_it(
-        project: Path, write_params) -> None:
+    project: Path, write_params
+) -> None:
     def eight_seeds(params: dict) -> None:  # 8 seeds: percentiles that resampling noise moves
-        params["runs"].update(tasks=TASKS, seeds=list(range(8)),
-                              budgets={"ede/ReacherVertical-v0": 2000, "ede/Pusher-v0": 2000})
+        params["runs"].update(
+            tasks=TASKS,
+            seeds=list(range(8)),
+            budgets={"ede/ReacherVertical-v0": 2000, "ede/Pusher-v0": 2000},
+        )
         params["report"].update(effect_space_family=None, exploration_family=None)
 
     def pusher_table(page: str) -> str:

@@ -25,8 +25,16 @@ SOURCE = {"commit": "0123456789ab", "command": "experiment.py --seeds 0-3"}
 EMBEDDING = "5e" * 32  # the decoder checksum an EDE-TD3 run's run.json names, unless told
 
 
-def write_run(runs: Path, algo: str, seed: int, returns: np.ndarray, budget: int = BUDGET,
-              task: str = TASK, machine: dict | None = None, embedding: str = EMBEDDING) -> None:
+def write_run(
+    runs: Path,
+    algo: str,
+    seed: int,
+    returns: np.ndarray,
+    budget: int = BUDGET,
+    task: str = TASK,
+    machine: dict | None = None,
+    embedding: str = EMBEDDING,
+) -> None:
     """A finished run in the pipeline's layout (``runs/<task id>/<algo>/seed<N>/``), and its task's
     ``source.json`` where it has none yet."""
     folder = layout.run(task, algo, seed, runs)
@@ -34,11 +42,19 @@ def write_run(runs: Path, algo: str, seed: int, returns: np.ndarray, budget: int
     if not (folder.parents[1] / "source.json").exists():
         write_source(runs, task)
     steps = np.linspace(0, budget, len(returns))
-    rows = [f"{int(s)},{i},{r},1.0,{i}" for i, (s, r) in enumerate(zip(steps, returns))]
-    (folder / "eval.csv").write_text("step,episode,mean_return,std_return,wall_seconds\n"
-                                     + "\n".join(rows) + "\n")
-    made = {"task": task, "algo": algo, "seed": seed, "budget": budget,
-            "embedding": embedding if algo == "ede-td3" else ""}
+    rows = [
+        f"{int(s)},{i},{r},1.0,{i}" for i, (s, r) in enumerate(zip(steps, returns, strict=True))
+    ]
+    (folder / "eval.csv").write_text(
+        "step,episode,mean_return,std_return,wall_seconds\n" + "\n".join(rows) + "\n"
+    )
+    made = {
+        "task": task,
+        "algo": algo,
+        "seed": seed,
+        "budget": budget,
+        "embedding": embedding if algo == "ede-td3" else "",
+    }
     if machine is not None:  # as run.json records it since 2026-12; the committed runs have none
         made["machine"] = machine
     (folder / "run.json").write_text(json.dumps(made))
@@ -59,8 +75,18 @@ def write_source(runs: Path, task: str = TASK, **made: object) -> None:
 def results(runs: Path, figures: Path) -> Done:
     """``ede-pipeline results`` on ``runs`` with the committed params; an exception other than
     click's exit is raised, not reported."""
-    done = CliRunner().invoke(main, ["results", "--runs", str(runs), "--figures", str(figures),
-                                     "--params", str(REPO / "params.yaml")])
+    done = CliRunner().invoke(
+        main,
+        [
+            "results",
+            "--runs",
+            str(runs),
+            "--figures",
+            str(figures),
+            "--params",
+            str(REPO / "params.yaml"),
+        ],
+    )
     if done.exception is not None and not isinstance(done.exception, SystemExit):
         raise done.exception
     return Done(done.exit_code, done.stdout, done.stderr)
@@ -89,8 +115,10 @@ def test_tables_name_disjoint_bins_and_diverged_seeds(tmp_path: Path) -> None:
     assert above[0].endswith("–20K") and not above[0].startswith("1K")
     assert above[1].startswith("none.")
     assert out.count("| **yes** |") == 4  # every TD3 seed fell by more than half its gain
-    assert "P(EDE-TD3 > TD3) over this task's seeds (rliable, as the aggregates across tasks): " \
+    assert (
+        "P(EDE-TD3 > TD3) over this task's seeds (rliable, as the aggregates across tasks): "
         "1 [1, 1] on the final return" in task_table(out, TASK)
+    )
     turn = out.split("### ede/ReacherPush-v0")[0]
     assert "| EDE-TD3 | 0 | " in turn and turn.count("| no |") == 4
     assert (tmp_path / "figures" / "reacher.png").stat().st_size > 10_000
@@ -98,8 +126,10 @@ def test_tables_name_disjoint_bins_and_diverged_seeds(tmp_path: Path) -> None:
     # above every TD3 seed, so P is 1 at both ends.
     across = out.split("### Across tasks: the reacher family")[1]
     assert "1 task (ede/ReacherTurn-v0); per task 4 of EDE-TD3 and 4 of TD3" in across
-    assert "Not yet in these aggregates, with runs of an algorithm still to finish: " \
+    assert (
+        "Not yet in these aggregates, with runs of an algorithm still to finish: "
         "ede/ReacherPush-v0 (1 of its 4 seeds)." in across
+    )
     final = across.split("| final return | ")[1].split(" |")
     assert final[0] == "1 [1, 1]" and float(final[1].split()[0]) > float(final[2].split()[0])
     assert (tmp_path / "figures" / "performance-profile.png").stat().st_size > 10_000
@@ -119,8 +149,10 @@ def test_the_committed_runs_redraw(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     # Each task as its runs name it, in the pipeline's layout: ede/ReacherVertical-v0 lives in
     # ede/ReacherVertical-v0/, and a task beyond the paper keeps its own name (HalfCheetah-v5).
-    committed = {json.loads(made.read_text())["task"]
-                 for made in (REPO / "docs/results/runs").rglob("seed*/run.json")}
+    committed = {
+        json.loads(made.read_text())["task"]
+        for made in (REPO / "docs/results/runs").rglob("seed*/run.json")
+    }
     assert "HalfCheetah-v5" in committed and "ede/ReacherVertical-v0" in committed
     for task in committed:
         assert f"### {task}\n" in done.stdout
@@ -135,30 +167,43 @@ def test_a_tasks_numbers_do_not_depend_on_the_other_tasks_present(tmp_path: Path
     runs = tmp_path / "runs"
     for seed in range(8):  # enough for the bootstrap's percentiles not to fall on the same means
         for algo in ("td3", "ede-td3"):
-            write_run(runs, algo, seed, np.random.default_rng([seed, len(algo)]).normal(-100, 20, 21))
+            write_run(
+                runs, algo, seed, np.random.default_rng([seed, len(algo)]).normal(-100, 20, 21)
+            )
     alone = results(runs, tmp_path / "figures")
     assert alone.returncode == 0, alone.stderr
     # ReacherVertical comes first in params.yaml: its bootstraps run before ReacherTurn's; and
     # ReacherTurn gains a threshold, bootstrapped between its final returns and its bands.
     for seed in range(3):
         for algo in ("td3", "ede-td3"):
-            write_run(runs, algo, seed, np.random.default_rng(seed + 7).normal(-20, 5, 21),
-                      budget=50_000, task="ede/ReacherVertical-v0")
+            write_run(
+                runs,
+                algo,
+                seed,
+                np.random.default_rng(seed + 7).normal(-20, 5, 21),
+                budget=50_000,
+                task="ede/ReacherVertical-v0",
+            )
     write_source(runs, thresholds=[-110])
     beside = results(runs, tmp_path / "figures")
     assert beside.returncode == 0, beside.stderr
-    assert beside.stdout.index("### ede/ReacherVertical-v0") < beside.stdout.index("### ede/ReacherTurn-v0")
+    assert beside.stdout.index("### ede/ReacherVertical-v0") < beside.stdout.index(
+        "### ede/ReacherTurn-v0"
+    )
     with_threshold = task_table(beside.stdout, "ede/ReacherTurn-v0")
     assert "| steps to reach -110 |" in with_threshold
 
     def first_columns(section: str) -> list[str]:  # every table cut to its first four columns
         return ["|".join(line.split("|")[:5]) for line in section.splitlines()]
 
-    assert first_columns(with_threshold) == first_columns(task_table(alone.stdout, "ede/ReacherTurn-v0"))
+    assert first_columns(with_threshold) == first_columns(
+        task_table(alone.stdout, "ede/ReacherTurn-v0")
+    )
 
 
 def test_a_task_run_with_more_seeds_joins_the_aggregates_with_as_many_as_the_others(
-        tmp_path: Path) -> None:
+    tmp_path: Path,
+) -> None:
     runs = tmp_path / "runs"
     # Both finished; each ends above its random policy's return (-93 and -210).
     for task, seeds, start in (("ede/ReacherVertical-v0", 8, -60), (TASK, 4, -200)):
@@ -169,10 +214,14 @@ def test_a_task_run_with_more_seeds_joins_the_aggregates_with_as_many_as_the_oth
     done = results(runs, tmp_path / "figures")
     assert done.returncode == 0, done.stderr
     across = done.stdout.split("### Across tasks: the reacher family")[1]
-    assert "2 tasks (ede/ReacherVertical-v0, ede/ReacherTurn-v0); per task 4 of EDE-TD3 and 4 " \
+    assert (
+        "2 tasks (ede/ReacherVertical-v0, ede/ReacherTurn-v0); per task 4 of EDE-TD3 and 4 "
         "of TD3" in across
-    assert "Left out: ede/ReacherVertical-v0 EDE-TD3 seeds 4, 5, 6, 7; ede/ReacherVertical-v0 " \
+    )
+    assert (
+        "Left out: ede/ReacherVertical-v0 EDE-TD3 seeds 4, 5, 6, 7; ede/ReacherVertical-v0 "
         "TD3 seeds 4, 5, 6, 7." in across
+    )
     assert "Not yet in these aggregates" not in across
     assert "| final return | 1 [1, 1] |" in across  # every EDE-TD3 run ends above every TD3 run
 
@@ -191,7 +240,9 @@ def test_a_task_beyond_the_paper_is_its_own_family_with_its_thresholds(tmp_path:
     done = results(runs, tmp_path / "figures")
     assert done.returncode == 0, done.stderr
     table = task_table(done.stdout, "Pendulum-v1")
-    assert "pendulum family, its own (beyond the paper). 20,000 steps a run; commit 0123456" in table
+    assert (
+        "pendulum family, its own (beyond the paper). 20,000 steps a run; commit 0123456" in table
+    )
     assert "| steps to reach -600 | steps to reach -50 |" in table
     # EDE-TD3 passes -600 at x = 0.3 (6,000 steps), TD3 at x = 0.55 (11,000): the same for every
     # seed, so the intervals are points; neither reaches -50.
@@ -212,11 +263,17 @@ def test_an_ablation_is_set_against_the_defaults_runs_of_the_same_seeds(tmp_path
         write_run(runs, "td3", seed, -200 + 50 * x)
     for seed in (0, 1):  # the variant: seeds 0 and 1 of EDE-TD3, learning twice as fast
         write_run(ablations / "fast", "ede-td3", seed, -200 + 150 * np.sqrt(x) + seed)
-    write_source(ablations / "fast", commit="fedcba987654", command="experiment.py --variant fast:x=1",
-                 thresholds=[-150])
+    write_source(
+        ablations / "fast",
+        commit="fedcba987654",
+        command="experiment.py --variant fast:x=1",
+        thresholds=[-150],
+    )
     embedding = layout.published_embedding(TASK, EMBEDDING, ablations / "fast")
     embedding.mkdir(parents=True)
-    (embedding / "encoder_metrics.json").write_text(json.dumps({"prediction_ratio": 0.7021, "kl": 7.94}))
+    (embedding / "encoder_metrics.json").write_text(
+        json.dumps({"prediction_ratio": 0.7021, "kl": 7.94})
+    )
     for algo in ("td3", "ede-td3"):  # a variant of both algorithms, drawn as a family is
         write_run(ablations / "both", algo, 0, -200 + 20 * x)
     write_source(ablations / "both", commit="0")
@@ -226,17 +283,25 @@ def test_an_ablation_is_set_against_the_defaults_runs_of_the_same_seeds(tmp_path
     assert not (tmp_path / "figures" / "ablation-fast.png").exists()  # EDE-TD3 alone: no figure
     assert done.returncode == 0, done.stderr
     section = done.stdout.split("### fast: ede/ReacherTurn-v0, EDE-TD3\n")[1]
-    assert "20,000 steps a run, seeds 0, 1 of each; the variant's command `experiment.py --variant fast:x=1`" in section
-    rows = {line.split(" | ")[0]: line.split(" | ") for line in section.splitlines() if line.startswith("| ")}
+    assert (
+        "20,000 steps a run, seeds 0, 1 of each; the variant's command `experiment.py --variant fast:x=1`"
+        in section
+    )
+    rows = {
+        line.split(" | ")[0]: line.split(" | ")
+        for line in section.splitlines()
+        if line.startswith("| ")
+    }
     # The default's seeds 0 and 1 only (-100 and -110): not seeds 2 and 3 (-120, -130).
     assert rows["| default"][1] == "0123456; —" and rows["| default"][2].startswith("-105 [")
     assert rows["| fast"][1] == "fedcba9; prediction ratio 0.702, KL 7.9 nats"
     assert rows["| fast"][2].startswith("-49.5 [")
     # -150 first reached at x = 0.15 by the variant (3,000 steps), at x = 0.5 and 0.6 by the default.
-    assert rows["| fast"][4] == "3,000 [3,000, 3,000] |" and rows["| default"][4].startswith("11,000 [")
+    assert rows["| fast"][4] == "3,000 [3,000, 3,000] |" and rows["| default"][4].startswith(
+        "11,000 ["
+    )
     assert "### fast: ede/ReacherTurn-v0, TD3" not in done.stdout  # the variant ran no TD3
     assert "fast above the default at 1K–20K; below at none." in section
-
 
 
 def test_a_source_written_by_experiment_export_names_its_file_and_commits(tmp_path: Path) -> None:
@@ -245,23 +310,33 @@ def test_a_source_written_by_experiment_export_names_its_file_and_commits(tmp_pa
         write_run(runs, algo, 0, np.linspace(-200, -100, 21))
         write_run(ablations / "fast", algo, 0, np.linspace(-200, -90, 21))
     # As `ede-pipeline experiment export` writes it, of runs made at two commits.
-    made = {"experiment": "experiments/turn.yaml", "commit": ["0123456789ab", "fedcba987654"],
-            "seeds": [0]}
+    made = {
+        "experiment": "experiments/turn.yaml",
+        "commit": ["0123456789ab", "fedcba987654"],
+        "seeds": [0],
+    }
     (layout.task_runs(TASK, runs) / "source.json").write_text(json.dumps(made))
     variant = {"experiment": "experiments/fast.yaml", "commit": "fedcba987654", "seeds": [0]}
     (layout.task_runs(TASK, ablations / "fast") / "source.json").write_text(json.dumps(variant))
     done = results(runs, tmp_path / "figures")
     assert done.returncode == 0, done.stderr
-    assert ("2.0% of the paper's 1,000,000; experiment `experiments/turn.yaml`, commits 0123456, "
-            "fedcba9; curves binned per 1,000 steps.") in task_table(done.stdout, TASK)
+    assert (
+        "2.0% of the paper's 1,000,000; experiment `experiments/turn.yaml`, commits 0123456, "
+        "fedcba9; curves binned per 1,000 steps."
+    ) in task_table(done.stdout, TASK)
     section = done.stdout.split("### fast: ede/ReacherTurn-v0, TD3\n")[1]
     assert "seeds 0 of each; the variant's experiment `experiments/fast.yaml`; curves" in section
-    rows = {line.split(" | ")[0]: line.split(" | ") for line in section.splitlines() if line.startswith("| ")}
+    rows = {
+        line.split(" | ")[0]: line.split(" | ")
+        for line in section.splitlines()
+        if line.startswith("| ")
+    }
     assert rows["| default"][1] == "0123456, fedcba9; —" and rows["| fast"][1] == "fedcba9; —"
 
 
 def test_a_task_whose_seeds_came_from_two_experiments_names_each_and_its_embedding(
-        tmp_path: Path) -> None:
+    tmp_path: Path,
+) -> None:
     """Seeds added by a second experiment (``experiment export`` merges its part into the task's
     source.json): the task names which seeds each part made, and the held-out figures of each
     embedding its EDE-TD3 seeds used, found by the checksum their run.json names."""
@@ -269,44 +344,80 @@ def test_a_task_whose_seeds_came_from_two_experiments_names_each_and_its_embeddi
     other = "a1" * 32
     for seed in range(4):
         write_run(runs, "td3", seed, np.linspace(-200, -100, 21))
-        write_run(runs, "ede-td3", seed, np.linspace(-200, -90, 21),
-                  embedding=EMBEDDING if seed < 2 else other)
-    parts = [{"experiment": "experiments/turn.yaml", "commit": "0123456789ab", "seeds": [0, 1],
-              "thresholds": [-150]},
-             {"command": "experiment.py --seeds 2-3", "commit": "fedcba987654", "seeds": [2, 3],
-              "thresholds": [-120, -150]}]
+        write_run(
+            runs,
+            "ede-td3",
+            seed,
+            np.linspace(-200, -90, 21),
+            embedding=EMBEDDING if seed < 2 else other,
+        )
+    parts = [
+        {
+            "experiment": "experiments/turn.yaml",
+            "commit": "0123456789ab",
+            "seeds": [0, 1],
+            "thresholds": [-150],
+        },
+        {
+            "command": "experiment.py --seeds 2-3",
+            "commit": "fedcba987654",
+            "seeds": [2, 3],
+            "thresholds": [-120, -150],
+        },
+    ]
     (layout.task_runs(TASK, runs) / "source.json").write_text(json.dumps(parts))
     for checksum, ratio in ((EMBEDDING, 0.125), (other, 0.25)):
         kept = layout.published_embedding(TASK, checksum, runs)
         kept.mkdir(parents=True)
-        (kept / "encoder_metrics.json").write_text(json.dumps({"prediction_ratio": ratio, "kl": 8.0}))
+        (kept / "encoder_metrics.json").write_text(
+            json.dumps({"prediction_ratio": ratio, "kl": 8.0})
+        )
     done = results(runs, tmp_path / "figures")
     assert done.returncode == 0, done.stderr
     table = task_table(done.stdout, TASK)
-    assert ("seeds 0, 1 by experiment `experiments/turn.yaml`, commit 0123456; seeds 2, 3 by "
-            "commit fedcba9; curves binned") in table
-    assert ("Its embedding, held out: seeds 0, 1: prediction ratio 0.125, KL 8.0 nats; seeds 2, 3: "
-            "prediction ratio 0.250, KL 8.0 nats.") in table
+    assert (
+        "seeds 0, 1 by experiment `experiments/turn.yaml`, commit 0123456; seeds 2, 3 by "
+        "commit fedcba9; curves binned"
+    ) in table
+    assert (
+        "Its embedding, held out: seeds 0, 1: prediction ratio 0.125, KL 8.0 nats; seeds 2, 3: "
+        "prediction ratio 0.250, KL 8.0 nats."
+    ) in table
     header = next(line for line in table.splitlines() if line.startswith("| algorithm"))
     assert header.count("reach -150 |") == 1 and "reach -120 |" in header  # each part's, once
 
 
 def test_each_task_names_the_cpus_that_made_its_runs(tmp_path: Path) -> None:
     runs = tmp_path / "runs"
-    xeon = {"cpu": "Intel(R) Xeon(R) Processor", "instruction_sets": ["avx2", "avx512f"],
-            "torch_cpu_capability": "AVX512", "torch_threads": 1, "gpu": None}
+    xeon = {
+        "cpu": "Intel(R) Xeon(R) Processor",
+        "instruction_sets": ["avx2", "avx512f"],
+        "torch_cpu_capability": "AVX512",
+        "torch_threads": 1,
+        "gpu": None,
+    }
     write_run(runs, "td3", 0, np.linspace(-200, -100, 21), machine=xeon)
     write_run(runs, "td3", 1, np.linspace(-200, -100, 21), machine=xeon)
-    write_run(runs, "ede-td3", 0, np.linspace(-200, -90, 21),
-              machine={**xeon, "cpu": "AMD EPYC 7B13", "instruction_sets": []})
+    write_run(
+        runs,
+        "ede-td3",
+        0,
+        np.linspace(-200, -90, 21),
+        machine={**xeon, "cpu": "AMD EPYC 7B13", "instruction_sets": []},
+    )
     write_run(runs, "ede-td3", 1, np.linspace(-200, -90, 21))  # made before run.json named it
     done = results(runs, tmp_path / "figures")
     assert done.returncode == 0, done.stderr
     table = task_table(done.stdout, TASK)
-    assert "\nRuns made on: Intel(R) Xeon(R) Processor (avx2, avx512f): 2; AMD EPYC 7B13 (none of " \
+    assert (
+        "\nRuns made on: Intel(R) Xeon(R) Processor (avx2, avx512f): 2; AMD EPYC 7B13 (none of "
         "avx2, avx512f, avx512_bf16, amx_tile, amx_bf16): 1; CPU unrecorded: 1.\n" in table
+    )
     # After the line naming the commit, before the table.
-    assert table.index("commit 0123456") < table.index("Runs made on") < table.index("| algorithm |")
+    assert (
+        table.index("commit 0123456") < table.index("Runs made on") < table.index("| algorithm |")
+    )
+
 
 def test_an_ablation_without_the_defaults_seeds_is_refused_by_name(tmp_path: Path) -> None:
     runs, ablations = tmp_path / "runs", tmp_path / "ablations"
@@ -320,7 +431,8 @@ def test_an_ablation_without_the_defaults_seeds_is_refused_by_name(tmp_path: Pat
 
 
 def test_a_task_alone_never_joins_a_family_of_the_papers_and_one_seed_claims_no_interval(
-        tmp_path: Path) -> None:
+    tmp_path: Path,
+) -> None:
     runs = tmp_path / "runs"
     for algo in ("td3", "ede-td3"):  # gymnasium's Reacher-v5 would be family "reacher"
         write_run(runs, algo, 0, np.linspace(-50, -5 - 5 * (algo == "td3"), 21), task="Reacher-v5")
@@ -334,8 +446,11 @@ def test_a_task_alone_never_joins_a_family_of_the_papers_and_one_seed_claims_no_
 
 def bad_input_cases() -> dict[str, tuple]:
     """Each case: what to break in a folder of good runs, and the line expected."""
+
     def source(value: object) -> Callable[[Path], None]:
-        return lambda runs: (layout.task_runs(TASK, runs) / "source.json").write_text(json.dumps(value))
+        return lambda runs: (layout.task_runs(TASK, runs) / "source.json").write_text(
+            json.dumps(value)
+        )
 
     def embedding(runs: Path) -> None:
         kept = layout.published_embedding(TASK, EMBEDDING, runs)
@@ -354,28 +469,55 @@ def bad_input_cases() -> dict[str, tuple]:
         shutil.copytree(layout.task_runs(TASK, runs), runs / "ede" / "ReacherTurn-v1")
 
     return {
-        "machine": (machine, "run.json: 'machine' is 'a laptop'; expected its 'cpu' and "
-                    "'instruction_sets'"),
-        "no commit": (source({"command": "experiment.py"}), "source.json: expected JSON naming the 'commit'"),
-        "no commits": (source({"commit": [], "experiment": "experiments/a.yaml"}),
-                       "source.json: expected JSON naming the 'commit' that made the runs beside it "
-                       "(a string, or a list of them)"),
-        "no maker": (source({"commit": "0123456"}),
-                     "source.json: expected the 'experiment' file (or the 'command') that made"),
-        "experiment": (source({"commit": ["0123456"], "experiment": ["experiments/a.yaml"],
-                               "command": "experiment.py"}),
-                       "source.json: expected the 'experiment' file (or the 'command') that made"),
-        "thresholds": (source({**SOURCE, "thresholds": "150"}),
-                       "source.json: 'thresholds' is '150'; expected a list of returns"),
-        "seeds": (source({**SOURCE, "seeds": [0, -1]}),
-                  "source.json: 'seeds' is [0, -1]; expected a list of seeds (whole numbers >= 0)"),
-        "seed twice": (source([{**SOURCE, "seeds": [0, 1]}, {**SOURCE, "seeds": [1, 2]}]),
-                       "source.json: seeds [1] are named by two of its parts; expected each seed "
-                       "made by one"),
+        "machine": (
+            machine,
+            "run.json: 'machine' is 'a laptop'; expected its 'cpu' and 'instruction_sets'",
+        ),
+        "no commit": (
+            source({"command": "experiment.py"}),
+            "source.json: expected JSON naming the 'commit'",
+        ),
+        "no commits": (
+            source({"commit": [], "experiment": "experiments/a.yaml"}),
+            "source.json: expected JSON naming the 'commit' that made the runs beside it "
+            "(a string, or a list of them)",
+        ),
+        "no maker": (
+            source({"commit": "0123456"}),
+            "source.json: expected the 'experiment' file (or the 'command') that made",
+        ),
+        "experiment": (
+            source(
+                {
+                    "commit": ["0123456"],
+                    "experiment": ["experiments/a.yaml"],
+                    "command": "experiment.py",
+                }
+            ),
+            "source.json: expected the 'experiment' file (or the 'command') that made",
+        ),
+        "thresholds": (
+            source({**SOURCE, "thresholds": "150"}),
+            "source.json: 'thresholds' is '150'; expected a list of returns",
+        ),
+        "seeds": (
+            source({**SOURCE, "seeds": [0, -1]}),
+            "source.json: 'seeds' is [0, -1]; expected a list of seeds (whole numbers >= 0)",
+        ),
+        "seed twice": (
+            source([{**SOURCE, "seeds": [0, 1]}, {**SOURCE, "seeds": [1, 2]}]),
+            "source.json: seeds [1] are named by two of its parts; expected each seed made by one",
+        ),
         "no parts": (source([]), "source.json: an empty list; expected what made the runs"),
         "embedding": (embedding, f"embedding/{EMBEDDING[:12]}: expected pretrain's metrics"),
-        "unknown task": (unknown_task, "HalfCheetah-v99: cannot be made to measure its reference returns"),
-        "misplaced": (misplaced, "ReacherTurn-v1: its runs are of ede/ReacherTurn-v0; keep them in "),
+        "unknown task": (
+            unknown_task,
+            "HalfCheetah-v99: cannot be made to measure its reference returns",
+        ),
+        "misplaced": (
+            misplaced,
+            "ReacherTurn-v1: its runs are of ede/ReacherTurn-v0; keep them in ",
+        ),
     }
 
 
@@ -400,14 +542,19 @@ def test_a_task_folder_whose_runs_name_another_task_is_refused_in_one_line(tmp_p
     done = results(runs, tmp_path / "figures")
     assert done.returncode == 2 and done.stderr == (
         f"Error: {runs / 'ReacherTurn-v0'}: its runs are of ede/ReacherTurn-v0; keep them in "
-        f"{runs / 'ede' / 'ReacherTurn-v0'}/\n")
+        f"{runs / 'ede' / 'ReacherTurn-v0'}/\n"
+    )
     assert not (tmp_path / "figures").exists()
 
 
 def test_the_transfer_tasks_have_an_aggregate_of_their_own(tmp_path: Path) -> None:
     """The transfer claim's aggregate: the families' target tasks alone (not their sources)."""
     runs = tmp_path / "runs"
-    for task, start in (("ede/ReacherVertical-v0", -60), (TASK, -200), ("ede/ReacherPush-v0", -220)):
+    for task, start in (
+        ("ede/ReacherVertical-v0", -60),
+        (TASK, -200),
+        ("ede/ReacherPush-v0", -220),
+    ):
         for seed in range(2):
             write_run(runs, "td3", seed, np.linspace(start, start / 2 - seed, 21), task=task)
             write_run(runs, "ede-td3", seed, np.linspace(start, start / 4 - seed, 21), task=task)

@@ -10,9 +10,9 @@ of those two files are compared by content minus the times instead.
 from __future__ import annotations
 
 import contextlib
-import shlex
 import csv
 import json
+import shlex
 import shutil
 import subprocess
 from collections.abc import Callable, Iterator
@@ -24,8 +24,8 @@ import yaml
 
 from ede.config import load_params
 from ede.locks import exclusive
-from tests.support import BIN, dvc, run, scratch_copy
 from ede_pipeline.sweep import Job, RunId, group_jobs, train_command, train_runs
+from tests.support import BIN, dvc, run, scratch_copy
 
 pytestmark = pytest.mark.slow
 
@@ -47,8 +47,9 @@ def sweep(copy: Path, *args: str) -> subprocess.CompletedProcess[str]:
 
 
 @pytest.fixture(scope="module")
-def upstream(tmp_path_factory: pytest.TempPathFactory,
-             tiny_pipeline: Callable[[dict[str, Any]], None]) -> Path:
+def upstream(
+    tmp_path_factory: pytest.TempPathFactory, tiny_pipeline: Callable[[dict[str, Any]], None]
+) -> Path:
     """A copy with tiny params and runs of one reacher task, whose embedding is made (collect,
     pretrain), and no run yet."""
 
@@ -132,15 +133,24 @@ def test_sweep_in_groups_of_seeds_records_what_dvc_repro_records(
 def test_jobs_of_one_task_and_algorithm_are_grouped_by_seed() -> None:
     def job(algo: str, seed: int) -> Job:  # as DVC runs a stage's command: through a shell
         words = train_command(TASK, algo, [seed])
-        return Job(f"train@{TASK}-{algo}-{seed}", [["/bin/sh", "-c", shlex.join(words)]], "/repo",
-                   {"A": "1"}, f"/logs/{algo}-{seed}.log", runs=(RunId(TASK, algo, seed),))
+        return Job(
+            f"train@{TASK}-{algo}-{seed}",
+            [["/bin/sh", "-c", shlex.join(words)]],
+            "/repo",
+            {"A": "1"},
+            f"/logs/{algo}-{seed}.log",
+            runs=(RunId(TASK, algo, seed),),
+        )
 
     other = Job("report", [["ede-pipeline", "report"]], "/repo", {}, "/logs/report.log")
     jobs = [job("td3", 0), job("ede-td3", 1), job("td3", 2), job("td3", 1), other]
     grouped = group_jobs(jobs, 2)
     assert [j.stage for j in grouped] == [
-        "report", f"train@{TASK}-td3-0 + train@{TASK}-td3-1", f"train@{TASK}-td3-2",
-        f"train@{TASK}-ede-td3-1"]
+        "report",
+        f"train@{TASK}-td3-0 + train@{TASK}-td3-1",
+        f"train@{TASK}-td3-2",
+        f"train@{TASK}-ede-td3-1",
+    ]
     shell, flag, command = grouped[1].argvs[0]
     assert (shell, flag, grouped[1].env) == ("/bin/sh", "-c", {"A": "1"})
     words = shlex.split(command)
@@ -192,8 +202,13 @@ def ray_cluster() -> Iterator[str]:
     """A Ray cluster on this machine only, two CPUs (two runs at once); its address."""
     import ray  # part of the dev extra: a missing Ray fails this test rather than skipping it
 
-    context = ray.init(num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1",
-                       log_to_driver=False, configure_logging=False)
+    context = ray.init(
+        num_cpus=2,
+        include_dashboard=False,
+        _node_ip_address="127.0.0.1",
+        log_to_driver=False,
+        configure_logging=False,
+    )
     try:
         yield context.address_info["gcs_address"]
     finally:

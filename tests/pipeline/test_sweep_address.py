@@ -22,10 +22,10 @@ import grpc
 import pytest
 from click.testing import CliRunner
 
-from tests.support import REPO
 from ede_pipeline.cli import main
 from ede_pipeline.common import BadInput
 from ede_pipeline.sweep import RAY_CONNECT_TIMEOUT, check_ray_address
+from tests.support import REPO
 
 
 def closed_port() -> int:
@@ -132,10 +132,13 @@ def test_a_service_that_is_not_ray_is_refused_in_one_line_within_the_bound(
             check_ray_address(address, timeout=1.5)
         seconds = time.monotonic() - start
     line = str(refused.value)
-    assert re.fullmatch(rf"--address {re.escape(address)}: what answers there is not Ray "
-                        rf"\(asked for {question}: {answer}\); give the address `ray start "
-                        r"--head` prints \(the GCS, HOST:6379 by default, or ray://HOST:10001 "
-                        r"for Ray Client\)", line), line
+    assert re.fullmatch(
+        rf"--address {re.escape(address)}: what answers there is not Ray "
+        rf"\(asked for {question}: {answer}\); give the address `ray start "
+        r"--head` prints \(the GCS, HOST:6379 by default, or ray://HOST:10001 "
+        r"for Ray Client\)",
+        line,
+    ), line
     assert "\n" not in line
     assert seconds < 1.5 + 1.0  # the bound, and the time to import Ray once
 
@@ -150,8 +153,10 @@ def test_an_http_server_as_ray_address_is_one_line_before_anything_runs(
         result = CliRunner().invoke(main, ["sweep", "--executor", "ray"])
         seconds = time.monotonic() - start
     assert result.exit_code == 2, result.output
-    assert result.stderr.startswith(f"Error: RAY_ADDRESS 127.0.0.1:{port}: what answers there is "
-                                    "not Ray (asked for its Ray cluster id: UNAVAILABLE: ")
+    assert result.stderr.startswith(
+        f"Error: RAY_ADDRESS 127.0.0.1:{port}: what answers there is "
+        "not Ray (asked for its Ray cluster id: UNAVAILABLE: "
+    )
     assert result.stderr.count("\n") == 1 and "Traceback" not in result.output
     assert seconds < RAY_CONNECT_TIMEOUT
     assert sorted(p.name for p in project.iterdir()) == before
@@ -160,8 +165,10 @@ def test_an_http_server_as_ray_address_is_one_line_before_anything_runs(
 def test_retries_are_for_ray(project: Path) -> None:
     result = CliRunner().invoke(main, ["sweep", "--retries", "2"])
     assert result.exit_code == 2
-    assert result.stderr == ("Error: --retries is for --executor ray (a local run that fails is "
-                             "reported, and the next sweep resumes it)\n")
+    assert result.stderr == (
+        "Error: --retries is for --executor ray (a local run that fails is "
+        "reported, and the next sweep resumes it)\n"
+    )
 
 
 @pytest.mark.parametrize("retries", ["-1", "two"])
@@ -173,22 +180,29 @@ def test_retries_are_a_count(project: Path, retries: str) -> None:
 def test_an_address_where_nothing_listens_is_one_line_before_anything_runs(project: Path) -> None:
     port = closed_port()
     before = sorted(p.name for p in project.iterdir())
-    result = CliRunner().invoke(main, ["sweep", "--executor", "ray", "--address", f"127.0.0.1:{port}"])
+    result = CliRunner().invoke(
+        main, ["sweep", "--executor", "ray", "--address", f"127.0.0.1:{port}"]
+    )
     assert result.exit_code == 2
-    assert result.stderr == (f"Error: --address 127.0.0.1:{port}: no Ray cluster can be reached "
-                             "there (Connection refused); start one with `ray start --head`, or "
-                             "give the address it prints\n")
+    assert result.stderr == (
+        f"Error: --address 127.0.0.1:{port}: no Ray cluster can be reached "
+        "there (Connection refused); start one with `ray start --head`, or "
+        "give the address it prints\n"
+    )
     assert sorted(p.name for p in project.iterdir()) == before
 
 
-def test_ray_address_from_the_environment_is_checked_too(project: Path,
-                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+def test_ray_address_from_the_environment_is_checked_too(
+    project: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     port = closed_port()
     monkeypatch.setenv("RAY_ADDRESS", f"ray://127.0.0.1:{port}")
     result = CliRunner().invoke(main, ["sweep", "--executor", "ray"])
     assert result.exit_code == 2
-    assert result.stderr.startswith(f"Error: RAY_ADDRESS ray://127.0.0.1:{port}: no Ray cluster "
-                                    "can be reached there (Connection refused)")
+    assert result.stderr.startswith(
+        f"Error: RAY_ADDRESS ray://127.0.0.1:{port}: no Ray cluster "
+        "can be reached there (Connection refused)"
+    )
 
 
 def test_an_address_that_never_answers_gives_up_after_the_documented_wait(
@@ -206,11 +220,14 @@ def test_an_address_that_never_answers_gives_up_after_the_documented_wait(
     assert waited == [RAY_CONNECT_TIMEOUT] == [10.0]
 
 
-@pytest.mark.parametrize(("address", "problem"), [
-    ("nonsense", "expected HOST:PORT, ray://HOST:PORT or auto"),
-    ("host:port", "expected HOST:PORT"),
-    ("no-such-host.invalid:6379", "unknown host"),
-])
+@pytest.mark.parametrize(
+    ("address", "problem"),
+    [
+        ("nonsense", "expected HOST:PORT, ray://HOST:PORT or auto"),
+        ("host:port", "expected HOST:PORT"),
+        ("no-such-host.invalid:6379", "unknown host"),
+    ],
+)
 def test_addresses_that_are_not_addresses(address: str, problem: str) -> None:
     with pytest.raises(BadInput, match=problem):
         check_ray_address(address)
@@ -230,5 +247,7 @@ def test_a_run_needs_a_finite_positive_share_of_cpus(project: Path, cpus: str) -
 def test_dvc_yaml_without_a_dvc_repository_is_one_line(project: Path) -> None:
     result = CliRunner().invoke(main, ["sweep"])
     assert result.exit_code == 2
-    assert result.stderr == (f"Error: {project}: dvc.yaml but no DVC repository; run `dvc init` "
-                             "(in a git repository) first\n")
+    assert result.stderr == (
+        f"Error: {project}: dvc.yaml but no DVC repository; run `dvc init` "
+        "(in a git repository) first\n"
+    )

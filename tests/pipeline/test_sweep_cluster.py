@@ -41,9 +41,9 @@ from typing import Any
 import psutil
 import pytest
 
-from tests.support import BIN, dvc, ok, one_task_upstream, run, tool_env, train_record
 from ede_pipeline import layout
 from ede_pipeline.sweep import Job, RayExecutor, check_ray_address
+from tests.support import BIN, dvc, ok, one_task_upstream, run, tool_env, train_record
 
 pytestmark = pytest.mark.slow
 
@@ -55,8 +55,9 @@ WAIT = 120.0  # seconds any one awaited event may take before the test fails
 
 
 @pytest.fixture(scope="module")
-def upstream(tmp_path_factory: pytest.TempPathFactory,
-             tiny_pipeline: Callable[[dict[str, Any]], None]) -> Path:
+def upstream(
+    tmp_path_factory: pytest.TempPathFactory, tiny_pipeline: Callable[[dict[str, Any]], None]
+) -> Path:
     """A copy whose embedding is made (collect, pretrain) and no run yet."""
     return one_task_upstream(tmp_path_factory.mktemp("cluster") / "upstream", tiny_pipeline, TASK)
 
@@ -92,10 +93,18 @@ def cluster() -> Iterator[Any]:
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(ray._private.utils, "write_ray_address", lambda *args, **kwargs: None)
         patch.setattr(ray._common.utils, "reset_ray_address", lambda *args, **kwargs: None)
-        head = Cluster(initialize_head=True, head_node_args={
-            "num_cpus": 0, "include_dashboard": False, "ray_client_server_port": client_port,
-            "_system_config": {"health_check_period_ms": 500, "health_check_failure_threshold": 2},
-        })
+        head = Cluster(
+            initialize_head=True,
+            head_node_args={
+                "num_cpus": 0,
+                "include_dashboard": False,
+                "ray_client_server_port": client_port,
+                "_system_config": {
+                    "health_check_period_ms": 500,
+                    "health_check_failure_threshold": 2,
+                },
+            },
+        )
         head.client_port = client_port
         try:
             yield head
@@ -135,7 +144,9 @@ def wait_for(what: str, condition: Callable[[], bool]) -> None:
 
 def attempts(copy: Path, algo: str) -> list[str]:
     """Where each attempt of the run ran, as the sweep's attempts file says (a line each)."""
-    name = STAGES[algo].replace("/", "_").replace("@", "__")  # the log's name, as the sweep makes it
+    name = (
+        STAGES[algo].replace("/", "_").replace("@", "__")
+    )  # the log's name, as the sweep makes it
     path = copy / LOGS / f"{name}.attempts"
     return path.read_text().splitlines() if path.is_file() else []
 
@@ -151,14 +162,19 @@ def checkpointed(copy: Path, algo: str) -> bool:
 def resumed_from(copy: Path, algo: str) -> int | None:
     """The step the run's last session started from (None: it ran from the start)."""
     return json.loads((copy / layout.run(TASK, algo, 0) / "metrics.json").read_text())[
-        "resumed_from_step"]
+        "resumed_from_step"
+    ]
 
 
 def start_sweep(copy: Path, cluster: Any, output: Path) -> subprocess.Popen[bytes]:
     with output.open("ab") as out:
         return subprocess.Popen(
             [BIN / "ede-pipeline", "sweep", "--executor", "ray", "--address", cluster.address],
-            cwd=copy, env=tool_env(), stdout=out, stderr=subprocess.STDOUT)
+            cwd=copy,
+            env=tool_env(),
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
 
 
 def finished(sweep: subprocess.Popen[bytes], output: Path) -> str:
@@ -180,15 +196,23 @@ def copy_of_upstream(upstream: Path, tmp_path: Path) -> Path:
 
 
 def test_a_lost_node_costs_only_time(
-    cluster: Any, add_node: Callable[[int], Any], copy_of_upstream: Path,
-    undisturbed: dict[str, Any], tmp_path: Path,
+    cluster: Any,
+    add_node: Callable[[int], Any],
+    copy_of_upstream: Path,
+    undisturbed: dict[str, Any],
+    tmp_path: Path,
 ) -> None:
     copy, output = copy_of_upstream, tmp_path / "sweep.out"
     nodes = [add_node(1), add_node(1)]  # a run on each
     sweep = start_sweep(copy, cluster, output)
     try:
-        wait_for("a run on each node", lambda: sorted(
-            line for algo in ALGOS for line in attempts(copy, algo)) == sorted(map(on, nodes)))
+        wait_for(
+            "a run on each node",
+            lambda: (
+                sorted(line for algo in ALGOS for line in attempts(copy, algo))
+                == sorted(map(on, nodes))
+            ),
+        )
         lost = next(algo for algo in ALGOS if attempts(copy, algo) == [on(nodes[0])])
         other = next(algo for algo in ALGOS if algo != lost)
         wait_for("the run on the first node writes a checkpoint", lambda: checkpointed(copy, lost))
@@ -203,7 +227,9 @@ def test_a_lost_node_costs_only_time(
     assert attempts(copy, other) == [on(nodes[1])], out
     assert (resumed_from(copy, lost) or 0) >= 200, "the lost run did not resume from its checkpoint"
     assert resumed_from(copy, other) is None
-    assert f"ok     {STAGES[lost]}" in out and "(attempt 2: 1 lost with a Ray worker or node)" in out
+    assert (
+        f"ok     {STAGES[lost]}" in out and "(attempt 2: 1 lost with a Ray worker or node)" in out
+    )
     assert "sweep: 2 recorded, 0 failed" in out, out
     assert "sweep: 2/2 runs, 1 retry, " in out, out
     assert train_record(copy) == undisturbed
@@ -211,19 +237,26 @@ def test_a_lost_node_costs_only_time(
 
 
 def test_a_node_that_joins_is_used_and_a_killed_sweep_resumes(
-    cluster: Any, add_node: Callable[[int], Any], copy_of_upstream: Path,
-    undisturbed: dict[str, Any], tmp_path: Path,
+    cluster: Any,
+    add_node: Callable[[int], Any],
+    copy_of_upstream: Path,
+    undisturbed: dict[str, Any],
+    tmp_path: Path,
 ) -> None:
     copy, output = copy_of_upstream, tmp_path / "sweep.out"
     first = add_node(1)  # one run at a time: the other waits for a node
     sweep = start_sweep(copy, cluster, output)
     try:
-        wait_for("a run starts on the first node",
-                 lambda: any(attempts(copy, algo) == [on(first)] for algo in ALGOS))
+        wait_for(
+            "a run starts on the first node",
+            lambda: any(attempts(copy, algo) == [on(first)] for algo in ALGOS),
+        )
         waiting = next(algo for algo in ALGOS if not attempts(copy, algo))
         joined = add_node(1)
-        wait_for("the waiting run starts on the node that joined",
-                 lambda: attempts(copy, waiting) == [on(joined)])
+        wait_for(
+            "the waiting run starts on the node that joined",
+            lambda: attempts(copy, waiting) == [on(joined)],
+        )
         wait_for("it writes a checkpoint", lambda: checkpointed(copy, waiting))
         os.kill(sweep.pid, signal.SIGKILL)  # the sweep only: the runs are Ray's, on the nodes
         sweep.wait()
@@ -239,7 +272,9 @@ def test_a_node_that_joins_is_used_and_a_killed_sweep_resumes(
 
 
 def test_only_a_run_whose_worker_is_lost_is_started_again(
-    cluster: Any, add_node: Callable[[int], Any], tmp_path: Path,
+    cluster: Any,
+    add_node: Callable[[int], Any],
+    tmp_path: Path,
 ) -> None:
     """The executor alone, with commands that end as runs can: a command that fails is reported
     as it ended, once; a run whose worker dies (its command kills it) is started again, and its
@@ -247,17 +282,23 @@ def test_only_a_run_whose_worker_is_lost_is_started_again(
     import ray
 
     def job(name: str, command: str) -> Job:
-        return Job(name, [["/bin/sh", "-c", command]], str(tmp_path), {},
-                   str(tmp_path / f"{name}.log"))
+        return Job(
+            name, [["/bin/sh", "-c", command]], str(tmp_path), {}, str(tmp_path / f"{name}.log")
+        )
 
     kill_worker = "kill -9 $PPID"  # the shell's parent: the Ray worker running the job
     second = f'[ "$(wc -l < {tmp_path / "lost-once.attempts"})" -ge 2 ]'
-    jobs = [job("fails", "exit 3"), job("lost-once", f"{second} || {kill_worker}; echo done"),
-            job("lost-always", kill_worker)]
+    jobs = [
+        job("fails", "exit 3"),
+        job("lost-once", f"{second} || {kill_worker}; echo done"),
+        job("lost-always", kill_worker),
+    ]
     node = add_node(3)
     try:
-        outcomes = {outcome.stage: outcome for outcome in
-                    RayExecutor(cluster.address, 1, None, retries=1).map_unordered(jobs)}
+        outcomes = {
+            outcome.stage: outcome
+            for outcome in RayExecutor(cluster.address, 1, None, retries=1).map_unordered(jobs)
+        }
     finally:
         ray.shutdown()
 
@@ -265,7 +306,8 @@ def test_only_a_run_whose_worker_is_lost_is_started_again(
     assert (outcomes["lost-once"].returncode, outcomes["lost-once"].attempts) == (0, 2)
     log = (tmp_path / "lost-once.log").read_text()
     assert log.count(f"# attempt 1 on {on(node)}\n") == 1 and log.endswith(
-        f"# attempt 2 on {on(node)}\n$ /bin/sh -c {jobs[1].argvs[0][2]}\ndone\n"), log
+        f"# attempt 2 on {on(node)}\n$ /bin/sh -c {jobs[1].argvs[0][2]}\ndone\n"
+    ), log
     lost = outcomes["lost-always"]
     assert (lost.returncode, lost.attempts) == (None, 2), lost
     assert lost.error.startswith("WorkerCrashedError: "), lost

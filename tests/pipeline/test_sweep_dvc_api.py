@@ -26,8 +26,8 @@ import pytest
 import yaml
 from click.testing import CliRunner, Result
 
-from tests.support import REPO, dvc
 from ede_pipeline.cli import main
+from tests.support import REPO, dvc
 
 # Everything of DVC's that pipeline/sweep.py imports or calls ("module:attribute"), with the
 # parameters it passes by name (None: not called, or called with no arguments).
@@ -77,9 +77,12 @@ def _resolve(name: str) -> Any:
 
 def test_every_dvc_import_of_the_sweep_is_checked_here() -> None:
     tree = ast.parse((REPO / "pipeline/sweep.py").read_text())
-    imported = {f"{node.module}:{alias.name}" for node in ast.walk(tree)
-                if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("dvc")
-                for alias in node.names}
+    imported = {
+        f"{node.module}:{alias.name}"
+        for node in ast.walk(tree)
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("dvc")
+        for alias in node.names
+    }
     missing = sorted(imported - INTERNALS.keys())
     assert not missing, f"pipeline/sweep.py imports {missing}: add them to INTERNALS"
 
@@ -89,16 +92,20 @@ def test_the_internals_the_sweep_calls_are_there_with_the_arguments_it_passes(na
     try:
         found = _resolve(name)
     except (ImportError, AttributeError) as error:
-        pytest.fail(f"pipeline/sweep.py uses {name}, which DVC {_dvc_version()} does not have "
-                    f"({error}); see the docstring of this file")
+        pytest.fail(
+            f"pipeline/sweep.py uses {name}, which DVC {_dvc_version()} does not have "
+            f"({error}); see the docstring of this file"
+        )
     passed = INTERNALS[name]
     if not passed:
         return
     function = found.__init__ if inspect.isclass(found) else found
     parameters = inspect.signature(function).parameters
     absent = [p for p in passed if p not in parameters]
-    assert not absent, (f"pipeline/sweep.py passes {', '.join(absent)} to {name}, whose signature "
-                        f"in DVC {_dvc_version()} is {inspect.signature(function)}")
+    assert not absent, (
+        f"pipeline/sweep.py passes {', '.join(absent)} to {name}, whose signature "
+        f"in DVC {_dvc_version()} is {inspect.signature(function)}"
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -132,18 +139,24 @@ else:  # the command's second line: run in the repository's root, with DVC's var
 def _pipeline() -> dict[str, Any]:
     """Stages shaped like the project's: an upstream stage, and train stages from a matrix."""
     python = f"{sys.executable} step.py"
-    return {"stages": {
-        "prepare": {"cmd": f"{python} prepare", "deps": ["step.py"], "params": ["collect.seed"],
-                    "outs": ["data/prepared.txt"]},
-        "train_toy": {
-            "matrix": {"seed": "${runs.seeds}"},
-            "cmd": [f"{python} train ${{item.seed}}", f"{python} check ${{item.seed}}"],
-            "deps": ["step.py", "data/prepared.txt"],
-            "params": ["td3.tau"],
-            "outs": ["data/runs/${item.seed}/policy", "data/runs/${item.seed}/metrics.json"],
-            "plots": [{"data/runs/${item.seed}/eval.csv": {"x": "step", "y": "mean_return"}}],
-        },
-    }}
+    return {
+        "stages": {
+            "prepare": {
+                "cmd": f"{python} prepare",
+                "deps": ["step.py"],
+                "params": ["collect.seed"],
+                "outs": ["data/prepared.txt"],
+            },
+            "train_toy": {
+                "matrix": {"seed": "${runs.seeds}"},
+                "cmd": [f"{python} train ${{item.seed}}", f"{python} check ${{item.seed}}"],
+                "deps": ["step.py", "data/prepared.txt"],
+                "params": ["td3.tau"],
+                "outs": ["data/runs/${item.seed}/policy", "data/runs/${item.seed}/metrics.json"],
+                "plots": [{"data/runs/${item.seed}/eval.csv": {"x": "step", "y": "mean_return"}}],
+            },
+        }
+    }
 
 
 def _toy(path: Path, params: dict[str, Any]) -> Path:
@@ -167,8 +180,11 @@ def _lock(path: Path) -> dict[str, Any]:
 
 
 def _outputs(path: Path) -> dict[str, str]:
-    return {str(file.relative_to(path)): file.read_text()
-            for file in sorted((path / "data").rglob("*")) if file.is_file()}
+    return {
+        str(file.relative_to(path)): file.read_text()
+        for file in sorted((path / "data").rglob("*"))
+        if file.is_file()
+    }
 
 
 def _sweep(path: Path, monkeypatch: pytest.MonkeyPatch) -> Result:

@@ -12,14 +12,14 @@ from pathlib import Path
 
 import pytest
 
-from ede_pipeline.progress import PROGRESS_ENV, progress, read_progress
 from ede.config import Params
 from ede_pipeline.common import read_params
+from ede_pipeline.progress import PROGRESS_ENV, progress, read_progress
 from ede_pipeline.sweep import (
     Job,
+    RunId,
     Tally,
     default_group_size,
-    RunId,
     group_jobs,
     job_steps,
     progress_file,
@@ -31,8 +31,14 @@ TASK = "ede/ReacherVertical-v0"
 
 def job(tmp_path: Path, algo: str, seed: int, task: str = TASK) -> Job:
     command = shlex.join(train_command(task, algo, [seed]))
-    return Job(f"train@{task}-{algo}-{seed}", [["/bin/sh", "-c", command]], str(tmp_path), {},
-               str(tmp_path / f"{algo}-{seed}.log"), runs=(RunId(task, algo, seed),))
+    return Job(
+        f"train@{task}-{algo}-{seed}",
+        [["/bin/sh", "-c", command]],
+        str(tmp_path),
+        {},
+        str(tmp_path / f"{algo}-{seed}.log"),
+        runs=(RunId(task, algo, seed),),
+    )
 
 
 def test_a_job_runs_its_tasks_budget_once_per_seed(tmp_path: Path) -> None:
@@ -103,11 +109,21 @@ with tally.watch():
         progress_file(job).write_text('{{"done": %d, "total": 100}}' % done)
         time.sleep(0.3)
 """
-    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                            env={**os.environ}, timeout=60, check=True)
+    result = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        env={**os.environ},
+        timeout=60,
+        check=True,
+    )
     lines = [line for line in result.stderr.splitlines() if line.startswith("sweep:")]
     assert [line.split(" steps ")[0].split(", ")[-1] for line in lines] == [
-        "10/100", "55/100", "100/100", "100/100"], result.stderr
+        "10/100",
+        "55/100",
+        "100/100",
+        "100/100",
+    ], result.stderr
 
 
 def paper_params(**td3: str) -> Params:

@@ -15,8 +15,12 @@ from ede_pipeline.cli import main
 from ede_pipeline.closure import package_dirs, task_code, task_record
 
 REACHER = ("ede/ReacherVertical-v0", "ede/ReacherTurn-v0", "ede/ReacherPush-v0")
-MODELS = {"ede/ReacherVertical-v0": "reacher_vertical.xml", "ede/ReacherTurn-v0": "reacher_turn.xml",
-          "ede/ReacherPush-v0": "reacher_push.xml", "ede/Point-v0": "point.xml"}
+MODELS = {
+    "ede/ReacherVertical-v0": "reacher_vertical.xml",
+    "ede/ReacherTurn-v0": "reacher_turn.xml",
+    "ede/ReacherPush-v0": "reacher_push.xml",
+    "ede/Point-v0": "point.xml",
+}
 
 
 @pytest.fixture
@@ -30,8 +34,9 @@ def envs_copy(tmp_path: Path) -> dict[str, Path]:
 
 def records(dirs: dict[str, Path]) -> dict[str, dict]:
     return {
-        task: task_record(task, TASKS[task].entry_point, 100, {},
-                          dirs["ede_envs"] / "assets" / model, dirs)
+        task: task_record(
+            task, TASKS[task].entry_point, 100, {}, dirs["ede_envs"] / "assets" / model, dirs
+        )
         for task, model in MODELS.items()
     }
 
@@ -43,8 +48,11 @@ def changed(before: dict[str, dict], after: dict[str, dict]) -> set[str]:
 def test_a_record_names_the_tasks_module_its_imports_and_its_model_files() -> None:
     record = task_code("ede/ReacherPush-v0")
     assert set(record["files"]) == {
-        "ede_envs/reacher_push.py", "ede_envs/reacher.py", "ede_envs/_numerics.py",
-        "ede_envs/assets/reacher_push.xml", "ede_envs/assets/reacher_arm.xml",
+        "ede_envs/reacher_push.py",
+        "ede_envs/reacher.py",
+        "ede_envs/_numerics.py",
+        "ede_envs/assets/reacher_push.xml",
+        "ede_envs/assets/reacher_arm.xml",
     }
     assert record["entry_point"] == TASKS["ede/ReacherPush-v0"].entry_point
     assert record["max_episode_steps"] == 100
@@ -80,19 +88,32 @@ def test_an_edit_changes_the_records_of_exactly_the_tasks_that_run_the_file(
 def test_the_command_writes_one_record_per_task_of_the_family(tmp_path: Path, write_params) -> None:
     params = write_params()
     out = tmp_path / "code"
-    result = CliRunner().invoke(main, ["task-code", "--family", "reacher", "--params", str(params),
-                                       "--out", str(out)])
+    result = CliRunner().invoke(
+        main, ["task-code", "--family", "reacher", "--params", str(params), "--out", str(out)]
+    )
     assert result.exit_code == 0, result.output
     written = sorted(str(p.relative_to(out)) for p in out.rglob("*.json") if p.name != MARK)
     assert written == sorted(f"{task}.json" for task in REACHER)
     assert json.loads((out / MARK).read_text())["kind"] == "folder of task records"
-    assert json.loads((out / "ede/ReacherTurn-v0.json").read_text()) == task_code("ede/ReacherTurn-v0")
+    assert json.loads((out / "ede/ReacherTurn-v0.json").read_text()) == task_code(
+        "ede/ReacherTurn-v0"
+    )
     assert not list(tmp_path.glob("code.tmp-*"))
 
 
 def test_an_unknown_family_is_one_line_and_nothing_written(tmp_path: Path, write_params) -> None:
-    result = CliRunner().invoke(main, ["task-code", "--family", "nope", "--params",
-                                       str(write_params()), "--out", str(tmp_path / "code")])
+    result = CliRunner().invoke(
+        main,
+        [
+            "task-code",
+            "--family",
+            "nope",
+            "--params",
+            str(write_params()),
+            "--out",
+            str(tmp_path / "code"),
+        ],
+    )
     assert result.exit_code == 2
     assert result.output.strip().count("\n") == 0 and "--family 'nope'" in result.output
     assert not (tmp_path / "code").exists()

@@ -29,10 +29,19 @@ def tiny(params: dict) -> None:
     params["collect"].update(steps=4_000, num_envs=1)
     for section in ("embedding", "decoder"):
         params[section].update(hidden=[64, 64], epochs=10, lr=1e-3)
-    params["td3"].update(hidden=[64, 64], batch_size=64, start_steps=500, eval_every=500,
-                         eval_episodes=5, checkpoint_every=400)
-    params["runs"].update(tasks={"ede/Point-v0": "point", "ede/ReacherVertical-v0": "reacher"},
-                          seeds=[0], budgets={"ede/Point-v0": BUDGET, "ede/ReacherVertical-v0": 600})
+    params["td3"].update(
+        hidden=[64, 64],
+        batch_size=64,
+        start_steps=500,
+        eval_every=500,
+        eval_episodes=5,
+        checkpoint_every=400,
+    )
+    params["runs"].update(
+        tasks={"ede/Point-v0": "point", "ede/ReacherVertical-v0": "reacher"},
+        seeds=[0],
+        budgets={"ede/Point-v0": BUDGET, "ede/ReacherVertical-v0": 600},
+    )
 
 
 def run(*args: str) -> Result:
@@ -53,8 +62,11 @@ def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     cwd = os.getcwd()
     os.chdir(path)
     try:
-        for command in (["collect", "--family", "point"], ["pretrain", "encoder", "--family", "point"],
-                        ["pretrain", "decoder", "--family", "point"]):
+        for command in (
+            ["collect", "--family", "point"],
+            ["pretrain", "encoder", "--family", "point"],
+            ["pretrain", "decoder", "--family", "point"],
+        ):
             result = run(*command)
             assert result.exit_code == 0, result.output
     finally:
@@ -104,8 +116,9 @@ def test_both_algorithms_clearly_beat_a_random_policy(in_workdir: Path, algo: st
     made = json.loads((out / "run.json").read_text())
     assert made["algo"] == algo and made["seed"] == 0 and made["budget"] == BUDGET
     assert made["software"] == software_versions()
-    head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "HEAD"], capture_output=True,
-                          text=True, check=True).stdout.strip()
+    head = subprocess.run(
+        ["git", "-C", str(REPO), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
+    ).stdout.strip()
     assert made["code"]["commit"] == head and isinstance(made["code"]["modified"], bool)
     assert made["machine"]["cpu"] == machine()["cpu"]
     assert made["machine"]["instruction_sets"] == machine()["instruction_sets"]
@@ -129,13 +142,34 @@ def precision(request: pytest.FixtureRequest, in_workdir: Path) -> Iterator[str]
 
 def test_a_run_killed_midway_resumes_to_the_same_returns(in_workdir: Path, precision: str) -> None:
     reference = in_workdir / f"reference-{precision}"
-    result = run("train", "--task", "ede/Point-v0", "--algo", "ede-td3", "--seed", "1",
-                 "--out", str(reference))
+    result = run(
+        "train",
+        "--task",
+        "ede/Point-v0",
+        "--algo",
+        "ede-td3",
+        "--seed",
+        "1",
+        "--out",
+        str(reference),
+    )
     assert result.exit_code == 0, result.output
 
     killed = in_workdir / f"killed-{precision}"
-    command = [sys.executable, "-m", "ede_pipeline", "train", "--task", "ede/Point-v0",
-               "--algo", "ede-td3", "--seed", "1", "--out", str(killed)]
+    command = [
+        sys.executable,
+        "-m",
+        "ede_pipeline",
+        "train",
+        "--task",
+        "ede/Point-v0",
+        "--algo",
+        "ede-td3",
+        "--seed",
+        "1",
+        "--out",
+        str(killed),
+    ]
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     # No short deadline: on a loaded machine the first checkpoint can take minutes to come.
     while not (killed / "checkpoint/state.json").exists() and process.poll() is None:
@@ -147,8 +181,9 @@ def test_a_run_killed_midway_resumes_to_the_same_returns(in_workdir: Path, preci
     state = json.loads((killed / "checkpoint/state.json").read_text())
     assert 0 < state["step"] < BUDGET
 
-    resumed = run("train", "--task", "ede/Point-v0", "--algo", "ede-td3", "--seed", "1",
-                  "--out", str(killed))
+    resumed = run(
+        "train", "--task", "ede/Point-v0", "--algo", "ede-td3", "--seed", "1", "--out", str(killed)
+    )
     assert resumed.exit_code == 0, resumed.output
     assert returns_of(killed) == returns_of(reference)
     # and the training diagnostics, interval by interval, to the bit
@@ -161,19 +196,44 @@ def test_a_run_killed_midway_resumes_to_the_same_returns(in_workdir: Path, preci
 
 def test_a_checkpoint_of_other_params_is_moved_aside_not_resumed(in_workdir: Path) -> None:
     out = in_workdir / "other"
-    assert run("train", "--task", "ede/ReacherVertical-v0", "--algo", "td3", "--seed", "0",
-               "--out", str(out), "--keep-checkpoint").exit_code == 0
+    assert (
+        run(
+            "train",
+            "--task",
+            "ede/ReacherVertical-v0",
+            "--algo",
+            "td3",
+            "--seed",
+            "0",
+            "--out",
+            str(out),
+            "--keep-checkpoint",
+        ).exit_code
+        == 0
+    )
     params = in_workdir / "params.yaml"
     text = params.read_text()
     params.write_text(text.replace("discount: 0.99", "discount: 0.98"))
     try:
-        result = run("train", "--task", "ede/ReacherVertical-v0", "--algo", "td3", "--seed", "0",
-                     "--out", str(out))
+        result = run(
+            "train",
+            "--task",
+            "ede/ReacherVertical-v0",
+            "--algo",
+            "td3",
+            "--seed",
+            "0",
+            "--out",
+            str(out),
+        )
     finally:
         params.write_text(text)
     assert result.exit_code == 0
     assert json.loads((out / "metrics.json").read_text())["resumed_from_step"] is None
-    assert "another run's: made with td3.discount = 0.99, but the params say 0.98; moved aside to checkpoint.bad-" in result.stderr
+    assert (
+        "another run's: made with td3.discount = 0.99, but the params say 0.98; moved aside to checkpoint.bad-"
+        in result.stderr
+    )
     assert len(list(out.glob("checkpoint.bad-*/state.json"))) == 1
 
 
@@ -190,15 +250,33 @@ def bad(result: Result, message: str) -> None:
         (["--task", "ede/Point-v0", "--algo", "ddpg", "--seed", "0"], "--algo 'ddpg': unknown"),
         (["--task", "ede/Point-v0", "--algo", "td3", "--seed", "-3"], "--seed -3: expected"),
         (["--task", "ede/Point-v0", "--algo", "td3", "--seeds", "1,1"], "expected distinct seeds"),
-        (["--task", "ede/Point-v0", "--algo", "td3", "--seeds", "a-b"],
-         "expected a seed, a list (0,1,2) or a range (0-3)"),
-        (["--task", "ede/Point-v0", "--algo", "td3", "--seeds", "0-1"],
-         "several seeds need a pattern with {seed}"),
-        (["--task", "ede/ReacherVertical-v0", "--algo", "ede-td3", "--seed", "0"],
-         "needs the reacher family's embedding"),
-        (["--task", "ede/ReacherVertical-v0", "--algo", "ede-td3", "--seed", "0",
-          "--encoder", "data/families/point/embedding/encoder", "--decoder", "data/families/point/embedding/decoder"],
-         "the embedding of family point, but ede/ReacherVertical-v0 is in family reacher"),
+        (
+            ["--task", "ede/Point-v0", "--algo", "td3", "--seeds", "a-b"],
+            "expected a seed, a list (0,1,2) or a range (0-3)",
+        ),
+        (
+            ["--task", "ede/Point-v0", "--algo", "td3", "--seeds", "0-1"],
+            "several seeds need a pattern with {seed}",
+        ),
+        (
+            ["--task", "ede/ReacherVertical-v0", "--algo", "ede-td3", "--seed", "0"],
+            "needs the reacher family's embedding",
+        ),
+        (
+            [
+                "--task",
+                "ede/ReacherVertical-v0",
+                "--algo",
+                "ede-td3",
+                "--seed",
+                "0",
+                "--encoder",
+                "data/families/point/embedding/encoder",
+                "--decoder",
+                "data/families/point/embedding/decoder",
+            ],
+            "the embedding of family point, but ede/ReacherVertical-v0 is in family reacher",
+        ),
     ],
 )
 def test_bad_train_input_is_one_line_exit_2_and_writes_nothing(
@@ -209,19 +287,25 @@ def test_bad_train_input_is_one_line_exit_2_and_writes_nothing(
     assert not out.exists()
 
 
-@pytest.mark.parametrize("command", [
-    ["train", "--task", "ede/Point-v0", "--algo", "ede-td3", "--seed", "0", "--out", "k2-run"],
-    ["pretrain", "decoder", "--family", "point", "--out", "k2-decoder"],
-])
-def test_an_embedding_made_with_other_params_is_refused_by_name(in_workdir: Path,
-                                                                command: list[str]) -> None:
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["train", "--task", "ede/Point-v0", "--algo", "ede-td3", "--seed", "0", "--out", "k2-run"],
+        ["pretrain", "decoder", "--family", "point", "--out", "k2-decoder"],
+    ],
+)
+def test_an_embedding_made_with_other_params_is_refused_by_name(
+    in_workdir: Path, command: list[str]
+) -> None:
     import yaml
 
     params = yaml.safe_load((in_workdir / "params.yaml").read_text())
     params["embedding"]["k"] = 2
     (in_workdir / "params-k2.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    bad(run(*command, "--params", "params-k2.yaml"),
-        "made with embedding.k = 4, but params.yaml has embedding.k = 2")
+    bad(
+        run(*command, "--params", "params-k2.yaml"),
+        "made with embedding.k = 4, but params.yaml has embedding.k = 2",
+    )
     assert not (in_workdir / command[command.index("--out") + 1]).exists()
 
 
@@ -231,8 +315,12 @@ def test_several_seeds_train_in_one_process_each_as_it_trains_alone(in_workdir: 
     assert group.exit_code == 0, group.output
     alone = run("train", *task, "--seed", "1", "--out", "alone1")
     assert alone.exit_code == 0, alone.output
-    assert [line.rsplit(",", 1)[0] for line in (in_workdir / "group/seed1/eval.csv").read_text().splitlines()] \
-        == [line.rsplit(",", 1)[0] for line in (in_workdir / "alone1/eval.csv").read_text().splitlines()]
+    assert [
+        line.rsplit(",", 1)[0]
+        for line in (in_workdir / "group/seed1/eval.csv").read_text().splitlines()
+    ] == [
+        line.rsplit(",", 1)[0] for line in (in_workdir / "alone1/eval.csv").read_text().splitlines()
+    ]
     assert (in_workdir / "group/seed0/metrics.json").is_file()
 
 
@@ -244,8 +332,19 @@ def test_a_run_that_diverges_fails_in_one_line_without_metrics(in_workdir: Path,
     params["td3"]["lr"] = 1.0e30
     (in_workdir / "params-lr.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     out = in_workdir / f"diverging-{algo}"
-    result = run("train", "--task", "ede/Point-v0", "--algo", algo, "--seed", "0", "--out", str(out),
-                 "--params", "params-lr.yaml")
+    result = run(
+        "train",
+        "--task",
+        "ede/Point-v0",
+        "--algo",
+        algo,
+        "--seed",
+        "0",
+        "--out",
+        str(out),
+        "--params",
+        "params-lr.yaml",
+    )
     assert result.exit_code == 1 and result.exception is not None  # click's exit, no traceback
     lines = [line for line in result.stderr.splitlines() if line.startswith("Error: ")]
     assert len(lines) == 1, result.stderr  # beside the progress line
@@ -256,26 +355,38 @@ def test_a_run_that_diverges_fails_in_one_line_without_metrics(in_workdir: Path,
 
 
 def test_through_embedding_rebuilds_the_final_actor_and_runs_it_through_the_embedding(
-        in_workdir: Path) -> None:
+    in_workdir: Path,
+) -> None:
     """benchmarks/through_embedding.py: its actor, rebuilt from policy/, replays the run's own
     last evaluation; through the point embedding it still acts; bad --data is one line, exit 2."""
     from tests.support import REPO
 
     if not (in_workdir / "data/runs/ede/Point-v0/td3/seed0/metrics.json").exists():
         assert run("train", "--task", "ede/Point-v0", "--algo", "td3", "--seed", "0").exit_code == 0
-    script = [sys.executable, str(REPO / "benchmarks/through_embedding.py"), "--task", "ede/Point-v0",
-              "--family", "point", "--episodes", "5"]
+    script = [
+        sys.executable,
+        str(REPO / "benchmarks/through_embedding.py"),
+        "--task",
+        "ede/Point-v0",
+        "--family",
+        "point",
+        "--episodes",
+        "5",
+    ]
     done = subprocess.run([*script, "--data", "data"], capture_output=True, text=True, check=False)
     assert done.returncode == 0, done.stderr
     line = done.stdout.splitlines()[-1]
-    as_is, last, through = (float(line.split(word)[1].split()[0].rstrip(";,")) for word in
-                            ("as is", "last evaluation", "through the embedding"))
+    as_is, last, through = (
+        float(line.split(word)[1].split()[0].rstrip(";,"))
+        for word in ("as is", "last evaluation", "through the embedding")
+    )
     # Training evaluates the stacked actor, the script a plain nn.Sequential: other kernels, the
     # same weights; on a point mass over 100 steps their returns agree far inside 0.01.
     assert abs(as_is - last) < 0.01, line
     assert np.isfinite(through) and "of its codes clipped to the box" in line
-    missing = subprocess.run([*script, "--data", "nowhere"], capture_output=True, text=True,
-                             check=False)
+    missing = subprocess.run(
+        [*script, "--data", "nowhere"], capture_output=True, text=True, check=False
+    )
     assert missing.returncode == 2 and missing.stderr.count("\n") == 1, missing.stderr
     assert "nowhere: expected families/point/embedding/" in missing.stderr
     assert "Traceback" not in missing.stderr
