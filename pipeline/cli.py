@@ -6,6 +6,7 @@ stderr and exit code 2, before anything is written.
 
 from __future__ import annotations
 
+import importlib
 import json
 from datetime import datetime
 from pathlib import Path
@@ -15,21 +16,39 @@ import click
 
 from ede.config import Params, ParamsError, overridden
 from ede.errors import first_line
-from ede_pipeline import (
-    collect,
-    experiments,
-    pretrain,
-    report,
-    results,
-    sweep,
-    task_code,
-    task_inputs,
-    train,
-)
 from ede_pipeline.common import BadInput, check_mujoco_gl, params_option
 
+# The stages' commands, each imported only when it runs: DVC starts a process per stage, and the
+# stages' own dependencies (torch, matplotlib, rliable, DVC) cost seconds each to import.
+STAGES = {
+    "task-code": "ede_pipeline.task_code:task_code",
+    "collect": "ede_pipeline.collect:collect",
+    "task-inputs": "ede_pipeline.task_inputs:task_inputs",
+    "inspect": "ede_pipeline.collect:inspect_rollouts",
+    "pretrain": "ede_pipeline.pretrain:pretrain",
+    "train": "ede_pipeline.train:train",
+    "report": "ede_pipeline.report:report",
+    "results": "ede_pipeline.results:results",
+    "sweep": "ede_pipeline.sweep:sweep",
+    "experiment": "ede_pipeline.experiments:experiment",
+}
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+
+class _Pipeline(click.Group):
+    """A click group whose stage commands (:data:`STAGES`) load on first use."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted([*super().list_commands(ctx), *STAGES])
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name not in STAGES:
+            return super().get_command(ctx, name)
+        module, _, attribute = STAGES[name].partition(":")
+        command: click.Command = getattr(importlib.import_module(module), attribute)
+        return command
+
+
+@click.group(cls=_Pipeline, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="ede")
 def main() -> None:
     """The EDE pipeline: collect → pretrain → train → report (see README.md)."""
@@ -103,15 +122,3 @@ def envs(params: Params) -> None:
         click.echo(
             "  ".join(cell.ljust(width) for cell, width in zip(row, widths, strict=True)).rstrip()
         )
-
-
-main.add_command(task_code.task_code)
-main.add_command(collect.collect)
-main.add_command(task_inputs.task_inputs)
-main.add_command(collect.inspect_rollouts)
-main.add_command(pretrain.pretrain)
-main.add_command(train.train)
-main.add_command(report.report)
-main.add_command(results.results)
-main.add_command(sweep.sweep)
-main.add_command(experiments.experiment)

@@ -124,15 +124,18 @@ def problems_with(line: str, defined: frozenset[str] = frozenset()) -> list[str]
 def _pipeline_problems(words: list[str]) -> list[str]:
     command: click.Command = main
     path = ["ede-pipeline"]
+    context = click.Context(main)
     while isinstance(command, click.Group) and words and not words[0].startswith("-"):
         name, words = words[0], words[1:]
-        if name not in command.commands:
+        found = command.get_command(context, name)
+        if found is None:
             return [f"{' '.join(path)} {name}: no such subcommand"]
-        command, path = command.commands[name], [*path, name]
+        command, path = found, [*path, name]
     options = {opt for param in command.params for opt in [*param.opts, *param.secondary_opts]}
     options |= {"--help", "-h"}
     if command.context_settings.get("ignore_unknown_options"):  # `experiment run`: to the sweep
-        sweep = main.commands["sweep"]
+        sweep = main.get_command(context, "sweep")
+        assert sweep is not None
         options |= {opt for param in sweep.params for opt in [*param.opts, *param.secondary_opts]}
     return [
         f"{' '.join(path)} {w.split('=')[0]}: no such option"

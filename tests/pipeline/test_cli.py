@@ -150,3 +150,20 @@ def test_an_invalid_mujoco_gl_is_one_line_naming_what_works_here() -> None:
 def test_no_stage_needs_rendering() -> None:
     result = pipeline("validate", MUJOCO_GL="disable")
     assert result.returncode == 0 and result.stdout.startswith("ok: "), result.stderr
+
+
+def test_a_stage_imports_only_what_it_runs() -> None:
+    """Each stage is a process of its own: the dispatcher loads a stage's command, and so its
+    dependencies, only when that stage runs."""
+    code = (
+        "import sys\n"
+        "from ede_pipeline.cli import main\n"
+        "main(['collect', '--help'], standalone_mode=False)\n"
+        "heavy = ('torch', 'matplotlib', 'dvc', 'rliable', 'ede_pipeline.train')\n"
+        "print(sorted(m for m in heavy if m in sys.modules))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=os.environ, check=False
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines()[-1] == "[]"
