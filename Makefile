@@ -23,10 +23,12 @@ PIP_TOOLS := pip-tools==7.6.2
 # to use OSMesa instead.
 export MUJOCO_GL ?= egl
 PYTEST_ARGS ?=
+# The suite runs across this many processes (pytest-xdist; `auto`: one per core); 0 runs it in one.
+PYTEST_WORKERS ?= auto
 # Stages call `ede-pipeline` and `dvc` by name.
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: install lock repro quick experiment experiments lint test container-test clean-venv
+.PHONY: install lock repro quick experiment experiments lint test test-fast container-test clean-venv
 
 install: $(STAMP)
 
@@ -95,8 +97,13 @@ lint: install
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
+# The whole suite, its tests spread over the cores (each works in its own scratch directory).
 test: lint
-	$(BIN)/pytest $(PYTEST_ARGS)
+	$(BIN)/pytest -n $(PYTEST_WORKERS) --dist worksteal $(PYTEST_ARGS)
+
+# The tests not marked slow (no end-to-end pipeline, sweep or cluster), for the edit-test loop.
+test-fast: install
+	$(BIN)/pytest -n $(PYTEST_WORKERS) --dist worksteal -m "not slow" $(PYTEST_ARGS)
 
 # The image, built with podman and run for real (README.md, "Batch jobs"); needs root, installs
 # podman, runc and debootstrap with apt when missing.

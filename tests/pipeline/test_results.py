@@ -144,6 +144,7 @@ def test_runs_of_different_budgets_are_refused_by_name(tmp_path: Path) -> None:
     assert "Traceback" not in done.stderr and not (tmp_path / "figures").exists()
 
 
+@pytest.mark.slow
 def test_the_committed_runs_redraw(tmp_path: Path) -> None:
     done = results(REPO / "docs" / "results" / "runs", tmp_path / "figures")
     assert done.returncode == 0, done.stderr
