@@ -259,8 +259,9 @@ def read_inputs(
 
 def build(
     params: Params, params_text: str, inputs: Inputs
-) -> tuple[Page, dict[str, Any], dict[str, str]]:
-    """The page, the DVC metrics and the curve CSVs of the report."""
+) -> tuple[Page, dict[str, Any], dict[str, str], list[str]]:
+    """The page, the DVC metrics, the curve CSVs of the report, and one line per finished run
+    left out of it (and why)."""
     config = params.report
 
     def fresh() -> np.random.Generator:
