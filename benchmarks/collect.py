@@ -18,13 +18,13 @@ from pathlib import Path
 import numpy as np
 
 from ede.rollouts import collect, write_store
-from ede.tasks import make
+from ede.tasks import action_bounds, make
 
 
 def plain_loop(task: str, steps: int) -> float:
     env = make(task)
     rng = np.random.default_rng(0)
-    low, high = env.action_space.low, env.action_space.high
+    low, high = action_bounds(env)
     env.reset(seed=0)
     start = time.perf_counter()
     for _ in range(steps):

@@ -35,7 +35,7 @@ import yaml
 from through_embedding import at_bound, episode, load_actor
 
 from ede.artifacts import load_action_embedding
-from ede.tasks import make
+from ede.tasks import action_bounds, make, observation_size
 from ede.training import EVAL_SEED_OFFSET
 from ede_pipeline.experiments import experiment_params
 
@@ -129,12 +129,12 @@ def main() -> None:
     if not runs:
         sys.exit(f"{args.policies}: no runs/{task}/td3/seed<N>/policy/ (a train stage's layout)")
     env = make(task)
-    low, high = env.action_space.low, env.action_space.high
+    low, high = action_bounds(env)
     policies = []
     for run in runs:
         seed = json.loads((run / "run.json").read_text())["seed"]
         starts = [EVAL_SEED_OFFSET * (seed + 1) + e for e in range(args.episodes)]
-        mu = load_actor(run / "policy", env.observation_space.shape[0])
+        mu = load_actor(run / "policy", observation_size(env))
         as_is = np.mean([episode(env, mu, s, None)[0] for s in starts])
         policies.append((seed, mu, starts, as_is))
     print(

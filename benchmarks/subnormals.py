@@ -79,7 +79,7 @@ def main() -> None:
         )
     everyone = np.ones(1, dtype=bool)
     batches = [agent.draw(group.buffer, everyone) for _ in range(args.updates)]
-    rates = {False: [], True: []}
+    rates: dict[bool, list[float]] = {False: [], True: []}
     for _ in range(3):
         for flush in (False, True):
             rates[flush].append(updates_per_second(agent, batches, flush))

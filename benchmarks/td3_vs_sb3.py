@@ -26,6 +26,7 @@ different random streams).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import time
 from pathlib import Path
@@ -37,6 +38,7 @@ import torch
 from ede.config import EdeTD3Config, TD3Config
 from ede.runs import RunSpec
 from ede.stats import area_under_curve, bootstrap_mean
+from ede.tasks import action_bounds, observation_size
 from ede.td3 import Agent, IdentityAdapter
 from ede.training import EVAL_SEED_OFFSET, evaluate, train_run
 
@@ -128,15 +130,15 @@ def untrained(seeds: list[int], confidence: float = 0.95) -> None:
     many seeds: both initialise as ``nn.Linear`` does, from different random streams, so the two
     should be samples of one distribution."""
     env = gymnasium.make(TASK)
-    adapter = IdentityAdapter(env.action_space.low, env.action_space.high, torch.device("cpu"))
-    obs_size = env.observation_space.shape[0]
+    adapter = IdentityAdapter(*action_bounds(env), torch.device("cpu"))
+    obs_size = observation_size(env)
     scores: dict[str, list[float]] = {"sb3": [], "ours": []}
     for seed in seeds:
         scores["sb3"].append(evaluate_sb3(sb3_model(seed), seed))
         agent = Agent(obs_size, adapter, ours_config(), torch.device("cpu"), [seed])
         returns = evaluate(
             env,
-            lambda obs, agent=agent: agent.act(0, obs, explore=False),
+            functools.partial(agent.act, 0, explore=False),
             adapter,
             EVAL_EPISODES,
             EVAL_SEED_OFFSET * (seed + 1),

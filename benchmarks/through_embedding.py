@@ -29,16 +29,18 @@ import csv
 import json
 import sys
 from pathlib import Path
+from typing import cast
 
 import gymnasium
 import numpy as np
 import torch
+from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 from safetensors.torch import load_file
 
 from ede.artifacts import load_action_embedding
 from ede.embedding import ActionEmbedding
 from ede.nets import mlp
-from ede.tasks import make
+from ede.tasks import action_bounds, make, observation_size
 from ede.training import EVAL_SEED_OFFSET
 from ede_pipeline import layout
 
@@ -67,7 +69,7 @@ def episode(
 ) -> tuple[float, np.ndarray, list[bool]]:
     """One episode's return and executed actions, and per window whether its code lay outside
     the box EDE-TD3 acts in (clipped); through ``embedding`` when one is given."""
-    sim = env.unwrapped
+    sim = cast(MujocoEnv, env.unwrapped)  # the simulator itself, to play ahead and rewind
     obs, _ = env.reset(seed=seed)
     total, executed, clipped, done = 0.0, [], [], False
     while not done:
@@ -120,7 +122,7 @@ def main() -> None:
         sys.exit(2)
     _, embedding = load_action_embedding(found / "encoder", found / "decoder")
     env = make(args.task)
-    low, high = env.action_space.low, env.action_space.high
+    low, high = action_bounds(env)
     print(
         f"{args.task}: TD3's final policies as is and through {family}'s embedding "
         f"(k={embedding.k}, {embedding.dim} dimensions, |z| <= {embedding.bound:.3g}); "
@@ -130,7 +132,7 @@ def main() -> None:
         seed = json.loads((run / "run.json").read_text())["seed"]
         with (run / "eval.csv").open() as f:
             last = float(list(csv.DictReader(f))[-1]["mean_return"])
-        mu = load_actor(run / "policy", env.observation_space.shape[0])
+        mu = load_actor(run / "policy", observation_size(env))
         starts = [EVAL_SEED_OFFSET * (seed + 1) + e for e in range(args.episodes)]
         line = []
         for through in (None, embedding):

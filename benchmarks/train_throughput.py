@@ -75,7 +75,7 @@ from typing import get_args
 import numpy as np
 import torch
 
-from ede.config import EdeTD3Config, Precision, TD3Config
+from ede.config import Algo, EdeTD3Config, Precision, TD3Config
 from ede.embedding import ActionDecoder, ActionEmbedding, Encoder
 from ede.nets import product_error
 from ede.rollouts import Whitening
@@ -172,24 +172,26 @@ def _embedding(device: str) -> ActionEmbedding:
 
 
 def ours(
-    steps: int, setting: Setting, algo: str, precision: str, compile: str, members: int
+    steps: int, setting: Setting, algo: Algo, precision: str, compile: str, members: int
 ) -> float:
     """Our ``algo``, ``members`` seeds as one group (one run if 1): aggregate steps/s from the
     end of the start steps (every member's) to the end of the last update."""
-    config = TD3Config(
-        hidden=setting.hidden,
-        batch_size=setting.batch_size,
-        start_steps=START,
-        buffer_size=steps,
-        eval_every=10**9,
-        eval_episodes=1,
-        checkpoint_every=10**9,
-        precision=precision,
-        device=setting.device,
-        update_schedule="step",  # as SB3: train_freq=1
-        # (no compile key when eager: the script then also runs on commits from
-        # before td3.compile, to measure them the same way)
-        **({} if compile == "none" else {"compile": compile}),
+    config = TD3Config.model_validate(
+        {
+            "hidden": setting.hidden,
+            "batch_size": setting.batch_size,
+            "start_steps": START,
+            "buffer_size": steps,
+            "eval_every": 10**9,
+            "eval_episodes": 1,
+            "checkpoint_every": 10**9,
+            "precision": precision,
+            "device": setting.device,
+            "update_schedule": "step",  # as SB3: train_freq=1
+            # (no compile key when eager: the script then also runs on commits from
+            # before td3.compile, to measure them the same way)
+            **({} if compile == "none" else {"compile": compile}),
+        }
     )
     embedding = _embedding(setting.device) if algo == "ede-td3" else None
     specs = [RunSpec(TASK, algo, seed, steps, config, EdeTD3Config()) for seed in range(members)]

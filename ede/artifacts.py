@@ -85,7 +85,7 @@ class ArtifactMeta(_Meta):
     def content_sha256(self) -> str:
         """The SHA-256 of the result-relevant fields as they are: what ``meta_sha256`` must be."""
         content = self.model_dump(
-            mode="json", exclude=PROVENANCE | {"weights_sha256", "meta_sha256"}
+            mode="json", exclude=set(PROVENANCE | {"weights_sha256", "meta_sha256"})
         )
         return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()
 

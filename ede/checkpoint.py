@@ -57,7 +57,8 @@ __all__ = [
 VERSION = 5  # 2: diagnostics; 3: checksums, identity; 4: a member's slice; 5: named parameters
 CHECKSUMS = "checksums.json"
 FILES = ("state.safetensors", "state.json")  # what CHECKSUMS signs
-STATE = {  # state.json's values beside its version and identity, and their JSON types
+STATE: dict[str, type | tuple[type, ...]] = {  # state.json's values beside its version and
+    # identity, and their JSON types
     "step": int,
     "episodes": int,
     "i": int,

@@ -27,6 +27,7 @@ from pydantic import (
     field_validator,
     model_validator,
 )
+from pydantic.config import JsonDict
 
 from ede.errors import first_line
 
@@ -62,7 +63,7 @@ ALGO_LABELS: dict[Algo, str] = {"td3": "TD3", "ede-td3": "EDE-TD3"}  # as the pa
 # field's ``json_schema_extra``). :func:`result_neutral` reads it: run identities and the embedding
 # artifacts' params check leave these keys out, and ``dvc.yaml`` tracks every key but these
 # (``tests/pipeline/test_dvc.py`` holds it to them).
-RESULT_NEUTRAL = {"result_neutral": True}
+RESULT_NEUTRAL: JsonDict = {"result_neutral": True}
 
 PositiveInt = Annotated[int, Field(gt=0)]
 
@@ -477,14 +478,14 @@ class Params(_Section):
             if task not in self.runs.all_tasks:
                 problems.append(f"report.thresholds.{task}: not a task of runs.tasks")
         for key in ("effect_space_family", "exploration_family"):
-            family = getattr(self.report, key)
-            if family is not None and family not in self.families:
+            named = getattr(self.report, key)
+            if named is not None and named not in self.families:
                 problems.append(
-                    f"report.{key}: got {family!r}; expected a family of `families` "
+                    f"report.{key}: got {named!r}; expected a family of `families` "
                     f"({', '.join(self.families)}) or null"
                 )
-        for name, family in self.families.items():
-            repeated = [task for task in family.targets if family.tasks.count(task) > 1]
+        for name, config in self.families.items():
+            repeated = [task for task in config.targets if config.tasks.count(task) > 1]
             if repeated:
                 problems.append(
                     f"families.{name}.targets: {', '.join(dict.fromkeys(repeated))} "
@@ -701,7 +702,8 @@ def read_yaml(path: Path) -> Any:
     try:
         return yaml.load(text, Loader=_UniqueKeyLoader)
     except _DuplicateKey as error:
-        raise ParamsError(path, [f"line {error.problem_mark.line + 1}: {error.problem}"]) from None
+        where = f"line {error.problem_mark.line + 1}: " if error.problem_mark else ""
+        raise ParamsError(path, [f"{where}{error.problem}"]) from None
     except yaml.YAMLError as error:
         raise ParamsError(path, [_describe_yaml_error(error, text)]) from None
 

@@ -90,6 +90,8 @@ class ActionDecoder(nn.Module):
         output_range: str = "bounds",
     ) -> None:
         super().__init__()
+        self.centre: torch.Tensor  # buffers (registered below), saved with the weights
+        self.half_range: torch.Tensor
         if output_range not in ("bounds", "unit"):
             raise ValueError(f"output_range {output_range!r}: expected 'bounds' or 'unit'")
         self.k, self.action_size, self.output_range = k, len(low), output_range
@@ -301,6 +303,8 @@ class ActionEmbedding(nn.Module):
         self, encoder: Encoder, decoder: ActionDecoder, code_whitening: Whitening, bound: float
     ):
         super().__init__()
+        self.code_mean: torch.Tensor  # buffers (registered below)
+        self.code_std: torch.Tensor
         self.encoder, self.decoder = encoder.eval(), decoder.eval()
         self.k, self.action_size, self.dim = encoder.k, encoder.action_size, encoder.dim
         self.bound = float(bound)

@@ -30,6 +30,7 @@ import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -188,7 +189,7 @@ class Adam:
         # this size costs more to allocate on CPU than the arithmetic done in it.
         self._denom, self._step = torch.zeros_like(stack.flat), torch.zeros_like(stack.flat)
 
-    def corrections(self, steps: Sequence[int], device: torch.device) -> torch.Tensor:
+    def corrections(self, steps: Sequence[int] | np.ndarray, device: torch.device) -> torch.Tensor:
         """``(2, M, 1)``: each member's step size lr / (1 − β₁ᵗ) and √(1 − β₂ᵗ), for its t-th
         step (members at t = 0 take t = 1: they are not due and the values are unused)."""
         beta1, beta2 = self.betas
@@ -211,7 +212,7 @@ class Adam:
         v.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
         denom = torch.sqrt(v, out=self._denom).div_(root).add_(self.eps)
         param.sub_(torch.mul(step_size, m, out=self._step).div_(denom))
-        if kept is not None:
+        if due is not None and kept is not None:
             for new, old in zip((param, m, v), kept, strict=True):
                 new.copy_(torch.where(due[:, None], new, old))
 

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
-from ede.config import ALGO_LABELS
+from ede.config import ALGO_LABELS, Algo
 from ede.embedding import ActionEmbedding
 from ede.runs import Curve
 from ede.stats import (
@@ -56,9 +56,9 @@ __all__ = [
     "zero_action_return",
 ]
 
-ALGO_STYLE = {
-    algo: (ALGO_LABELS[algo], colour)
-    for algo, colour in (("td3", "tab:blue"), ("ede-td3", "tab:red"))
+ALGO_COLOURS: dict[Algo, str] = {"td3": "tab:blue", "ede-td3": "tab:red"}
+ALGO_STYLE: dict[str, tuple[str, str]] = {  # label and colour, by algorithm name
+    algo: (ALGO_LABELS[algo], colour) for algo, colour in ALGO_COLOURS.items()
 }
 
 
@@ -172,7 +172,7 @@ def learning_curve_figure(
     )
     per_task = isinstance(bin_steps, Mapping)
     for ax, task in zip(axes[0], tasks, strict=True):
-        width = bin_steps.get(task) if per_task else bin_steps
+        width = bin_steps.get(task) if isinstance(bin_steps, Mapping) else bin_steps
         for algo, (label, colour) in ALGO_STYLE.items():
             runs = curves.get((task, algo), [])
             if not runs:

@@ -168,6 +168,7 @@ class _ActionStream:
     def new_episode(self) -> None:
         """The next action starts an episode: draw whether its actions are saturated."""
         if self._saturated > 0:
+            assert self._episodes is not None  # given with every saturated share above 0
             self._corners = bool(self._episodes.random() < self._saturated)
 
     def __call__(self) -> np.ndarray:
@@ -391,6 +392,14 @@ class Whitening:
         return (x - self.mean) / self.std
 
 
+def _array(group: zarr.Group, key: str, path: Path) -> np.ndarray:
+    """The array ``key`` of a store's group, read whole."""
+    found = group[key]
+    if not isinstance(found, zarr.Array):
+        raise RolloutsError(f"{path}: {key} is a group, expected an array")
+    return np.asarray(found[...])
+
+
 @dataclass(frozen=True)
 class Rollouts:
     """A validated store, loaded into memory."""
@@ -433,7 +442,7 @@ class Rollouts:
             absent = [key for key in ARRAYS if key not in group]
             if absent:
                 raise RolloutsError(f"{path}: arrays {', '.join(absent)} are missing")
-            arrays = {key: group[key][...] for key in ARRAYS}
+            arrays = {key: _array(group, key, path) for key in ARRAYS}
         except RolloutsError:
             raise
         except (OSError, ValueError, KeyError, RuntimeError, json.JSONDecodeError) as error:

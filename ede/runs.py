@@ -92,7 +92,7 @@ class RunSpec:
             "seed": self.seed,
             "budget": self.budget,
             "params": {  # what changes the result: not where or how fast it runs
-                "td3": self.td3.model_dump(mode="json", exclude=result_neutral(TD3Config)),
+                "td3": self.td3.model_dump(mode="json", exclude=set(result_neutral(TD3Config))),
                 "ede_td3": self.ede_td3.model_dump(mode="json"),
             },
             "embedding": self.embedding_id,

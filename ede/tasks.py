@@ -29,7 +29,7 @@ class TaskInfo:
     max_episode_steps: int
 
 
-def make(task_id: str, **kwargs: object) -> gymnasium.Env:
+def make(task_id: str, **kwargs: Any) -> gymnasium.Env:
     """``gymnasium.make`` with the ``ede/`` tasks registered."""
     ede_envs.register_envs()
     return gymnasium.make(task_id, **kwargs)
@@ -92,12 +92,28 @@ def describe_tasks(families: Mapping[str, Any]) -> list[TaskInfo]:
                     role=role,
                     observation_shape=env.observation_space.shape or (),
                     action_space=f"Box{bounds}^{space.shape[0]}",
-                    max_episode_steps=env.spec.max_episode_steps if env.spec else 0,
+                    max_episode_steps=(env.spec.max_episode_steps or 0) if env.spec else 0,
                 )
             )
         finally:
             env.close()
     return infos
+
+
+def action_bounds(env: gymnasium.Env) -> tuple[np.ndarray, np.ndarray]:
+    """The low and high bounds of ``env``'s action Box (every usable task's actions are one)."""
+    space = env.action_space
+    if not isinstance(space, gymnasium.spaces.Box):
+        raise TypeError(f"{env.spec.id if env.spec else env}: its actions are not a Box")
+    return space.low, space.high
+
+
+def observation_size(env: gymnasium.Env) -> int:
+    """The length of ``env``'s flat observation vector."""
+    shape = env.observation_space.shape
+    if shape is None or len(shape) != 1:
+        raise TypeError(f"{env.spec.id if env.spec else env}: observations are not a flat vector")
+    return shape[0]
 
 
 @functools.cache
@@ -106,8 +122,9 @@ def action_box(task_id: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
     env = make(task_id)
     try:
         space = env.action_space
-        return tuple(np.asarray(space.low, float).tolist()), tuple(
-            np.asarray(space.high, float).tolist()
+        assert isinstance(space, gymnasium.spaces.Box), f"{task_id}: not a usable task"
+        return tuple(np.asarray(space.low, np.float64).tolist()), tuple(
+            np.asarray(space.high, np.float64).tolist()
         )
     finally:
         env.close()

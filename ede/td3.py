@@ -164,7 +164,7 @@ class CodeExecutor:
         space = env.action_space
         self.env, self.adapter = env, adapter
         self.code = torch.zeros(adapter.code_size, device=adapter.code_low.device)  # (C,)
-        self.plan = np.zeros((adapter.k, *space.shape), dtype=space.dtype)  # (K, A)
+        self.plan = np.zeros((adapter.k, *(space.shape or ())), dtype=space.dtype)  # (K, A)
         self.i = 0  # steps of the code executed
 
     def step(self, obs: np.ndarray, policy: Callable[[np.ndarray], torch.Tensor]) -> CodeStep:

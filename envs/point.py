@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, ClassVar, Final
+from typing import Any, Final
 
 import mujoco
 import numpy as np
@@ -99,7 +99,8 @@ class PointEnv(MujocoEnv, utils.EzPickle):
     * v0: Initial version.
     """
 
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": list(RENDER_MODES)}
+    # An instance attribute in gymnasium's Env, which a subclass may set per instance.
+    metadata: dict[str, Any] = {"render_modes": list(RENDER_MODES)}  # noqa: RUF012
 
     def __init__(
         self,
@@ -131,7 +132,9 @@ class PointEnv(MujocoEnv, utils.EzPickle):
         self.action_space = Box(low=-ACTION_LIMIT, high=ACTION_LIMIT, shape=(2,), dtype=np.float32)
         return self.action_space
 
-    def step(
+    # gymnasium's MujocoEnv annotates step's reward np.float64 and its info's values too; the
+    # Env API, which every caller reads, has a float reward and any info.
+    def step(  # type: ignore[override]
         self, action: NDArray[np.float32]
     ) -> tuple[NDArray[np.float64], float, bool, bool, dict[str, Any]]:
         action_clipped = np.clip(np.asarray(action, dtype=np.float64), -ACTION_LIMIT, ACTION_LIMIT)

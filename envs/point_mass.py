@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, ClassVar, Final
+from typing import Any, Final
 
 import numpy as np
 from gymnasium import utils
@@ -114,7 +114,8 @@ class PointMassEnv(MujocoEnv, utils.EzPickle):
     * v0: Initial version.
     """
 
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": list(RENDER_MODES)}
+    # An instance attribute in gymnasium's Env, which a subclass may set per instance.
+    metadata: dict[str, Any] = {"render_modes": list(RENDER_MODES)}  # noqa: RUF012
 
     def __init__(
         self,
@@ -152,7 +153,9 @@ class PointMassEnv(MujocoEnv, utils.EzPickle):
             "render_fps": int(np.round(1.0 / self.dt)),
         }
 
-    def step(
+    # gymnasium's MujocoEnv annotates step's reward np.float64 and its info's values too; the
+    # Env API, which every caller reads, has a float reward and any info.
+    def step(  # type: ignore[override]
         self, action: NDArray[np.float32]
     ) -> tuple[NDArray[np.float64], float, bool, bool, dict[str, Any]]:
         self.do_simulation(action, self.frame_skip)

@@ -9,7 +9,7 @@ observation (:meth:`_get_obs`) and its reward (:meth:`_get_rew`).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, ClassVar, Final
+from typing import Any, Final
 
 import mujoco
 import numpy as np
@@ -78,7 +78,8 @@ class ReacherFamilyEnv(MujocoEnv, utils.EzPickle):
     The environment never terminates; `gymnasium.make` adds a `TimeLimit` of 100 steps.
     """
 
-    metadata: ClassVar[dict[str, Any]] = {
+    # An instance attribute in gymnasium's Env, which a subclass may set per instance.
+    metadata: dict[str, Any] = {  # noqa: RUF012
         "render_modes": ["human", "rgb_array", "depth_array", "rgbd_tuple"],
         "render_fps": RENDER_FPS,
     }
@@ -126,7 +127,9 @@ class ReacherFamilyEnv(MujocoEnv, utils.EzPickle):
             low=-np.inf, high=np.inf, shape=self._get_obs().shape, dtype=np.float64
         )
 
-    def step(
+    # gymnasium's MujocoEnv annotates step's reward np.float64 and its info's values too; the
+    # Env API, which every caller reads, has a float reward and any info.
+    def step(  # type: ignore[override]
         self, action: NDArray[np.float32]
     ) -> tuple[NDArray[np.float64], float, bool, bool, dict[str, Any]]:
         self.do_simulation(action, self.frame_skip)

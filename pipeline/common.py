@@ -103,7 +103,7 @@ def check_outputs(
             unwritable(place, folder)
             or (folder and _above_working_directory(place))
             or _overlap(place, inputs)
-            or (folder and ownership_problem(place, kind))
+            or (kind is not None and ownership_problem(place, kind))
         )
         if problem:
             raise BadInput(problem)

@@ -11,7 +11,7 @@ import hashlib
 import html
 import io
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,7 +24,7 @@ from matplotlib.figure import Figure
 
 from ede.artifacts import ArtifactError, load_action_embedding
 from ede.atomic import write_atomically, write_json
-from ede.config import Params
+from ede.config import Algo, Params
 from ede.embedding import ActionEmbedding
 from ede.provenance import describe_software, software_versions
 from ede.report import (
@@ -365,33 +365,33 @@ def build(
     _across_tasks(page, metrics, all_curves, params)
 
     page.add("<h2>The EDE space against the effect space (Figure 6)</h2>")
-    family = config.effect_space_family
-    if family is None:
+    pictured = config.effect_space_family
+    if pictured is None:
         page.add("<p>Not drawn: <code>report.effect_space_family</code> is null.</p>")
     else:
-        embedding, task = inputs.loaded[family], params.families[family].source
+        embedding, task = inputs.loaded[pictured], params.families[pictured].source
         space = effect_space(embedding, fresh(), env_id=task)
         metrics["effect_space_affine_r2"] = space.r_squared
         page.add(
             f"<p>Effects s[t+{embedding.k}] − s[t] of {len(space.effects)} random "
             f"{embedding.k}-step sequences on {task} (left) and their codes E(a) under the "
-            f"{family} family's embedding (right), coloured by effect. Best affine map "
+            f"{pictured} family's embedding (right), coloured by effect. Best affine map "
             f"effect → code: <b>R² = {space.r_squared:.4f}</b>.</p>"
         )
         page.figure("effect-space", space.figure, "effect space beside EDE space")
 
     page.add("<h2>Exploration (Figure 7)</h2>")
-    family = config.exploration_family
-    if family is None:
+    drawn = config.exploration_family
+    if drawn is None:
         page.add("<p>Not drawn: <code>report.exploration_family</code> is null.</p>")
     else:
-        embedding, task = inputs.loaded[family], params.families[family].source
+        embedding, task = inputs.loaded[drawn], params.families[drawn].source
         explored = exploration(embedding, fresh(), env_id=task)
         metrics["coverage"] = {"raw": explored.raw_coverage, "ede": explored.ede_coverage}
         page.add(
             f"<p>Positions over ten episodes on {task}: uniform random actions "
             f"every step cover <b>{100 * explored.raw_coverage:.1f}%</b> of the arena (a 20×20 "
-            f"grid); uniform random EDE actions of the {family} family's embedding, chosen "
+            f"grid); uniform random EDE actions of the {drawn} family's embedding, chosen "
             f"every {embedding.k} steps, cover <b>{100 * explored.ede_coverage:.1f}%</b>.</p>"
         )
         page.figure("exploration", explored.figure, "exploration with raw and EDE actions")
@@ -420,7 +420,7 @@ def build(
     return page, metrics, curve_files, excluded
 
 
-def _expected(params: Params, inputs: Inputs, task: str, algo: str, seed: int) -> dict[str, Any]:
+def _expected(params: Params, inputs: Inputs, task: str, algo: Algo, seed: int) -> dict[str, Any]:
     """What a run's ``run.json`` must say: the run the params name, with the family's embedding
     where the report was given it."""
     embedding = inputs.embedding_ids.get(params.runs.tasks[task]) if algo == "ede-td3" else ""
@@ -507,7 +507,11 @@ def _fell_back(task: str, curves: dict[tuple[str, str], list[Curve]], params: Pa
 
 
 def _curve_csv(
-    task: str, algos: list[str], curves: dict, config: Any, fresh: Callable[[], np.random.Generator]
+    task: str,
+    algos: Sequence[str],
+    curves: dict,
+    config: Any,
+    fresh: Callable[[], np.random.Generator],
 ) -> str:
     """Mean curve per algorithm on the union of steps, for ``dvc plots``."""
     series = {
