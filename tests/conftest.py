@@ -70,7 +70,7 @@ def point_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def _tiny_pipeline(params: dict[str, Any]) -> None:
     params["collect"].update(steps=200, num_envs=1)
-    small = {"hidden": [16, 16], "epochs": 1, "batch_size": 64}
+    small: dict[str, Any] = {"hidden": [16, 16], "epochs": 1, "batch_size": 64}
     params["embedding"].update(small, holdout=0.5)
     params["decoder"].update(small)
     params["td3"].update(

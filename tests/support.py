@@ -16,12 +16,23 @@ import subprocess
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
+import gymnasium
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent  # this environment's scripts: `dvc`, `ede-pipeline`
+
+
+EnvT = TypeVar("EnvT", bound=gymnasium.Env)
+
+
+def unwrapped(env: gymnasium.Env, kind: type[EnvT]) -> EnvT:
+    """``env``'s innermost environment, checked to be a ``kind`` (its simulator, its fields)."""
+    inner = env.unwrapped
+    assert isinstance(inner, kind), f"{type(inner).__name__}, expected a {kind.__name__}"
+    return inner
 
 
 def tool_env() -> dict[str, str]:

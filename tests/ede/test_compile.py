@@ -11,6 +11,8 @@ two members (a masked one among them) every weight, moment and diagnostic sum ag
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 import torch
@@ -21,8 +23,11 @@ from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
 pytestmark = pytest.mark.slow
 
 OBS, ACT, SEEDS, UPDATES = 5, 2, [3, 4], 12
-MEASURED = {"rtol": 1e-6, "atol": 1e-7}  # weights within 3e-8, loss sums within 2e-6 of ~17
-TOLERANCE = {"rtol": 1e-5, "atol": 1e-6}
+MEASURED: dict[str, Any] = {
+    "rtol": 1e-6,
+    "atol": 1e-7,
+}  # weights within 3e-8, loss sums within 2e-6 of ~17
+TOLERANCE: dict[str, Any] = {"rtol": 1e-5, "atol": 1e-6}
 
 
 def trained(mode: str) -> Agent:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -29,7 +30,7 @@ from ede.embedding import (
 )
 from ede.rollouts import Rollouts
 
-SMALL = {"hidden": [64, 64], "lr": 1e-3, "batch_size": 64}
+SMALL: dict[str, Any] = {"hidden": [64, 64], "lr": 1e-3, "batch_size": 64}
 LOW, HIGH = np.array([-1.0, -1.0]), np.array([1.0, 1.0])
 
 

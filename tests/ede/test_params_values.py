@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -193,7 +194,7 @@ def test_every_consumer_takes_the_largest_seed_with_what_is_added_to_it(
     assert len(arrays["reward"]) == 200
     # embedding.seed and decoder.seed: torch generators, seeded with seed and seed + 1.
     rollouts = Rollouts.open(point_store)
-    small = {"hidden": [8], "epochs": 1, "seed": SEED_MAX}
+    small: dict[str, Any] = {"hidden": [8], "epochs": 1, "seed": SEED_MAX}
     encoded = train_encoder(rollouts, EmbeddingConfig(**small))
     train_decoder(rollouts, encoded, DecoderConfig(**small), 4, -np.ones(2), np.ones(2))
     # runs.seeds: SeedSequence streams, the first reset, evaluation resets 1_000_003 (seed + 1) + e.

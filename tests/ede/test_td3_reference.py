@@ -12,6 +12,8 @@ exactly (AMD EPYC, torch 2.13 CPU); ``TOLERANCE`` leaves 10x.
 
 from __future__ import annotations
 
+from typing import Any
+
 import gymnasium
 import numpy as np
 import pytest
@@ -26,8 +28,8 @@ from stable_baselines3.common.logger import configure  # noqa: E402
 from stable_baselines3.common.type_aliases import ReplayBufferSamples  # noqa: E402
 
 HIDDEN, BATCH, UPDATES, SEED = [64, 48], 32, 8, 3
-MEASURED = {"rtol": 1e-6, "atol": 1e-7}
-TOLERANCE = {"rtol": 1e-5, "atol": 1e-6}
+MEASURED: dict[str, Any] = {"rtol": 1e-6, "atol": 1e-7}
+TOLERANCE: dict[str, Any] = {"rtol": 1e-5, "atol": 1e-6}
 
 
 class FixedBatches:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 import torch
@@ -129,7 +131,7 @@ def test_a_checkpoint_taken_inside_a_code_resumes_its_remaining_actions(
     from ede.rollouts import Rollouts
 
     rollouts = Rollouts.open(point_store)
-    small = {"hidden": [8], "epochs": 1}
+    small: dict[str, Any] = {"hidden": [8], "epochs": 1}
     encoded = train_encoder(rollouts, EmbeddingConfig(**small))
     decoded = train_decoder(rollouts, encoded, DecoderConfig(**small), 4, -np.ones(2), np.ones(2))
     embedding = ActionEmbedding(

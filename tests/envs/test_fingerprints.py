@@ -15,10 +15,12 @@ import sys
 
 import numpy as np
 import pytest
+from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
 import ede_envs
-from ede.tasks import make
+from ede.tasks import action_bounds, make
 from ede_envs._numerics import cos_sin, norm, sum_of_squares
+from tests.support import unwrapped
 
 STEPS = 250  # two and a half episodes: resets inside the rollout are covered
 
@@ -36,10 +38,9 @@ FINGERPRINTS = {
 def fingerprint(task: str) -> str:
     """SHA-256 of a seeded rollout of uniform random actions: observations, state and rewards."""
     env = make(task)
+    low, high = action_bounds(env)
     actions = (
-        np.random.default_rng(0)
-        .uniform(env.action_space.low, env.action_space.high, size=(STEPS, *env.action_space.shape))
-        .astype(np.float32)
+        np.random.default_rng(0).uniform(low, high, size=(STEPS, *low.shape)).astype(np.float32)
     )
     digest = hashlib.sha256()
 
@@ -47,7 +48,7 @@ def fingerprint(task: str) -> str:
         for array in arrays:
             digest.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
 
-    data = env.unwrapped.data
+    data = unwrapped(env, MujocoEnv).data
     obs, _ = env.reset(seed=0)
     record(obs, data.qpos, data.qvel)
     for action in actions:

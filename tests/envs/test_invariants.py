@@ -14,7 +14,7 @@ from gymnasium.utils.env_checker import check_env
 
 import ede_envs
 from ede.config import FamilyConfig, load_params
-from ede.tasks import make
+from ede.tasks import action_bounds, make
 from tests.support import REPO
 
 FAMILIES = load_params(REPO / "params.yaml").families
@@ -25,9 +25,8 @@ OUR_TASKS = list(ede_envs.TASKS)
 def rollout(task: str, seed: int, steps: int = 30) -> tuple[np.ndarray, np.ndarray, list[dict]]:
     """Observations and rewards of ``steps`` seeded random actions after ``reset(seed=seed)``."""
     env = make(task)
-    actions = np.random.default_rng(1234).uniform(
-        env.action_space.low, env.action_space.high, size=(steps, *env.action_space.shape)
-    )
+    low, high = action_bounds(env)
+    actions = np.random.default_rng(1234).uniform(low, high, size=(steps, *low.shape))
     obs, _ = env.reset(seed=seed)
     observations, rewards, infos = [obs], [], []
     for action in actions:
@@ -109,6 +108,7 @@ def test_renders_headless_to_a_picture(task: str) -> None:
     env.reset(seed=0)
     frame = env.render()
     env.close()
+    assert isinstance(frame, np.ndarray)
     assert frame.shape == (72, 96, 3) and frame.dtype == np.uint8
     assert frame.std() > 5, "the frame is blank"
 

@@ -5,10 +5,12 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
+from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
 import ede_envs
-from ede_envs.point import STEP_SIZE
+from ede_envs.point import STEP_SIZE, PointEnv
 from ede_envs.point_mass import ARENA_HALF_WIDTH
+from tests.support import unwrapped
 
 gym.register_envs(ede_envs)
 
@@ -16,7 +18,7 @@ K = 4  # the paper's number of actions per EDE action
 
 
 def _state(env: gym.Env) -> np.ndarray:
-    data = env.unwrapped.data
+    data = unwrapped(env, MujocoEnv).data
     return np.concatenate([data.qpos, data.qvel])
 
 
@@ -26,11 +28,11 @@ def _state(env: gym.Env) -> np.ndarray:
 def test_point_state_is_the_position() -> None:
     env = gym.make("ede/Point-v0")
     obs, _ = env.reset(seed=0)
-    model = env.unwrapped.model
+    model = unwrapped(env, MujocoEnv).model
     assert model.nq == model.nv == 2  # the goal is a site, not a joint
     np.testing.assert_array_equal(_state(env), np.concatenate([obs[:2], [0.0, 0.0]]))
     assert env.action_space == gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
-    assert env.unwrapped.step_size == STEP_SIZE
+    assert unwrapped(env, PointEnv).step_size == STEP_SIZE
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -40,18 +42,18 @@ def test_point_effect_of_k_actions_is_linear(seed: int) -> None:
     rng = np.random.default_rng(seed)
     # Half the actions leave [-1, 1] and must be clipped.
     actions = rng.uniform(-2.0, 2.0, size=(24, 2)).astype(np.float32)
-    states = [_state(env)]
+    visited = [_state(env)]
     for action in actions:
         env.step(action)
-        states.append(_state(env))
-    states = np.array(states)
+        visited.append(_state(env))
+    states = np.array(visited)
     clipped = np.clip(actions.astype(np.float64), -1.0, 1.0)
     assert np.any(np.abs(actions) > 1.0)
     for t in range(len(actions) - K + 1):
         effect = states[t + K] - states[t]
         expected = np.concatenate([STEP_SIZE * clipped[t : t + K].sum(axis=0), [0.0, 0.0]])
         np.testing.assert_allclose(effect, expected, rtol=0.0, atol=1e-12)
-    assert env.unwrapped.data.nefc == 0  # no constraint ever acts
+    assert unwrapped(env, MujocoEnv).data.nefc == 0  # no constraint ever acts
 
 
 def test_point_can_cross_the_square_in_an_episode() -> None:
@@ -71,7 +73,7 @@ def test_point_reward_and_observation_layout() -> None:
     for _ in range(20):
         action = rng.uniform(-1.5, 1.5, size=2).astype(np.float32)
         obs, reward, terminated, _, info = env.step(action)
-        data = env.unwrapped.data
+        data = unwrapped(env, MujocoEnv).data
         assert obs.shape == (4,) and obs.dtype == np.float64 and not terminated
         np.testing.assert_array_equal(obs[:2], data.qpos)
         np.testing.assert_array_equal(obs[2:], data.site("goal").xpos[:2])
@@ -97,7 +99,7 @@ def test_point_reset_draws_start_and_goal_in_the_square() -> None:
 def test_pointmass_state_is_position_and_velocity() -> None:
     env = gym.make("ede/PointMass-v0")
     obs, _ = env.reset(seed=0)
-    model = env.unwrapped.model
+    model = unwrapped(env, MujocoEnv).model
     assert model.nq == model.nv == 2  # the goal is a site, not a joint
     np.testing.assert_array_equal(_state(env), obs[:4])
     assert env.action_space == gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
@@ -123,12 +125,12 @@ def test_pointmass_held_force_builds_up_velocity() -> None:
 def test_pointmass_walls_bind(direction: tuple[float, float]) -> None:
     env = gym.make("ede/PointMass-v0")
     env.reset(seed=1)
-    positions = []
+    visited = []
     for _ in range(100):
         obs, *_ = env.step(np.array(direction, dtype=np.float32))
-        positions.append(obs[:2])
-    positions = np.array(positions)
-    radius = env.unwrapped.model.geom("pointmass").size[0]
+        visited.append(obs[:2])
+    positions = np.array(visited)
+    radius = unwrapped(env, MujocoEnv).model.geom("pointmass").size[0]
     assert np.all(np.abs(positions) <= ARENA_HALF_WIDTH - radius + 1e-2)
     # It did reach a wall: without walls the push would carry it several metres.
     assert np.max(np.abs(positions[-1])) > ARENA_HALF_WIDTH - radius - 1e-2
@@ -141,7 +143,7 @@ def test_pointmass_reward_and_observation_layout() -> None:
     for _ in range(20):
         action = env.action_space.sample()
         obs, reward, terminated, _, info = env.step(action)
-        data = env.unwrapped.data
+        data = unwrapped(env, MujocoEnv).data
         assert obs.shape == (6,) and obs.dtype == np.float64 and not terminated
         np.testing.assert_array_equal(obs[0:2], data.qpos)
         np.testing.assert_array_equal(obs[2:4], data.qvel)

@@ -14,6 +14,7 @@ import pytest
 
 import ede_envs  # noqa: F401  (registers the ede/ ids)
 from ede_envs.reacher import ReacherFamilyEnv
+from tests.support import unwrapped
 
 VERTICAL, TURN, PUSH = "ede/ReacherVertical-v0", "ede/ReacherTurn-v0", "ede/ReacherPush-v0"
 REACHER_IDS = (VERTICAL, TURN, PUSH)
@@ -49,7 +50,7 @@ def make_env() -> Iterator[Callable[[str], ReacherFamilyEnv]]:
     def make(env_id: str) -> ReacherFamilyEnv:
         env = gym.make(env_id)
         envs.append(env)
-        return env.unwrapped
+        return unwrapped(env, ReacherFamilyEnv)
 
     yield make
     for env in envs:
@@ -178,12 +179,12 @@ def test_turn_observation_stays_bounded_while_the_spinner_winds_up(make_env) -> 
 @pytest.mark.parametrize("env_id", REACHER_IDS)
 def test_reset_arm_is_spread_contact_free_and_nearly_at_rest(env_id: str, make_env) -> None:
     env = make_env(env_id)
-    arm_qpos, arm_qvel = [], []
+    positions, velocities = [], []
     for _ in _resets(env, N_RESETS):
         assert env.data.ncon == 0
-        arm_qpos.append(env.data.qpos[:2].copy())
-        arm_qvel.append(env.data.qvel[:2].copy())
-    arm_qpos, arm_qvel = np.array(arm_qpos), np.array(arm_qvel)
+        positions.append(env.data.qpos[:2].copy())
+        velocities.append(env.data.qvel[:2].copy())
+    arm_qpos, arm_qvel = np.array(positions), np.array(velocities)
     assert np.all(np.abs(arm_qpos[:, 0]) <= np.pi)
     assert np.all(np.abs(arm_qpos[:, 1]) <= 3.0)  # joint1 starts within its limit
     assert arm_qpos.min(axis=0) == pytest.approx([-np.pi, -3.0], abs=0.3)
@@ -219,12 +220,12 @@ def test_reset_turn_target_on_its_circle_and_spinner_at_rest(make_env) -> None:
 
 def test_reset_push_box_and_target_in_their_ranges(make_env) -> None:
     env = make_env(PUSH)
-    boxes, targets = [], []
+    box_rows, target_rows = [], []
     for obs in _resets(env, N_RESETS):
-        boxes.append(obs[4:6])
-        targets.append(obs[7:9])
+        box_rows.append(obs[4:6])
+        target_rows.append(obs[7:9])
         np.testing.assert_array_equal(env.data.qvel[2:], 0.0)  # the box starts at rest
-    boxes, targets = np.array(boxes), np.array(targets)
+    boxes, targets = np.array(box_rows), np.array(target_rows)
     assert np.all(np.abs(boxes[:, 0]) <= 0.2) and np.ptp(boxes[:, 0]) > 0.35
     assert np.all((boxes[:, 1] >= 0.03) & (boxes[:, 1] <= 0.05))
     assert np.all(np.abs(targets[:, 0]) <= 0.2) and np.ptp(targets[:, 0]) > 0.35

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import Any
 
 import gymnasium as gym
 import mujoco
 import numpy as np
 import pytest
+from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
 import ede_envs  # noqa: F401  (registers the ede/ tasks)
 from ede_envs.striker import (
@@ -20,21 +22,22 @@ from ede_envs.striker import (
     STRIKE_THRESHOLD,
     StrikerEnv,
 )
+from tests.support import unwrapped
 
 W_DIST, W_CTRL, W_NEAR = 3.0, 0.1, 0.5  # the spec's weights, written independently of the env
 
 
 @pytest.fixture(scope="module")
-def pusher_model() -> mujoco.MjModel:
+def pusher_model() -> Iterator[mujoco.MjModel]:
     env = gym.make("Pusher-v5")
-    yield env.unwrapped.model
+    yield unwrapped(env, MujocoEnv).model
     env.close()
 
 
 @pytest.fixture
-def striker() -> StrikerEnv:
+def striker() -> Iterator[StrikerEnv]:
     env = gym.make("ede/Striker-v0")
-    yield env.unwrapped
+    yield unwrapped(env, StrikerEnv)
     env.close()
 
 
@@ -93,7 +96,7 @@ def test_action_space_equals_pusher() -> None:
     assert striker.action_space == pusher.action_space
     assert striker.action_space == gym.spaces.Box(-2.0, 2.0, (7,), np.float32)
     assert striker.spec is not None and striker.spec.max_episode_steps == 100
-    assert striker.unwrapped.frame_skip == 5
+    assert unwrapped(striker, StrikerEnv).frame_skip == 5
 
 
 def _check_reward(reward: float, action: np.ndarray, info: dict[str, Any]) -> None:
@@ -147,7 +150,7 @@ def test_reward_formula_on_random_rollouts(seed: int) -> None:
         action = env.action_space.sample()
         _, reward, terminated, truncated, info = env.step(action)
         assert not terminated
-        _check_reward(reward, action, info)
+        _check_reward(float(reward), action, info)
         infos.append(info)
     assert truncated  # TimeLimit at 100 steps
     _check_episode(infos)
@@ -169,14 +172,14 @@ def _place_ball_against_paddle(env: StrikerEnv, ball_velocity: tuple[float, floa
 def test_strike_fixes_the_near_reference_and_reset_clears_it() -> None:
     gym_env = gym.make("ede/Striker-v0")
     gym_env.reset(seed=3)
-    env = gym_env.unwrapped
+    env = unwrapped(gym_env, StrikerEnv)
     _place_ball_against_paddle(env, ball_velocity=(0.0, 0.0))
     rng = np.random.default_rng(3)
     infos = []
     for _ in range(15):
         action = rng.uniform(-2.0, 2.0, size=7).astype(np.float32)
         _, reward, _, _, info = gym_env.step(action)
-        _check_reward(reward, action, info)
+        _check_reward(float(reward), action, info)
         infos.append(info)
     assert infos[0]["struck"]
     assert infos[-1]["distance_tip_ball"] != pytest.approx(
@@ -194,7 +197,7 @@ def test_strike_fixes_the_near_reference_and_reset_clears_it() -> None:
 def test_reward_dist_keeps_the_closest_distance_when_the_ball_moves_away() -> None:
     gym_env = gym.make("ede/Striker-v0")
     gym_env.reset(seed=4)
-    env = gym_env.unwrapped
+    env = unwrapped(gym_env, StrikerEnv)
     goal = env.get_body_com("goal")[:2].copy()
     qvel = env.data.qvel.copy()
     away = BALL_START - goal
@@ -212,7 +215,7 @@ def test_goal_distribution_and_starting_state() -> None:
     goals = []
     for seed in range(200):
         obs, _ = env.reset(seed=seed)
-        data = env.unwrapped.data
+        data = unwrapped(env, StrikerEnv).data
         goal = obs[20:22]
         assert np.all(goal >= GOAL_LOW) and np.all(goal <= GOAL_HIGH)
         assert np.linalg.norm(goal - np.array(BALL_START)) >= MIN_GOAL_BALL_DISTANCE
@@ -221,9 +224,9 @@ def test_goal_distribution_and_starting_state() -> None:
         assert np.all(np.abs(data.qvel[:NUM_ARM_JOINTS]) <= ARM_VELOCITY_NOISE)
         np.testing.assert_array_equal(data.qvel[NUM_ARM_JOINTS:], 0.0)
         goals.append(goal)
-    goals = np.array(goals)
+    drawn = np.array(goals)
     # Spread over the box, not stuck in a corner: each coordinate's range covers most of it.
-    spread = (goals.max(axis=0) - goals.min(axis=0)) / (np.array(GOAL_HIGH) - np.array(GOAL_LOW))
+    spread = (drawn.max(axis=0) - drawn.min(axis=0)) / (np.array(GOAL_HIGH) - np.array(GOAL_LOW))
     assert np.all(spread > 0.9)
 
 
@@ -233,14 +236,14 @@ def test_observation_layout() -> None:
     env.action_space.seed(5)
     for _ in range(10):
         obs, *_ = env.step(env.action_space.sample())
-    data = env.unwrapped.data
+    data = unwrapped(env, StrikerEnv).data
     assert obs.shape == (23,) and obs.dtype == np.float64
     np.testing.assert_array_equal(obs[0:7], data.qpos[:7])
     np.testing.assert_array_equal(obs[7:14], data.qvel[:7])
     np.testing.assert_array_equal(obs[14:17], data.body("tips_arm").xpos)
     np.testing.assert_array_equal(obs[17:20], data.body("object").xpos)
     np.testing.assert_array_equal(obs[20:23], data.body("goal").xpos)
-    model = env.unwrapped.model
+    model = unwrapped(env, StrikerEnv).model
     ball_xy = [data.joint("obj_slidex").qpos[0], data.joint("obj_slidey").qpos[0]]
     np.testing.assert_array_equal(obs[17:19], ball_xy)  # ball bodies sit at the origin
     assert model.nq == model.nv == 11

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
+from click.testing import CliRunner, Result
 
 from ede.provenance import software_versions
 from ede.rollouts import Rollouts, RolloutsError
@@ -23,7 +23,7 @@ def tiny(params: dict, steps: int = 400, num_envs: int = 2) -> None:
     params["collect"].update(steps=steps, num_envs=num_envs)
 
 
-def run(*args: str) -> object:
+def run(*args: str) -> Result:
     return CliRunner().invoke(main, list(args))
 
 

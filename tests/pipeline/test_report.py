@@ -8,6 +8,7 @@ import os
 import shutil
 import subprocess
 from pathlib import Path
+from typing import Any
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -68,7 +69,7 @@ def embedding(root: Path, family: str, env_id: str) -> None:
         },
     )
     rollouts = Rollouts.open(store)
-    small = {"hidden": [32, 32], "epochs": 3, "lr": 1e-3}
+    small: dict[str, Any] = {"hidden": [32, 32], "epochs": 3, "lr": 1e-3}
     encoded = train_encoder(rollouts, EmbeddingConfig(**small))
     low, high = -np.ones(2), np.ones(2)
     decoded = train_decoder(rollouts, encoded, DecoderConfig(**small), 4, low, high)
