@@ -2,13 +2,29 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.text import Text
 
-from ede.report import diagnostics_figure, learning_curve_figure
+from ede.report import (
+    AcrossTasks,
+    across_tasks_section,
+    diagnostics_figure,
+    learning_curve_figure,
+)
 from ede.runs import Curve
+
+
+def aggregate(*args: Any, **kwargs: Any) -> AcrossTasks:
+    """:func:`ede.report.across_tasks_section` where the test expects a section."""
+    found = across_tasks_section(*args, **kwargs)
+    assert found is not None, "no section across tasks"
+    return found
+
 
 STEPS = np.arange(1_000, 11_000, 1_000, dtype=float)
 
@@ -16,8 +32,10 @@ STEPS = np.arange(1_000, 11_000, 1_000, dtype=float)
 def cut_off(figure: Figure) -> list[str]:
     """Every title, axis label and legend entry reaching past the figure's edges (tick labels
     are left out: matplotlib keeps labels of ticks outside the view, which it does not draw)."""
-    figure.canvas.draw()
-    renderer = figure.canvas.get_renderer()
+    canvas = figure.canvas
+    assert isinstance(canvas, FigureCanvasAgg), "the tests draw with Agg"
+    canvas.draw()
+    renderer = canvas.get_renderer()
     ticks = {
         id(label)
         for ax in figure.axes
@@ -84,7 +102,7 @@ def test_across_tasks_on_hand_built_runs_whose_aggregates_are_known() -> None:
         ("b", "td3"): runs(-10, range(4)),
         ("b", "ede-td3"): runs(-3, range(1, 4)),
     }
-    found = across_tasks_section(better, lows, 0.95, 300, seed=0)
+    found = aggregate(better, lows, 0.95, 300, seed=0)
     # Each algorithm keeps its fewest seeds on any task, each task's lowest: 3 of each here, so
     # b's TD3 seed 3 is named as left out; EDE-TD3 keeps b's seeds 1-3, all it has there.
     assert found.tasks == ["a", "b"] and found.runs == {"ede-td3": 3, "td3": 3}
@@ -96,15 +114,12 @@ def test_across_tasks_on_hand_built_runs_whose_aggregates_are_known() -> None:
         assert found.aggregates[score]["iqm_ours"].low > found.aggregates[score]["iqm_theirs"].high
     assert found.figure.axes[0].get_xlabel().startswith("normalised final return")
     same = {key: runs(0, range(3)) for key in better}
-    p = across_tasks_section(same, lows, 0.95, 300, seed=0).aggregates["auc"][
-        "probability_of_improvement"
-    ]
+    p = aggregate(same, lows, 0.95, 300, seed=0).aggregates["auc"]["probability_of_improvement"]
     assert p.mean == 0.5 and p.low < 0.5 < p.high
     assert across_tasks_section({("a", "td3"): runs(0, range(2))}, lows, 0.95, 300, 0) is None
 
 
 def test_unequal_run_counts_of_the_two_algorithms_are_all_used() -> None:
-    from ede.report import across_tasks_section
     from ede.runs import Curve
 
     steps = np.array([0.0, 1000.0])
@@ -113,7 +128,7 @@ def test_unequal_run_counts_of_the_two_algorithms_are_all_used() -> None:
         ("a", "td3"): [Curve(s, steps, np.array([0.0, 2.0 * s])) for s in range(2)],
         ("a", "ede-td3"): [Curve(s, steps, np.array([0.0, 1.0 + 2 * min(s, 1)])) for s in range(4)],
     }
-    found = across_tasks_section(curves, {"a": -1.0}, 0.95, 300, seed=0)
+    found = aggregate(curves, {"a": -1.0}, 0.95, 300, seed=0)
     assert found.runs == {"ede-td3": 4, "td3": 2} and found.left_out == []
     assert found.aggregates["final_return"]["probability_of_improvement"].mean == 7 / 8
 
@@ -143,14 +158,13 @@ def test_a_task_no_run_lifted_above_a_random_policy_is_left_out_by_name() -> Non
         for t in ("a", "b")
         for a in ("td3", "ede-td3")
     }
-    found = across_tasks_section(good, {"a": -10.0, "b": -1.0}, 0.9, 300, seed=0)
+    found = aggregate(good, {"a": -10.0, "b": -1.0}, 0.9, 300, seed=0)
     assert found.tasks == ["a"]
     assert found.left_out == ["b (its best evaluation, -1, is not above the random policy's -1)"]
     assert across_tasks_section(good, {"b": -1.0}, 0.9, 300, seed=0) is None
 
 
 def test_the_performance_profile_band_has_the_reports_confidence() -> None:
-    from ede.report import across_tasks_section
     from ede.runs import Curve
 
     steps = np.array([0.0, 1000.0])
@@ -161,10 +175,10 @@ def test_the_performance_profile_band_has_the_reports_confidence() -> None:
     }
 
     def band_area(confidence: float) -> float:  # of both algorithms' bands, by the shoelace
-        found = across_tasks_section(curves, {"a": -10.0}, confidence, 500, seed=0)
+        found = aggregate(curves, {"a": -10.0}, confidence, 500, seed=0)
         area = 0.0
         for band in found.figure.axes[0].collections:
-            x, y = band.get_paths()[0].vertices.T
+            x, y = np.asarray(band.get_paths()[0].vertices).T
             area += 0.5 * abs(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1)))
         return area
 
@@ -194,7 +208,9 @@ def test_a_band_given_is_drawn_as_it_is_and_the_others_computed() -> None:
         np.random.default_rng(0),
         bands={("HalfCheetah-v5", "ede-td3"): given},
     )
-    drawn = {line.get_label().split(" (")[0]: line.get_ydata() for line in figure.axes[0].lines}
+    drawn = {
+        str(line.get_label()).split(" (")[0]: line.get_ydata() for line in figure.axes[0].lines
+    }
     assert np.array_equal(drawn["EDE-TD3"], given[1])  # not the curves' mean, 1 to 101
     assert np.allclose(
         drawn["TD3"], np.linspace(0.0, 100.0, len(STEPS)) + 1.0
