@@ -93,9 +93,9 @@ experiments: install
 
 # What every change must pass before its tests: ruff's lint and format check (the rules are
 # pyproject.toml's [tool.ruff]; `ruff check --fix .` and `ruff format .` mend most findings), and
-# mypy's type check of the packages and the benchmarks ([tool.mypy]). The packages install under
-# other names than their folders (pyproject.toml's package-dir: envs/ is ede_envs), which mypy
-# cannot map: it reads them through links of those names in $(TYPING).
+# mypy's type check of the packages, the benchmarks and the tests ([tool.mypy]). The packages
+# install under other names than their folders (pyproject.toml's package-dir: envs/ is
+# ede_envs), which mypy cannot map: it reads them through links of those names in $(TYPING).
 TYPING := $(VENV)/typing
 lint: install
 	$(BIN)/ruff check .
@@ -103,7 +103,7 @@ lint: install
 	mkdir -p $(TYPING)
 	ln -sfn $(CURDIR)/envs $(TYPING)/ede_envs
 	ln -sfn $(CURDIR)/pipeline $(TYPING)/ede_pipeline
-	MYPYPATH=$(TYPING) $(BIN)/mypy ede $(TYPING)/ede_envs $(TYPING)/ede_pipeline benchmarks
+	MYPYPATH=$(TYPING) $(BIN)/mypy ede $(TYPING)/ede_envs $(TYPING)/ede_pipeline benchmarks tests
 
 # The whole suite, its tests spread over the cores (each works in its own scratch directory).
 test: lint

@@ -131,7 +131,7 @@ def claim(path: str | Path, kind: str, owns: Iterable[str]) -> None:
         _mark(path, kind, owns)
 
 
-def write_atomically(path: str | Path, write: Callable[[Path], None], kind: str) -> None:
+def write_atomically(path: str | Path, write: Callable[[Path], object], kind: str) -> None:
     """Call ``write(tmp)`` on a fresh sibling directory, mark it as ``kind``'s (:data:`MARK`,
     owning what ``write`` put there) and rename it onto ``path`` when it returns.
 

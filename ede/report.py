@@ -34,7 +34,7 @@ from ede.stats import (
     normalised,
     steps_to_threshold,
 )
-from ede.tasks import make
+from ede.tasks import action_bounds, make, simulator
 from ede.td3 import CodeExecutor, EmbeddingAdapter, IdentityAdapter
 from ede.training import evaluate
 
@@ -277,15 +277,15 @@ def effect_space(
     """
     env = make(env_id)
     k = embedding.k
-    low, high = env.action_space.low, env.action_space.high  # type: ignore[attr-defined]
+    low, high = action_bounds(env)
     actions = rng.uniform(low, high, size=(sequences, k, len(low))).astype(np.float32)
     effects = np.zeros((sequences, 2))
     for n in range(sequences):
         env.reset(seed=int(rng.integers(2**31)))
-        start = env.unwrapped.data.qpos[:2].copy()  # type: ignore[attr-defined]
+        start = simulator(env).data.qpos[:2].copy()
         for action in actions[n]:
             env.step(action)
-        effects[n] = env.unwrapped.data.qpos[:2] - start  # type: ignore[attr-defined]
+        effects[n] = simulator(env).data.qpos[:2] - start
     env.close()
     with torch.no_grad():
         codes = embedding.encode(torch.as_tensor(actions, device=embedding.device)).cpu().numpy()
@@ -340,7 +340,7 @@ def exploration(
     ([−half_width, half_width]²) that the positions visit.
     """
     env = make(env_id)
-    low, high = env.action_space.low, env.action_space.high  # type: ignore[attr-defined]
+    low, high = action_bounds(env)
     seeds = rng.integers(2**31, size=episodes)
     device = embedding.device
 
@@ -359,10 +359,7 @@ def exploration(
             obs, _ = env.reset(seed=int(seed))
             paths.append(
                 np.array(
-                    [
-                        env.unwrapped.data.qpos[:2].copy()  # type: ignore[attr-defined]
-                        for _ in executor.episode(obs, policy)
-                    ]
+                    [simulator(env).data.qpos[:2].copy() for _ in executor.episode(obs, policy)]
                 )
             )
         return paths

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 from itertools import pairwise
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import gymnasium
 import numpy as np
@@ -107,7 +107,7 @@ def state_source(env: gymnasium.Env) -> str:
 
 def physics_state(env: gymnasium.Env) -> np.ndarray:
     """The MuJoCo state of ``env``: qpos then qvel, as one float64 vector."""
-    data = env.unwrapped.data  # type: ignore[attr-defined]
+    data = cast(Any, env.unwrapped).data  # any env state_source calls "physics", not only MujocoEnv
     return np.concatenate((data.qpos, data.qvel))  # MuJoCo keeps both in float64
 
 

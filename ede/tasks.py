@@ -6,13 +6,16 @@ from __future__ import annotations
 import functools
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium
 import numpy as np
 
 import ede_envs
 from ede.errors import first_line
+
+if TYPE_CHECKING:  # for annotations only: importing it imports MuJoCo
+    from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
 __all__ = ["TaskInfo", "action_box", "describe_tasks", "make", "unusable"]
 
@@ -106,6 +109,16 @@ def action_bounds(env: gymnasium.Env) -> tuple[np.ndarray, np.ndarray]:
     if not isinstance(space, gymnasium.spaces.Box):
         raise TypeError(f"{env.spec.id if env.spec else env}: its actions are not a Box")
     return space.low, space.high
+
+
+def simulator(env: gymnasium.Env) -> MujocoEnv:
+    """``env``'s innermost environment, a MuJoCo task (its ``data``, ``model``, ``set_state``)."""
+    from gymnasium.envs.mujoco.mujoco_env import MujocoEnv  # imports MuJoCo
+
+    inner = env.unwrapped
+    if not isinstance(inner, MujocoEnv):
+        raise TypeError(f"{env.spec.id if env.spec else env}: not a MuJoCo task")
+    return inner
 
 
 def observation_size(env: gymnasium.Env) -> int:

@@ -14,7 +14,7 @@ from ede.provenance import software_versions
 from ede.rollouts import KIND as ROLLOUTS
 from ede.rollouts import Rollouts, RolloutsError, state_source, write_store
 from ede.rollouts import collect as collect_steps
-from ede.tasks import make
+from ede.tasks import action_bounds, make
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, check_family, family_option, holding, params_option
 from ede_pipeline.progress import progress
@@ -58,8 +58,8 @@ def store_attrs(
     try:
         spaces = {
             "observation_shape": list(env.observation_space.shape or ()),
-            "action_low": env.action_space.low.tolist(),  # type: ignore[attr-defined]
-            "action_high": env.action_space.high.tolist(),  # type: ignore[attr-defined]
+            "action_low": action_bounds(env)[0].tolist(),
+            "action_high": action_bounds(env)[1].tolist(),
             "state_size": int(arrays["state"].shape[1]),
         }
         source = state_source(env)

@@ -277,7 +277,7 @@ def _import_ray() -> Any:
     """Ray, or one line saying how to install it (with gRPC, which ``ray[default]`` brings and
     :func:`check_ray_address` asks through)."""
     try:
-        import grpc  # noqa: F401
+        import grpc  # noqa: F401 — only to fail here, with the line below, when it is missing
         import ray
     except ImportError:
         raise BadInput("--executor ray needs Ray: pip install -e '.[ray]'") from None

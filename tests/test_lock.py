@@ -11,6 +11,7 @@ import sys
 import tomllib
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -142,7 +143,7 @@ def test_the_images_torch_is_the_locked_one(lock):
     )
 
 
-def test_this_interpreter_has_exactly_the_locked_versions(lock):
+def test_this_interpreter_has_exactly_the_locked_versions(lock: Any) -> None:
     installed: dict[str, str] = {}
     for dist in importlib.metadata.distributions():  # sys.path order: the first one imports
         installed.setdefault(canonicalize_name(dist.metadata["Name"]), dist.version)

@@ -11,6 +11,7 @@ two members (a masked one among them) every weight, moment and diagnostic sum ag
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -30,8 +31,13 @@ MEASURED: dict[str, Any] = {
 TOLERANCE: dict[str, Any] = {"rtol": 1e-5, "atol": 1e-6}
 
 
+def labelled(where: str) -> Callable[[str], str]:
+    """``assert_close``'s message: its own, after ``where``."""
+    return lambda message: f"{where}: {message}"
+
+
 def trained(mode: str) -> Agent:
-    config = TD3Config(hidden=[32, 32], batch_size=16, compile=mode)
+    config = TD3Config.model_validate({"hidden": [32, 32], "batch_size": 16, "compile": mode})
     cpu = torch.device("cpu")
     agent = Agent(OBS, IdentityAdapter(-np.ones(ACT), np.ones(ACT), cpu), config, cpu, SEEDS)
     buffer = ReplayBuffer(200, OBS, ACT, 1, cpu, members=len(SEEDS))
@@ -67,6 +73,6 @@ def test_the_compiled_update_is_one_graph_and_computes_what_eager_computes() -> 
                     theirs[key],
                     value,
                     **TOLERANCE,
-                    msg=lambda m, k=key, member=member: f"member {member} {k}: {m}",
+                    msg=labelled(f"member {member} {key}"),
                 )
         assert int(theirs["updates"]) == UPDATES - (UPDATES // 3) * member

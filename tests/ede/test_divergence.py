@@ -61,7 +61,7 @@ for what in ("observation", "reward"):
 
 
 def spec(task: str, seed: int = 0, budget: int = 600, **td3) -> RunSpec:
-    return RunSpec(task, "td3", seed, budget, TD3Config(**(SMALL | td3)), EdeTD3Config())
+    return RunSpec(task, "td3", seed, budget, TD3Config.model_validate(SMALL | td3), EdeTD3Config())
 
 
 def rows(path: Path) -> list[dict[str, str]]:

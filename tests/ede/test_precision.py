@@ -75,7 +75,9 @@ def test_the_process_wide_setting_comes_back_after_an_error() -> None:
 
 
 def trained_agent(precision: str, updates: int = 6) -> Agent:
-    config = TD3Config(hidden=[64, 64], batch_size=32, precision=precision)
+    config = TD3Config.model_validate(
+        {"hidden": [64, 64], "batch_size": 32, "precision": precision}
+    )
     device = torch.device("cpu")
     agent = Agent(5, IdentityAdapter(-np.ones(2), np.ones(2), device), config, device, seeds=[0])
     buffer = ReplayBuffer(256, 5, 2, 1, device)

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import zarr
+from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
 from ede.rollouts import (
     ARRAYS,
@@ -18,7 +20,8 @@ from ede.rollouts import (
     state_source,
     write_store,
 )
-from ede.tasks import make
+from ede.tasks import action_bounds, make
+from tests.support import unwrapped
 
 ATTRS = {
     "env_id": "ede/Point-v0",
@@ -55,7 +58,7 @@ def direct_rollout(env_id: str, seed: int, index: int, steps: int) -> dict[str, 
     """Sub-environment ``index`` of a collection, replayed with a plain reset/step loop."""
     env = make(env_id)
     rng = np.random.default_rng([seed, index, 1])
-    low, high = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
+    low, high = (bound.astype(np.float64) for bound in action_bounds(env))
     rows: dict[str, list] = {"obs": [], "state": [], "action": [], "reward": []}
     obs, _ = env.reset(seed=seed + index)
     while len(rows["reward"]) < steps:
@@ -88,7 +91,7 @@ def test_the_state_column_of_a_mujoco_task_is_qpos_then_qvel(tmp_path: Path) -> 
     arrays = collect("ede/PointMass-v0", steps=100, num_envs=1, seed=0, workers=1)
     env = make("ede/PointMass-v0")
     env.reset(seed=0)
-    data = env.unwrapped.data
+    data = unwrapped(env, MujocoEnv).data
     assert state_source(env) == "physics"
     np.testing.assert_array_equal(arrays["state"][0], np.concatenate([data.qpos, data.qvel]))
 
@@ -129,7 +132,7 @@ def test_saturated_episodes_are_bang_bang_and_chosen_episode_by_episode() -> Non
     uniform draw snapped to the nearer bound) or all uniform, which ones drawn apart from the
     actions, so that the other episodes keep the uniform draws they have with none saturated."""
     env = make("ede/Point-v0")
-    low, high = env.action_space.low, env.action_space.high
+    low, high = action_bounds(env)
     env.close()
     uniform = collect("ede/Point-v0", 2_000, 2, seed=0, workers=1)
     mixed = collect("ede/Point-v0", 2_000, 2, seed=0, workers=1, saturated=0.5)
@@ -248,7 +251,7 @@ def test_a_store_missing_a_chunk_is_refused(tmp_path: Path) -> None:
     ],
 )
 def test_a_store_whose_attributes_were_edited_is_refused(
-    tmp_path: Path, key: str, value: object
+    tmp_path: Path, key: str, value: Any
 ) -> None:
     path = store_of(tmp_path / "r.zarr", ragged([5, 5]))
     Rollouts.open(path)  # untouched, it opens

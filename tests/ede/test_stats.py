@@ -208,9 +208,10 @@ def test_across_tasks_is_determined_by_its_seed_and_refuses_mismatched_tables() 
     rng = np.random.default_rng(2)
     ours, theirs = rng.normal(size=(4, 2)), rng.normal(size=(4, 2))
     np.random.seed(3)
-    before = np.random.get_state()[1].copy()
+    before = np.random.get_state(legacy=False)["state"]["key"].copy()
     assert across_tasks(ours, theirs, 0.95, 300, 7) == across_tasks(ours, theirs, 0.95, 300, 7)
-    np.testing.assert_array_equal(np.random.get_state()[1], before)  # the global generator kept
+    after = np.random.get_state(legacy=False)["state"]["key"]
+    np.testing.assert_array_equal(after, before)  # the global generator kept
     with pytest.raises(ValueError, match="over the same tasks"):
         across_tasks(ours, theirs[:, :1], 0.95, 300, 7)
 

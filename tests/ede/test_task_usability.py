@@ -33,8 +33,10 @@ class _Unbounded(_Camera):
 
 @pytest.fixture(scope="module", autouse=True)
 def _test_tasks() -> Iterator[None]:
-    for name, entry_point in [("Camera", _Camera), ("Unbounded", _Unbounded)]:
-        gymnasium.register(f"ede-test/{name}-v0", entry_point=entry_point, max_episode_steps=10)
+    for name, kind in [("Camera", _Camera), ("Unbounded", _Unbounded)]:
+        gymnasium.register(
+            f"ede-test/{name}-v0", entry_point=lambda kind=kind, **_: kind(), max_episode_steps=10
+        )
     yield
     for name in ("Camera", "Unbounded"):
         del gymnasium.registry[f"ede-test/{name}-v0"]

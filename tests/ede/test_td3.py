@@ -3,12 +3,16 @@ and the executor of codes."""
 
 from __future__ import annotations
 
+from typing import Any, cast
+
 import gymnasium
 import numpy as np
 import pytest
 import torch
 
 from ede.config import TD3Config
+from ede.embedding import ActionEmbedding
+from ede.ensemble import Params
 from ede.td3 import (
     Agent,
     CodeExecutor,
@@ -188,7 +192,7 @@ def test_the_actor_learns_only_through_the_critic_at_i_0(monkeypatch: pytest.Mon
         return out
 
     step = agent.critic_adam.step
-    agent.critic_adam.step = snapshot
+    monkeypatch.setattr(agent.critic_adam, "step", snapshot)
     actor_before = agent.actor.flat.clone()
     agent.update(buffer)
     assert len(seen_i) == 1 and torch.all(seen_i[0] == 0)
@@ -228,9 +232,12 @@ def largest_target_noise(adapter, noise_clip: float = 0.5, **overrides) -> float
     buffer = filled_buffer(REWARDS) if adapter.k == K else filled_buffer_k1()
     seen = []
     critic = agent.td3.critic
-    agent.td3.critic = lambda params, obs, code, i: (
-        seen.append((obs, code)) or critic(params, obs, code, i)
-    )
+
+    def spy(params: Params, obs: torch.Tensor, code: torch.Tensor, i: torch.Tensor) -> Any:
+        seen.append((obs, code))
+        return critic(params, obs, code, i)
+
+    agent.td3.critic = spy  # type: ignore[assignment]  # the critic, watched
     batch = buffer.sample(64, [torch.Generator().manual_seed(0)])
     noise = torch.randn(batch.code.shape, generator=torch.Generator().manual_seed(1))
     agent.td3.target(agent.actor_target.params, agent.critic_target.params, batch, noise)
@@ -260,7 +267,8 @@ def filled_buffer_k1() -> ReplayBuffer:
 def test_ede_target_noise_is_clipped_in_code_units_or_scaled_by_the_bound(clip, expected) -> None:
     # The bound 3.8 (ReacherVertical's): the authors' clip is td3.noise_clip = 0.5 in whitened-z
     # units; "scaled" multiplies it by the bound and target_noise_scale (0.475).
-    adapter = EmbeddingAdapter(BoxEmbedding(3.8), target_noise_scale=0.25, target_noise_clip=clip)
+    embedding = cast(ActionEmbedding, BoxEmbedding(3.8))  # a stand-in with what the adapter reads
+    adapter = EmbeddingAdapter(embedding, target_noise_scale=0.25, target_noise_clip=clip)
     assert largest_target_noise(adapter) == pytest.approx(expected, abs=1e-5)
 
 

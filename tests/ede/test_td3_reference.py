@@ -12,6 +12,7 @@ exactly (AMD EPYC, torch 2.13 CPU); ``TOLERANCE`` leaves 10x.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import gymnasium
@@ -21,9 +22,11 @@ import torch
 
 from ede.config import TD3Config
 from ede.ensemble import Params
+from ede.tasks import action_bounds, observation_size
 from ede.td3 import Agent, IdentityAdapter, ReplayBatch
 
 sb3 = pytest.importorskip("stable_baselines3")  # a dev dependency: present wherever tests run
+# after the skip above, as its imports need stable-baselines3
 from stable_baselines3.common.logger import configure  # noqa: E402
 from stable_baselines3.common.type_aliases import ReplayBufferSamples  # noqa: E402
 
@@ -40,6 +43,11 @@ class FixedBatches:
 
     def sample(self, batch_size: int, env: object = None) -> ReplayBufferSamples:
         return next(self.batches)
+
+
+def labelled(where: str) -> Callable[[str], str]:
+    """``assert_close``'s message: its own, after ``where``."""
+    return lambda message: f"{where}: {message}"
 
 
 def linears(module: torch.nn.Module) -> list[torch.nn.Linear]:
@@ -64,14 +72,13 @@ def assert_same(
             x = ours[f"{2 * j}.{name}"]
             x = x if twin is None else x[twin]
             y = getattr(layer, name).grad if grads else getattr(layer, name)
-            torch.testing.assert_close(
-                x, y, **TOLERANCE, msg=lambda m, j=j, name=name: f"{what} layer {j} {name}: {m}"
-            )
+            torch.testing.assert_close(x, y, **TOLERANCE, msg=labelled(f"{what} layer {j} {name}"))
 
 
 def test_k1_updates_equal_stable_baselines3_td3() -> None:
     env = gymnasium.make("Reacher-v5")
-    obs_size, act_size = env.observation_space.shape[0], env.action_space.shape[0]
+    low, high = action_bounds(env)
+    obs_size, act_size = observation_size(env), len(low)
     config = TD3Config(hidden=HIDDEN, batch_size=BATCH)
     torch.set_num_threads(1)
     theirs = sb3.TD3(
@@ -89,7 +96,7 @@ def test_k1_updates_equal_stable_baselines3_td3() -> None:
         device="cpu",
     )
     theirs.set_logger(configure(None, []))
-    adapter = IdentityAdapter(env.action_space.low, env.action_space.high, torch.device("cpu"))
+    adapter = IdentityAdapter(low, high, torch.device("cpu"))
     ours = Agent(obs_size, adapter, config, torch.device("cpu"), seeds=[SEED])
     # Same weights everywhere: SB3's critic is q_networks[0] and [1], our twins 0 and 1.
     copy_weights(theirs.actor.mu, ours.actor.member(0))
@@ -101,9 +108,12 @@ def test_k1_updates_equal_stable_baselines3_td3() -> None:
     for name in ("actor", "critic"):
         adam = getattr(ours, f"{name}_adam")
         step = adam.step
-        adam.step = lambda grad, *args, name=name, step=step, adam=adam: (
-            grads.__setitem__(name, adam.stack.views(grad[0])) or step(grad, *args)
-        )
+
+        def spy(grad: torch.Tensor, *args: Any, name: str = name, step=step, adam=adam) -> None:
+            grads[name] = adam.stack.views(grad[0])  # then the step itself
+            step(grad, *args)
+
+        adam.step = spy
 
     rng = np.random.default_rng(0)
     ours_batches, their_batches = [], []

@@ -71,11 +71,12 @@ def test_the_episode_schedule_updates_once_per_step_when_an_episode_ends(
     run, group = run_of(config)
     updated_at = []
     update = group.agent.update
-    monkeypatch.setattr(
-        group.agent,
-        "update",
-        lambda buffer, due: (updated_at.append(run.step), update(buffer, due)),
-    )
+
+    def watched(buffer: Any, due: Any) -> Any:  # the update, noting the step it came at
+        updated_at.append(run.step)
+        return update(buffer, due)
+
+    monkeypatch.setattr(group.agent, "update", watched)
     for _ in range(150):
         group.advance()
     assert run.episodes == 1 and updated_at == [100] * 100  # Point-v0's episodes are 100 steps
@@ -162,5 +163,5 @@ def test_a_checkpoint_taken_inside_a_code_resumes_its_remaining_actions(
     assert resumed.load(tmp_path / "checkpoint")
     assert resumed.executor.i == 2 and np.array_equal(resumed.executor.plan, run.executor.plan)
     assert torch.equal(resumed.executor.code, run.executor.code)
-    ahead, again = actions_after(group, 6), actions_after(again, 6)
-    assert all(np.array_equal(a, b) for a, b in zip(ahead, again, strict=True))
+    ahead, after = actions_after(group, 6), actions_after(again, 6)
+    assert all(np.array_equal(a, b) for a, b in zip(ahead, after, strict=True))

@@ -179,7 +179,7 @@ def test_a_second_writer_of_a_run_is_refused_with_the_holders_pid(
     assert second.returncode == 2, second.stderr
     lines = second.stderr.strip().splitlines()
     assert len(lines) == 1 and f"being written by process {first.pid}" in lines[0], lines
-    assert first.wait(timeout=600) == 0, first.stderr.read()
+    assert first.wait(timeout=600) == 0, first.stderr.read() if first.stderr else ""
     assert returns(out) == returns(workdir.ref / "runs" / TASK / "ede-td3" / "seed0")
     assert not lock.exists()
 

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 from click.testing import CliRunner
+from pydantic import BaseModel
 
 from ede.rollouts import Rollouts
 from ede_pipeline.cli import main
@@ -152,9 +153,10 @@ def test_every_param_that_changes_a_result_is_tracked_by_key() -> None:
 
     stages = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
     tracked = {key for stage in stages.values() for key in stage.get("do", stage).get("params", [])}
-    untracked = set()
+    untracked: set[str] = set()
     for section in ("embedding", "decoder", "td3", "ede_td3"):
         model = Params.model_fields[section].annotation
+        assert isinstance(model, type) and issubclass(model, BaseModel), section
         neutral = result_neutral(model)
         untracked |= neutral
         for field in model.model_fields:

@@ -11,6 +11,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
+from ede.config import Algo
 from ede_pipeline.cli import main
 from ede_pipeline.experiments import WIDTH, experiment_blocks
 from tests.support import tool_env
@@ -111,7 +112,7 @@ def test_each_experiment_shows_its_changes_and_returns_in_80_columns(
 
 
 def test_an_experiment_without_a_report_says_so() -> None:
-    def entry(rev: str, name: str, lr: float, metrics: dict) -> dict:
+    def entry(rev: str, name: str | None, lr: float, metrics: dict) -> dict:
         return {
             "rev": rev,
             "name": name,
@@ -206,7 +207,7 @@ def finished_workspace(
     root: Path,
     name: str,
     seeds: list[int],
-    algos: list[str],
+    algos: list[Algo],
     tasks: tuple[str, ...] = ("ede/ReacherVertical-v0",),
     finished: tuple[str, ...] = ("ede/ReacherVertical-v0",),
     embedding: str = "e0" * 32,

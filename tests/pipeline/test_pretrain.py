@@ -84,7 +84,11 @@ def test_rollouts_of_another_family_are_one_line(collected: Path) -> None:
 
 
 def test_episodes_shorter_than_k_are_one_line(collected: Path, write_params) -> None:
-    write_params(lambda p: (tiny(p), p["embedding"].update(k=150)))
+    def long_k(p: dict) -> None:
+        tiny(p)
+        p["embedding"].update(k=150)
+
+    write_params(long_k)
     bad(run("pretrain", "encoder", "--family", "point"), "no episode is longer than k=150")
 
 

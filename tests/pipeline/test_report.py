@@ -17,7 +17,7 @@ import torch
 from click.testing import CliRunner, Result
 
 from ede.artifacts import save_decoder, save_encoder
-from ede.config import DecoderConfig, EmbeddingConfig, load_params
+from ede.config import ALGOS, Algo, DecoderConfig, EmbeddingConfig, load_params
 from ede.embedding import train_decoder, train_encoder
 from ede.provenance import describe_software, software_versions
 from ede.rollouts import Rollouts, collect, write_store
@@ -29,7 +29,7 @@ TASKS = {"ede/ReacherVertical-v0": "reacher", "ede/Pusher-v0": "sevendof"}
 
 
 def fake_run(
-    root: Path, task: str, algo: str, seed: int, returns: list[float], every: int = 1000
+    root: Path, task: str, algo: Algo, seed: int, returns: list[float], every: int = 1000
 ) -> Path:
     """A finished run as ``train`` leaves it, of the params in ``root``: eval.csv (an evaluation
     every ``every`` steps), run.json and metrics.json."""
@@ -510,7 +510,7 @@ def test_a_tasks_intervals_do_not_depend_on_the_runs_of_tasks_before_it(
             fake_run(project, "ede/Pusher-v0", algo, seed, list(-50 + noise))
     _, alone = report(project)
     for seed in range(8):  # ReacherVertical's runs come first in the params: bootstrapped before
-        for algo in ("td3", "ede-td3"):
+        for algo in ALGOS:
             noise = np.random.default_rng([seed, 9]).normal(0, 3, 3)
             fake_run(project, "ede/ReacherVertical-v0", algo, seed, list(-20 + noise))
     _, beside = report(project)

@@ -448,7 +448,7 @@ def test_a_task_alone_never_joins_a_family_of_the_papers_and_one_seed_claims_no_
 def bad_input_cases() -> dict[str, tuple]:
     """Each case: what to break in a folder of good runs, and the line expected."""
 
-    def source(value: object) -> Callable[[Path], None]:
+    def source(value: object) -> Callable[[Path], object]:
         return lambda runs: (layout.task_runs(TASK, runs) / "source.json").write_text(
             json.dumps(value)
         )

@@ -210,7 +210,7 @@ def ray_cluster() -> Iterator[str]:
         configure_logging=False,
     )
     try:
-        yield context.address_info["gcs_address"]
+        yield context.address_info["gcs_address"]  # type: ignore[attr-defined]  # a RayContext
     finally:
         ray.shutdown()
 

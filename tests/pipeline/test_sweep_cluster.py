@@ -105,7 +105,7 @@ def cluster() -> Iterator[Any]:
                 },
             },
         )
-        head.client_port = client_port
+        head.client_port = client_port  # type: ignore[attr-defined]  # where tests find it
         try:
             yield head
         finally:

@@ -94,7 +94,7 @@ def random_policy_return(episodes: int = 5) -> float:
         done = False
         while not done:
             _, reward, terminated, truncated, _ = env.step(rng.uniform(-1, 1, 2).astype(np.float32))
-            total += reward
+            total += float(reward)
             done = terminated or truncated
     return total / episodes
 
