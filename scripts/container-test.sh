@@ -127,7 +127,7 @@ check_store "$work/podman/repo"
 [[ $(stat -c %u "$work/podman/repo/data/families/point/rollouts.zarr") == 1000 ]] || fail "not written by uid 1000"
 pm "${run[@]}" --entrypoint python localhost/ede -c '
 import gymnasium as gym, numpy as np
-env = gym.make("ede/ReacherTurn-v0", render_mode="rgb_array"); env.reset(seed=0)
+env = gym.make("ede_envs:ede/ReacherTurn-v0", render_mode="rgb_array"); env.reset(seed=0)
 frame = env.render(); assert frame.ndim == 3 and frame.std() > 0, frame.shape
 print("headless render (MUJOCO_GL=egl):", frame.shape)'
 
