@@ -134,10 +134,9 @@ def action_box(task_id: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
     """The bounds (low, high) of a usable task's action Box, for comparing tasks."""
     env = make(task_id)
     try:
-        space = env.action_space
-        assert isinstance(space, gymnasium.spaces.Box), f"{task_id}: not a usable task"
-        return tuple(np.asarray(space.low, np.float64).tolist()), tuple(
-            np.asarray(space.high, np.float64).tolist()
+        low, high = action_bounds(env)
+        return tuple(np.asarray(low, np.float64).tolist()), tuple(
+            np.asarray(high, np.float64).tolist()
         )
     finally:
         env.close()

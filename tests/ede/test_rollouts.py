@@ -8,7 +8,6 @@ from typing import Any
 import numpy as np
 import pytest
 import zarr
-from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
 from ede.rollouts import (
     ARRAYS,
@@ -20,8 +19,7 @@ from ede.rollouts import (
     state_source,
     write_store,
 )
-from ede.tasks import action_bounds, make
-from tests.support import unwrapped
+from ede.tasks import action_bounds, make, simulator
 
 ATTRS = {
     "env_id": "ede/Point-v0",
@@ -91,7 +89,7 @@ def test_the_state_column_of_a_mujoco_task_is_qpos_then_qvel(tmp_path: Path) -> 
     arrays = collect("ede/PointMass-v0", steps=100, num_envs=1, seed=0, workers=1)
     env = make("ede/PointMass-v0")
     env.reset(seed=0)
-    data = unwrapped(env, MujocoEnv).data
+    data = simulator(env).data
     assert state_source(env) == "physics"
     np.testing.assert_array_equal(arrays["state"][0], np.concatenate([data.qpos, data.qvel]))
 

@@ -15,12 +15,10 @@ import sys
 
 import numpy as np
 import pytest
-from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
 import ede_envs
-from ede.tasks import action_bounds, make
+from ede.tasks import action_bounds, make, simulator
 from ede_envs._numerics import cos_sin, norm, sum_of_squares
-from tests.support import unwrapped
 
 STEPS = 250  # two and a half episodes: resets inside the rollout are covered
 
@@ -48,7 +46,7 @@ def fingerprint(task: str) -> str:
         for array in arrays:
             digest.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
 
-    data = unwrapped(env, MujocoEnv).data
+    data = simulator(env).data
     obs, _ = env.reset(seed=0)
     record(obs, data.qpos, data.qvel)
     for action in actions:

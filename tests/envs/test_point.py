@@ -5,9 +5,9 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
-from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
 import ede_envs
+from ede.tasks import simulator
 from ede_envs.point import STEP_SIZE, PointEnv
 from ede_envs.point_mass import ARENA_HALF_WIDTH
 from tests.support import unwrapped
@@ -18,7 +18,7 @@ K = 4  # the paper's number of actions per EDE action
 
 
 def _state(env: gym.Env) -> np.ndarray:
-    data = unwrapped(env, MujocoEnv).data
+    data = simulator(env).data
     return np.concatenate([data.qpos, data.qvel])
 
 
@@ -28,7 +28,7 @@ def _state(env: gym.Env) -> np.ndarray:
 def test_point_state_is_the_position() -> None:
     env = gym.make("ede/Point-v0")
     obs, _ = env.reset(seed=0)
-    model = unwrapped(env, MujocoEnv).model
+    model = simulator(env).model
     assert model.nq == model.nv == 2  # the goal is a site, not a joint
     np.testing.assert_array_equal(_state(env), np.concatenate([obs[:2], [0.0, 0.0]]))
     assert env.action_space == gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
@@ -53,7 +53,7 @@ def test_point_effect_of_k_actions_is_linear(seed: int) -> None:
         effect = states[t + K] - states[t]
         expected = np.concatenate([STEP_SIZE * clipped[t : t + K].sum(axis=0), [0.0, 0.0]])
         np.testing.assert_allclose(effect, expected, rtol=0.0, atol=1e-12)
-    assert unwrapped(env, MujocoEnv).data.nefc == 0  # no constraint ever acts
+    assert simulator(env).data.nefc == 0  # no constraint ever acts
 
 
 def test_point_can_cross_the_square_in_an_episode() -> None:
@@ -73,7 +73,7 @@ def test_point_reward_and_observation_layout() -> None:
     for _ in range(20):
         action = rng.uniform(-1.5, 1.5, size=2).astype(np.float32)
         obs, reward, terminated, _, info = env.step(action)
-        data = unwrapped(env, MujocoEnv).data
+        data = simulator(env).data
         assert obs.shape == (4,) and obs.dtype == np.float64 and not terminated
         np.testing.assert_array_equal(obs[:2], data.qpos)
         np.testing.assert_array_equal(obs[2:], data.site("goal").xpos[:2])
@@ -99,7 +99,7 @@ def test_point_reset_draws_start_and_goal_in_the_square() -> None:
 def test_pointmass_state_is_position_and_velocity() -> None:
     env = gym.make("ede/PointMass-v0")
     obs, _ = env.reset(seed=0)
-    model = unwrapped(env, MujocoEnv).model
+    model = simulator(env).model
     assert model.nq == model.nv == 2  # the goal is a site, not a joint
     np.testing.assert_array_equal(_state(env), obs[:4])
     assert env.action_space == gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
@@ -130,7 +130,7 @@ def test_pointmass_walls_bind(direction: tuple[float, float]) -> None:
         obs, *_ = env.step(np.array(direction, dtype=np.float32))
         visited.append(obs[:2])
     positions = np.array(visited)
-    radius = unwrapped(env, MujocoEnv).model.geom("pointmass").size[0]
+    radius = simulator(env).model.geom("pointmass").size[0]
     assert np.all(np.abs(positions) <= ARENA_HALF_WIDTH - radius + 1e-2)
     # It did reach a wall: without walls the push would carry it several metres.
     assert np.max(np.abs(positions[-1])) > ARENA_HALF_WIDTH - radius - 1e-2
@@ -143,7 +143,7 @@ def test_pointmass_reward_and_observation_layout() -> None:
     for _ in range(20):
         action = env.action_space.sample()
         obs, reward, terminated, _, info = env.step(action)
-        data = unwrapped(env, MujocoEnv).data
+        data = simulator(env).data
         assert obs.shape == (6,) and obs.dtype == np.float64 and not terminated
         np.testing.assert_array_equal(obs[0:2], data.qpos)
         np.testing.assert_array_equal(obs[2:4], data.qvel)

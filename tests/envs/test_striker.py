@@ -9,9 +9,9 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 import pytest
-from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
 import ede_envs  # noqa: F401  (registers the ede/ tasks)
+from ede.tasks import simulator
 from ede_envs.striker import (
     ARM_VELOCITY_NOISE,
     BALL_START,
@@ -30,7 +30,7 @@ W_DIST, W_CTRL, W_NEAR = 3.0, 0.1, 0.5  # the spec's weights, written independen
 @pytest.fixture(scope="module")
 def pusher_model() -> Iterator[mujoco.MjModel]:
     env = gym.make("Pusher-v5")
-    yield unwrapped(env, MujocoEnv).model
+    yield simulator(env).model
     env.close()
 
 
