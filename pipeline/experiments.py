@@ -6,7 +6,9 @@ whole. ``experiment run NAME`` runs it in a working copy of its own,
 ``.dvc/tmp/experiments/NAME/`` (a git worktree sharing this checkout's DVC cache): this
 checkout's files (the code that runs, committed or not), the experiment's params, and its
 outputs, so that experiments neither touch this workspace nor each other, and a killed one
-resumes there. Families that none of its tasks uses and no figure draws are left out, so it learns
+resumes there. Running it again brings the copy's code up to this checkout's, but not over
+finished runs made with other code (DVC would run them again): that is refused unless
+``--keep-code`` (finish with the copy's code) or ``--update-code`` (run them again) says which. Families that none of its tasks uses and no figure draws are left out, so it learns
 only the embeddings it needs; an embedding another experiment already made with the same code and
 params comes from DVC's run cache instead of being made again. The train stages run through
 ``ede-pipeline sweep`` (side by side, ``--jobs``, Ray when asked, each run resuming from its
@@ -204,29 +206,32 @@ def _checkout_files() -> list[str]:
     return [name for name in listed if name and Path(name).is_file()]
 
 
-def prepare_workspace(name: str, params: dict[str, Any]) -> Path:
+def prepare_workspace(name: str, params: dict[str, Any], update_code: bool = True) -> Path:
     """The experiment's working copy, made or brought up to date: a git worktree at this
     checkout's commit holding this checkout's files as they are (the code that runs there,
     :func:`_tool`) and the experiment's params, its DVC cache this checkout's. Its ``data/``
-    (outputs and checkpoints) and ``dvc.lock`` are kept."""
+    (outputs and checkpoints) and ``dvc.lock`` are kept. With ``update_code`` false, a working
+    copy that exists keeps its files as they are and gets only the params."""
     workspace = WORKSPACES / name
     head = _git("rev-parse", "HEAD").strip()
     if not (workspace / ".git").exists():
         _git("worktree", "prune")  # a working copy deleted by hand leaves its registration
         workspace.parent.mkdir(parents=True, exist_ok=True)
         _git("worktree", "add", "--detach", "--force", str(workspace), head)
-    else:
+        update_code = True
+    elif update_code:
         _git("checkout", "--quiet", "--detach", "--force", head, cwd=workspace)
-    files = _checkout_files()
-    for file in files:
-        source, copy = Path(file), workspace / file
-        if not copy.is_file() or copy.read_bytes() != source.read_bytes():
-            copy.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(source, copy)
-    present = set(files)
-    for file in _git("ls-files", "-z", cwd=workspace).split("\0"):
-        if file and file not in present:  # deleted here, not yet committed
-            (workspace / file).unlink(missing_ok=True)
+    if update_code:
+        files = _checkout_files()
+        for file in files:
+            source, copy = Path(file), workspace / file
+            if _contents(copy) != source.read_bytes():
+                copy.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(source, copy)
+        present = set(files)
+        for file in _git("ls-files", "-z", cwd=workspace).split("\0"):
+            if file and file not in present:  # deleted here, not yet committed
+                (workspace / file).unlink(missing_ok=True)
     write_text(
         workspace / DEFAULT_PARAMS,
         f"# experiments/{name}.yaml applied to params.yaml "
@@ -235,6 +240,57 @@ def prepare_workspace(name: str, params: dict[str, Any]) -> Path:
     write_text(workspace / ".dvc" / "config.local", _shared_config())
     (workspace / layout.DATA).mkdir(exist_ok=True)
     return workspace
+
+
+def _contents(path: Path) -> bytes | None:
+    return path.read_bytes() if path.is_file() else None
+
+
+def _run_code() -> list[str]:
+    """The code that makes an experiment's runs, as this checkout's ``dvc.yaml`` names it: the
+    files and folders every stage but the report depends on (data aside), and ``dvc.yaml``."""
+    stages = yaml.safe_load(Path("dvc.yaml").read_text())["stages"]
+    code = {"dvc.yaml"}
+    for name, stage in stages.items():
+        if name != "report":
+            deps = stage.get("do", stage).get("deps", [])
+            code.update(d for d in deps if "${" not in d and Path(d).parts[0] != layout.DATA.name)
+    return sorted(code)
+
+
+def _changed_run_code(workspace: Path) -> list[str]:
+    """The files of :func:`_run_code` that differ between this checkout and ``workspace``."""
+    code = _run_code()
+
+    def is_code(file: str) -> bool:
+        return any(file == path or file.startswith(f"{path}/") for path in code)
+
+    here = set(_checkout_files())
+    there = set(_git("ls-files", "-z", cwd=workspace).split("\0"))
+    return sorted(
+        file
+        for file in filter(is_code, here | there)
+        if _contents(Path(file)) != _contents(workspace / file)
+    )
+
+
+def _check_code_keeps_runs(name: str, workspace: Path) -> None:
+    """Refuse (:class:`BadInput`) to bring ``workspace``'s code up to date where that would make
+    DVC discard finished runs: their stages depend on the code, so DVC runs them again."""
+    if not (workspace / ".git").exists():
+        return
+    finished = list((workspace / layout.RUNS).glob("**/metrics.json"))
+    changed = _changed_run_code(workspace) if finished else []
+    if changed:
+        listed = ", ".join(changed[:3]) + (
+            f" and {len(changed) - 3} more" if len(changed) > 3 else ""
+        )
+        raise BadInput(
+            f"experiment {name}: code its finished runs depend on changed here ({listed}), "
+            f"and DVC would run them ({len(finished)}) again; --keep-code finishes the experiment "
+            "with the code they were made with, --update-code runs them again with this "
+            "checkout's"
+        )
 
 
 def _shared_config() -> str:
@@ -337,13 +393,24 @@ def list_experiments() -> None:
     help="Then send its outputs to the artifact store (`dvc "
     "push`: the DVC remote, `store` by default).",
 )
+@click.option(
+    "--keep-code/--update-code",
+    default=None,
+    help="Run again after the code changed: finish the experiment with the code its working "
+    "copy holds (its finished runs' code), or bring the copy up to this checkout, which runs "
+    "its finished runs again. Without either, a change to the code the runs depend on is "
+    "refused while the experiment has finished runs.",
+)
 @click.argument("sweep_args", nargs=-1, type=click.UNPROCESSED)
-def run_experiment(name: str, push: bool, sweep_args: tuple[str, ...]) -> None:
+def run_experiment(
+    name: str, push: bool, keep_code: bool | None, sweep_args: tuple[str, ...]
+) -> None:
     """Run experiments/NAME.yaml in its working copy and record it as the DVC experiment NAME.
 
     SWEEP_ARGS go to `ede-pipeline sweep` as they are (e.g. `--jobs 2`, `--executor ray`).
     Run it again after a kill or a failure: finished runs are kept, the others resume from their
-    checkpoints.
+    checkpoints. The copy's code is brought up to this checkout's each time, unless that would
+    run finished runs again (see --keep-code).
     """
     from ede_pipeline.sweep import sweep
 
@@ -354,8 +421,11 @@ def run_experiment(name: str, push: bool, sweep_args: tuple[str, ...]) -> None:
     except click.UsageError as error:
         raise BadInput(f"sweep options: {error.format_message()}") from None
     params = experiment_params(name)
-    workspace = prepare_workspace(name, params)
-    click.echo(f"experiment {name}: in {workspace}", err=True)
+    if keep_code is None:
+        _check_code_keeps_runs(name, WORKSPACES / name)
+    workspace = prepare_workspace(name, params, update_code=not keep_code)
+    kept = " with the code it started with" if keep_code else ""
+    click.echo(f"experiment {name}: in {workspace}{kept}", err=True)
     if code := _tool(workspace, "ede-pipeline", "sweep", *sweep_args):
         raise Failed(f"experiment {name}: the sweep failed (exit {code}); run it again to resume")
     if code := _tool(workspace, "dvc", "repro"):

@@ -169,3 +169,42 @@ def test_experiments_of_one_family_share_its_embedding(repo: Path) -> None:
     workspace = repo / ".dvc" / "tmp" / "experiments" / "two-seeds-lr"
     run_json = json.loads((workspace / "data/runs" / TASK / "td3/seed1/run.json").read_text())
     assert run_json["params"]["td3"]["lr"] == 0.002
+
+
+def test_a_changed_code_keeps_finished_runs_unless_told(tmp_path: Path) -> None:
+    """Running an experiment again after its runs' code changed is refused while runs have
+    finished (DVC would run them again); --keep-code finishes it with the code they were made
+    with, --update-code runs them again with the checkout's."""
+    repo = scratch_copy(tmp_path / "repo", tiny)
+    (repo / "experiments").mkdir(exist_ok=True)
+    (repo / "experiments" / "one-seed.yaml").write_text(
+        "# Point at one seed, TD3 only.\nruns:\n  algos: [td3]\n  seeds: [0]\n"
+    )
+    commit(repo)
+    ok(experiment(repo, "run", "one-seed", "--jobs", "1"))
+    workspace = repo / ".dvc" / "tmp" / "experiments" / "one-seed"
+    finished = workspace / "data" / "runs" / TASK / "td3" / "seed0"
+    made = (finished / "metrics.json").read_bytes()
+    code = repo / "ede" / "td3.py"
+    original = code.read_bytes()
+    code.write_bytes(original + b"\n# edited after the run\n")  # not committed: it counts
+
+    refused = experiment(repo, "run", "one-seed", "--jobs", "1")
+    assert refused.returncode == 2, refused.stderr
+    assert refused.stderr.startswith(
+        "Error: experiment one-seed: code its finished runs depend on changed here "
+        "(ede/td3.py), and DVC would run them (1) again; --keep-code "
+    ), refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1, refused.stderr
+    assert (workspace / "ede" / "td3.py").read_bytes() == original
+    assert (finished / "metrics.json").read_bytes() == made
+
+    kept = ok(experiment(repo, "run", "one-seed", "--keep-code", "--jobs", "1"))
+    assert "sweep: 0 of 1 stages out of date" in kept, kept[-3000:]
+    assert (workspace / "ede" / "td3.py").read_bytes() == original
+    assert (finished / "metrics.json").read_bytes() == made
+
+    again = ok(experiment(repo, "run", "one-seed", "--update-code", "--jobs", "1"))
+    assert "sweep: 1 of 1 stages out of date" in again, again[-3000:]
+    assert (workspace / "ede" / "td3.py").read_bytes() == code.read_bytes()
+    assert json.loads((finished / "run.json").read_text())["code"]["modified"] is True
