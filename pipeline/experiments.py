@@ -417,9 +417,14 @@ def run_experiment(
     if not Path("dvc.yaml").is_file() or not (Path(".dvc")).is_dir():
         raise BadInput(f"run from the repository root (no dvc.yaml and .dvc/ in {Path.cwd()})")
     try:  # bad sweep options end here, before anything is made
-        sweep.make_context("sweep", list(sweep_args))
+        targets = sweep.make_context("sweep", list(sweep_args)).params["targets"]
     except click.UsageError as error:
         raise BadInput(f"sweep options: {error.format_message()}") from None
+    if targets:  # `dvc repro` would run the other runs after the sweep all the same
+        raise BadInput(
+            f"experiment {name}: stages ({', '.join(targets)}) are not taken: an experiment runs "
+            f"all of experiments/{name}.yaml's runs (its runs.seeds and runs.algos choose them)"
+        )
     params = experiment_params(name)
     if keep_code is None:
         _check_code_keeps_runs(name, WORKSPACES / name)

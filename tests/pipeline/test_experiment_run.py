@@ -69,6 +69,11 @@ def experiment(repo: Path, *args: str) -> subprocess.CompletedProcess[str]:
             "are: ablation-epochs6, ablation-step, ",
         ),
         (["run", "two-seeds", "--jobs", "0"], "sweep options: Invalid value for '-j' / '--jobs'"),
+        (
+            ["run", "two-seeds", "--jobs", "2", "train@ede/Point-v0-td3-1"],
+            "experiment two-seeds: stages (train@ede/Point-v0-td3-1) are not taken: an "
+            "experiment runs all of experiments/two-seeds.yaml's runs",
+        ),
         (["export", "two-seeds-lr"], "experiment two-seeds-lr: not run here yet"),
     ],
 )
