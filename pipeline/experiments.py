@@ -8,8 +8,9 @@ checkout's files (the code that runs, committed or not), the experiment's params
 outputs, so that experiments neither touch this workspace nor each other, and a killed one
 resumes there. Running it again brings the copy's code up to this checkout's, but not over
 finished runs made with other code (DVC would run them again): that is refused unless
-``--keep-code`` (finish with the copy's code) or ``--update-code`` (run them again) says which. Families that none of its tasks uses and no figure draws are left out, so it learns
-only the embeddings it needs; an embedding another experiment already made with the same code and
+``--keep-code`` (finish with the copy's code) or ``--update-code`` (run them again) says which.
+Families that none of its tasks uses and no figure draws are left out, so it learns only the
+embeddings it needs; an embedding another experiment already made with the same code and
 params comes from DVC's run cache instead of being made again. The train stages run through
 ``ede-pipeline sweep`` (side by side, ``--jobs``, Ray when asked, each run resuming from its
 checkpoint), the rest (the report) through ``dvc repro``, and ``dvc exp save`` records it as the
