@@ -276,16 +276,17 @@ def effect_space(
     its R² over both code dimensions.
     """
     env = make(env_id)
+    data = simulator(env).data  # the simulator's state: the same object through every reset
     k = embedding.k
     low, high = action_bounds(env)
     actions = rng.uniform(low, high, size=(sequences, k, len(low))).astype(np.float32)
     effects = np.zeros((sequences, 2))
     for n in range(sequences):
         env.reset(seed=int(rng.integers(2**31)))
-        start = simulator(env).data.qpos[:2].copy()
+        start = data.qpos[:2].copy()
         for action in actions[n]:
             env.step(action)
-        effects[n] = simulator(env).data.qpos[:2] - start
+        effects[n] = data.qpos[:2] - start
     env.close()
     with torch.no_grad():
         codes = embedding.encode(torch.as_tensor(actions, device=embedding.device)).cpu().numpy()
@@ -340,6 +341,7 @@ def exploration(
     ([−half_width, half_width]²) that the positions visit.
     """
     env = make(env_id)
+    data = simulator(env).data  # the simulator's state: the same object through every reset
     low, high = action_bounds(env)
     seeds = rng.integers(2**31, size=episodes)
     device = embedding.device
@@ -357,11 +359,7 @@ def exploration(
         paths = []
         for seed in seeds:
             obs, _ = env.reset(seed=int(seed))
-            paths.append(
-                np.array(
-                    [simulator(env).data.qpos[:2].copy() for _ in executor.episode(obs, policy)]
-                )
-            )
+            paths.append(np.array([data.qpos[:2].copy() for _ in executor.episode(obs, policy)]))
         return paths
 
     raw = rollout(CodeExecutor(env, IdentityAdapter(low, high, device)), uniform_action)

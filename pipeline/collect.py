@@ -56,10 +56,11 @@ def store_attrs(
 ) -> dict[str, Any]:
     env = make(params.families[family].source)
     try:
+        low, high = action_bounds(env)
         spaces = {
             "observation_shape": list(env.observation_space.shape or ()),
-            "action_low": action_bounds(env)[0].tolist(),
-            "action_high": action_bounds(env)[1].tolist(),
+            "action_low": low.tolist(),
+            "action_high": high.tolist(),
             "state_size": int(arrays["state"].shape[1]),
         }
         source = state_source(env)
