@@ -468,8 +468,8 @@ def export(name: str, to: Path) -> None:
     TO/<task>/<algo>/seed<N>/, checked first (`ede.runs.read_run`: the run the experiment's
     params name, finished, its files whole), and the held-out metrics of the embedding its
     EDE-TD3 runs used to TO/<task>/embedding/<checksum>/. Each task's source.json names the
-    experiment file, the commit its runs were made at, its seeds, and report.thresholds' returns
-    for it. Where the task's folder already holds seeds from other experiments (an experiment
+    experiment file, the commits its runs were made at (an earlier export's too), its seeds,
+    and report.thresholds' returns for it. Where the task's folder already holds seeds from other experiments (an experiment
     adding seeds to a published task), source.json keeps their parts beside this one; seeds
     already published by another experiment are refused.
     """
@@ -496,7 +496,9 @@ def export(name: str, to: Path) -> None:
         if not runs:  # none of this task's runs has finished yet
             click.echo(f"{task}: no run finished yet; nothing exported", err=True)
             continue
-        commits = sorted({made["code"]["commit"] for *_, made in runs})
+        commits = sorted(
+            {made["code"]["commit"] for *_, made in runs} | _earlier_commits(task, params, runs, to)
+        )
         part = {
             "experiment": experiment_file(name).as_posix(),
             "commit": commits[0] if len(commits) == 1 else commits,
@@ -523,6 +525,19 @@ def export(name: str, to: Path) -> None:
 
 
 EMBEDDING_METRICS = ("encoder_metrics.json", "decoder_metrics.json")  # as pretrain writes them
+
+
+def _earlier_commits(task: str, params: Params, runs: list[tuple], to: Path) -> set[str]:
+    """The commits of this experiment's runs of ``task`` that an earlier export published to
+    ``to`` and the working copy no longer holds (a copy made again after they were exported):
+    the part's commits name every run it publishes, not only this export's."""
+    now = {(algo, seed) for algo, seed, *_ in runs}
+    commits = set()
+    for algo, seed in itertools.product(params.runs.algos, params.runs.seeds):
+        record = layout.run(task, algo, seed, to) / "run.json"
+        if (algo, seed) not in now and record.is_file():
+            commits.add(json.loads(record.read_text())["code"]["commit"])
+    return commits
 
 
 def _merged_source(folder: Path, part: dict) -> dict | list[dict]:

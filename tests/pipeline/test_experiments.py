@@ -337,6 +337,31 @@ def test_an_experiment_adding_seeds_exports_beside_the_published_ones(
     assert {p: p.read_bytes() for p in Path("published").rglob("*") if p.is_file()} == before
 
 
+def test_an_export_names_the_commits_of_runs_an_earlier_export_published(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Seed 0 exported, then gone from the working copy (made again at another commit): the
+    next export keeps seed 0's files and names its commit beside the one seed 1 was made at."""
+    import shutil
+
+    from ede_pipeline import layout
+
+    monkeypatch.chdir(tmp_path)
+    workspace = finished_workspace(tmp_path, "later", [0, 1], ["td3"])
+    assert export("later").exit_code == 0
+    published = layout.run(TASK, "td3", 0, Path("published")) / "run.json"
+    earlier = json.loads(published.read_text())
+    now = earlier["code"]["commit"]
+    earlier["code"]["commit"] = "e" * 40
+    published.write_text(json.dumps(earlier))
+    shutil.rmtree(workspace / layout.run(TASK, "td3", 0))
+    result = export("later")
+    assert result.exit_code == 0, result.output
+    source = json.loads((layout.task_runs(TASK, Path("published")) / "source.json").read_text())
+    assert source["commit"] == sorted(["e" * 40, now])
+    assert json.loads(published.read_text()) == earlier
+
+
 def test_an_experiments_tools_run_the_code_of_its_working_copy(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
 ) -> None:
