@@ -37,6 +37,8 @@ report draws them) and prints, per task, in Markdown:
   seeds or more of each);
 - rliable's probability that an EDE-TD3 run beats a TD3 run there, over all the task's seeds,
   on the final return and on the area;
+- each algorithm's mean over seeds of a seed's last quarter of bins, with its bootstrap interval
+  (the asymptote, as far as the budget shows it);
 - per seed, whether it diverged (:func:`ede.stats.divergence`: its last quarter of bins all below
   its best earlier bin by more than half of what it had gained by then);
 
@@ -535,14 +537,33 @@ def task_section(
             + ".",
             "",
         ]
+    late = {
+        algo: [divergence(c.steps, c.returns, width) for c in runs]
+        for algo, runs in found.curves.items()
+    }
     lines += [
+        "The last quarter's mean over seeds (each seed's in the table below; the asymptote, as "
+        "far as this budget shows it): "
+        + ", ".join(
+            f"{ALGO_STYLE[algo][0]} "
+            + str(
+                bootstrap_mean(
+                    np.array([d.tail for d in seeds]),
+                    params.report.confidence,
+                    params.report.bootstrap_samples,
+                    np.random.default_rng(params.report.seed),
+                )
+            )
+            for algo, seeds in late.items()
+        )
+        + ".",
+        "",
         "| algorithm | seed | first bin | best bin before the last quarter | last quarter "
         "| diverged |",
         "|---|---|---|---|---|---|",
     ]
     for algo, runs in found.curves.items():
-        for curve in runs:
-            d = divergence(curve.steps, curve.returns, width)
+        for curve, d in zip(runs, late[algo], strict=True):
             lines.append(
                 f"| {ALGO_STYLE[algo][0]} | {curve.seed} | {d.first:.1f} | {d.best:.1f} at "
                 f"{d.best_step / 1000:g}K | {d.tail:.1f} | {'**yes**' if d.diverged else 'no'} |"

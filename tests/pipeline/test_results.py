@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -121,6 +122,21 @@ def test_tables_name_disjoint_bins_and_diverged_seeds(tmp_path: Path) -> None:
     )
     turn = out.split("### ede/ReacherPush-v0")[0]
     assert "| EDE-TD3 | 0 | " in turn and turn.count("| no |") == 4
+    # The last quarter's mean over seeds is the mean of the seed table's last column, and it
+    # puts TD3's fall (to about -175) below EDE-TD3's climb (to about -70), intervals apart.
+    late = turn.split("the asymptote, as far as this budget shows it): ")[1].split(".\n")[0]
+    intervals = {
+        name: tuple(map(float, numbers))
+        for name, *numbers in re.findall(r"([A-Z0-9-]+) (\S+) \[(\S+), (\S+)\]", late)
+    }
+    for name in ("TD3", "EDE-TD3"):
+        column = [
+            float(row.split(" | ")[4])
+            for row in turn.splitlines()
+            if row.startswith(f"| {name} | ") and row.count(" | ") == 5
+        ]
+        assert len(column) == 4 and intervals[name][0] == pytest.approx(np.mean(column), abs=0.1)
+    assert intervals["TD3"][2] < -150 < intervals["EDE-TD3"][1]
     assert (tmp_path / "figures" / "reacher.png").stat().st_size > 10_000
     # Across tasks (ReacherTurn's; ReacherPush waits for its seeds): every EDE-TD3 seed ends
     # above every TD3 seed, so P is 1 at both ends.
