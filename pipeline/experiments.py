@@ -469,9 +469,9 @@ def export(name: str, to: Path) -> None:
     params name, finished, its files whole), and the held-out metrics of the embedding its
     EDE-TD3 runs used to TO/<task>/embedding/<checksum>/. Each task's source.json names the
     experiment file, the commits its runs were made at (an earlier export's too), its seeds,
-    and report.thresholds' returns for it. Where the task's folder already holds seeds from other experiments (an experiment
-    adding seeds to a published task), source.json keeps their parts beside this one; seeds
-    already published by another experiment are refused.
+    and report.thresholds' returns for it. Where the task's folder already holds seeds from
+    other experiments (an experiment adding seeds to a published task), source.json keeps their
+    parts beside this one; seeds already published by another experiment are refused.
     """
     experiment_file(name)
     workspace = WORKSPACES / name

@@ -541,21 +541,17 @@ def task_section(
         algo: [divergence(c.steps, c.returns, width) for c in runs]
         for algo, runs in found.curves.items()
     }
+
+    def tail_mean(seeds: list) -> str:
+        report = params.report
+        tails = np.array([d.tail for d in seeds])
+        rng = np.random.default_rng(report.seed)
+        return str(bootstrap_mean(tails, report.confidence, report.bootstrap_samples, rng))
+
     lines += [
         "The last quarter's mean over seeds (each seed's in the table below; the asymptote, as "
         "far as this budget shows it): "
-        + ", ".join(
-            f"{ALGO_STYLE[algo][0]} "
-            + str(
-                bootstrap_mean(
-                    np.array([d.tail for d in seeds]),
-                    params.report.confidence,
-                    params.report.bootstrap_samples,
-                    np.random.default_rng(params.report.seed),
-                )
-            )
-            for algo, seeds in late.items()
-        )
+        + ", ".join(f"{ALGO_STYLE[algo][0]} {tail_mean(seeds)}" for algo, seeds in late.items())
         + ".",
         "",
         "| algorithm | seed | first bin | best bin before the last quarter | last quarter "
