@@ -92,8 +92,15 @@ def _number(value: Any, digits: int = 2) -> str:
 
 
 def _changes(params: dict[str, Any], baseline: dict[str, Any]) -> list[str]:
+    def shown(value: Any) -> str:  # as params.yaml spells it: null, true, false
+        return (
+            yaml.safe_dump(value, default_flow_style=True, width=1_000_000)
+            .strip()
+            .removesuffix("\n...")
+        )
+
     return [
-        f"{key}: {baseline.get(key)} → {value}"
+        f"{key}: {shown(baseline.get(key))} → {shown(value)}"
         for key, value in params.items()
         if value != baseline.get(key)
     ]

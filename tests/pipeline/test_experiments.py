@@ -112,20 +112,21 @@ def test_each_experiment_shows_its_changes_and_returns_in_80_columns(
 
 
 def test_an_experiment_without_a_report_says_so() -> None:
-    def entry(rev: str, name: str | None, lr: float, metrics: dict) -> dict:
+    def entry(rev: str, name: str | None, lr: float, metrics: dict, figure: str | None) -> dict:
+        params = {"td3": {"lr": lr}, "report": {"effect_space_family": figure}}
         return {
             "rev": rev,
             "name": name,
             "error": None,
-            "data": {"params": {"params.yaml": {"data": {"td3": {"lr": lr}}}}, "metrics": metrics},
+            "data": {"params": {"params.yaml": {"data": params}}, "metrics": metrics},
         }
 
     missing = {"data/report-metrics.json": {"error": {"type": "FileNotFoundError"}}}
-    commit = entry("0123456789", "main", 0.001, missing)
-    commit["experiments"] = [{"revs": [entry("abc1234567", "no-report", 0.002, missing)]}]
-    assert experiment_blocks([entry("workspace", None, 0.1, {}), commit]) == [
+    commit = entry("0123456789", "main", 0.001, missing, "point")
+    commit["experiments"] = [{"revs": [entry("abc1234567", "no-report", 0.002, missing, None)]}]
+    assert experiment_blocks([entry("workspace", None, 0.1, {}, "point"), commit]) == [
         "no-report  (abc1234, from main)",
-        "  changed: td3.lr: 0.001 → 0.002",
+        "  changed: td3.lr: 0.001 → 0.002; report.effect_space_family: point → null",
         "  no report yet",
     ]
     assert experiment_blocks([{**commit, "experiments": None}]) == []
