@@ -96,7 +96,7 @@ from ede.report import (
     zero_action_return,
 )
 from ede.runs import Curve, RunRejected, read_run
-from ede.stats import bootstrap_mean, divergence, separation, steps_to_threshold
+from ede.stats import Interval, bootstrap_mean, divergence, separation, steps_to_threshold
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, params_option
 
@@ -411,6 +411,13 @@ def spans(steps: np.ndarray, width: float) -> str:
     )
 
 
+def report_interval(values: np.ndarray, report) -> Interval:
+    """The mean of ``values`` with its bootstrap interval at the report's confidence and
+    resamples, drawn afresh from the report's seed."""
+    rng = np.random.default_rng(report.seed)
+    return bootstrap_mean(values, report.confidence, report.bootstrap_samples, rng)
+
+
 def summary_table(
     task: str,
     first: str,
@@ -441,11 +448,8 @@ def summary_table(
         )
         bands[name] = curve_band(runs, report.confidence, report.bootstrap_samples, fresh(), width)
         reached = [
-            bootstrap_mean(
-                np.array([steps_to_threshold(c.steps, c.returns, t) for c in runs]),
-                report.confidence,
-                report.bootstrap_samples,
-                fresh(),
+            report_interval(
+                np.array([steps_to_threshold(c.steps, c.returns, t) for c in runs]), report
             )
             for t in thresholds
         ]
@@ -541,17 +545,14 @@ def task_section(
         algo: [divergence(c.steps, c.returns, width) for c in runs]
         for algo, runs in found.curves.items()
     }
-
-    def tail_mean(seeds: list) -> str:
-        report = params.report
-        tails = np.array([d.tail for d in seeds])
-        rng = np.random.default_rng(report.seed)
-        return str(bootstrap_mean(tails, report.confidence, report.bootstrap_samples, rng))
-
+    tails = {algo: np.array([d.tail for d in seeds]) for algo, seeds in late.items()}
     lines += [
         "The last quarter's mean over seeds (each seed's in the table below; the asymptote, as "
         "far as this budget shows it): "
-        + ", ".join(f"{ALGO_STYLE[algo][0]} {tail_mean(seeds)}" for algo, seeds in late.items())
+        + ", ".join(
+            f"{ALGO_STYLE[algo][0]} {report_interval(tail, params.report)}"
+            for algo, tail in tails.items()
+        )
         + ".",
         "",
         "| algorithm | seed | first bin | best bin before the last quarter | last quarter "
