@@ -173,6 +173,15 @@ def group_jobs(jobs: list[Job], size: int) -> list[Job]:
     return alone + grouped
 
 
+def seed_by_seed(jobs: list[Job]) -> list[Job]:
+    """Jobs in the order of their first run's seed, and within a seed in the order given
+    (dvc.yaml's: task, then algorithm); jobs that train nothing first. A sweep stopped partway
+    (a time limit, a lost cluster) so leaves every task and algorithm at the same seeds, a
+    comparison, where dvc.yaml's order would leave every seed of one algorithm and none of the
+    other."""
+    return sorted(jobs, key=lambda job: min(run.seed for run in job.runs) if job.runs else -1)
+
+
 @dataclass(frozen=True)
 class Outcome:
     stage: str
@@ -838,8 +847,8 @@ def sweep(
                 )
             )
         workers = jobs or (os.cpu_count() if executor == "local" else None)
-        pending = group_jobs(
-            pending, group_size or default_group_size(params, len(pending), workers)
+        pending = seed_by_seed(
+            group_jobs(pending, group_size or default_group_size(params, len(pending), workers))
         )
         logs_of = {job.stage: Path(job.log) for job in pending}
         for job in pending:

@@ -24,7 +24,14 @@ import yaml
 
 from ede.config import load_params
 from ede.locks import exclusive
-from ede_pipeline.sweep import Job, RunId, group_jobs, train_command, train_runs
+from ede_pipeline.sweep import (
+    Job,
+    RunId,
+    group_jobs,
+    seed_by_seed,
+    train_command,
+    train_runs,
+)
 from tests.support import BIN, dvc, run, scratch_copy
 
 pytestmark = pytest.mark.slow
@@ -130,18 +137,20 @@ def test_sweep_in_groups_of_seeds_records_what_dvc_repro_records(
     assert_up_to_date(copy)
 
 
-def test_jobs_of_one_task_and_algorithm_are_grouped_by_seed() -> None:
-    def job(algo: str, seed: int) -> Job:  # as DVC runs a stage's command: through a shell
-        words = train_command(TASK, algo, [seed])
-        return Job(
-            f"train@{TASK}-{algo}-{seed}",
-            [["/bin/sh", "-c", shlex.join(words)]],
-            "/repo",
-            {"A": "1"},
-            f"/logs/{algo}-{seed}.log",
-            runs=(RunId(TASK, algo, seed),),
-        )
+def job(algo: str, seed: int) -> Job:
+    """A train stage's job as the sweep makes it, its command through a shell as DVC runs it."""
+    words = train_command(TASK, algo, [seed])
+    return Job(
+        f"train@{TASK}-{algo}-{seed}",
+        [["/bin/sh", "-c", shlex.join(words)]],
+        "/repo",
+        {"A": "1"},
+        f"/logs/{algo}-{seed}.log",
+        runs=(RunId(TASK, algo, seed),),
+    )
 
+
+def test_jobs_of_one_task_and_algorithm_are_grouped_by_seed() -> None:
     other = Job("report", [["ede-pipeline", "report"]], "/repo", {}, "/logs/report.log")
     jobs = [job("td3", 0), job("ede-td3", 1), job("td3", 2), job("td3", 1), other]
     grouped = group_jobs(jobs, 2)
@@ -159,6 +168,18 @@ def test_jobs_of_one_task_and_algorithm_are_grouped_by_seed() -> None:
     assert grouped[1].members == (f"train@{TASK}-td3-0", f"train@{TASK}-td3-1")
     assert grouped[1].runs == (RunId(TASK, "td3", 0), RunId(TASK, "td3", 1))
     assert group_jobs(jobs, 1) == jobs
+
+
+def test_runs_start_seed_by_seed_so_a_stopped_sweep_leaves_both_algorithms_at_its_seeds() -> None:
+    other = Job("report", [["ede-pipeline", "report"]], "/repo", {}, "/logs/report.log")
+    in_dvc_order = [job(algo, seed) for algo in ("td3", "ede-td3") for seed in (0, 1, 2, 3)]
+    order = [j.stage for j in seed_by_seed([*in_dvc_order, other])]
+    assert order == ["report"] + [
+        f"train@{TASK}-{algo}-{seed}" for seed in (0, 1, 2, 3) for algo in ("td3", "ede-td3")
+    ]
+    groups = seed_by_seed(group_jobs(in_dvc_order, 2))  # the order the sweep submits them in
+    assert [[run.seed for run in g.runs] for g in groups] == [[0, 1], [0, 1], [2, 3], [2, 3]]
+    assert [g.runs[0].algo for g in groups] == ["td3", "ede-td3", "td3", "ede-td3"]
 
 
 def test_a_stages_run_is_known_from_the_params_as_dvc_names_it(write_params) -> None:
