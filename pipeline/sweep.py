@@ -174,7 +174,7 @@ def group_jobs(jobs: list[Job], size: int) -> list[Job]:
 
 
 def seed_by_seed(jobs: list[Job]) -> list[Job]:
-    """Jobs in the order of their first run's seed, and within a seed in the order given
+    """Jobs in the order of their runs' lowest seed, and within a seed in the order given
     (dvc.yaml's: task, then algorithm); jobs that train nothing first. A sweep stopped partway
     (a time limit, a lost cluster) so leaves every task and algorithm at the same seeds, a
     comparison, where dvc.yaml's order would leave every seed of one algorithm and none of the
