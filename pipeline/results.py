@@ -80,7 +80,7 @@ import gymnasium
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ede.config import Params
+from ede.config import Params, ReportConfig
 from ede.provenance import INSTRUCTION_SETS
 from ede.report import (
     ALGO_STYLE,
@@ -411,11 +411,15 @@ def spans(steps: np.ndarray, width: float) -> str:
     )
 
 
-def report_interval(values: np.ndarray, report) -> Interval:
+def fresh_rng(report: ReportConfig) -> np.random.Generator:
+    """A generator from the report's seed, afresh for each statistic (the module's docstring)."""
+    return np.random.default_rng(report.seed)
+
+
+def report_interval(values: np.ndarray, report: ReportConfig) -> Interval:
     """The mean of ``values`` with its bootstrap interval at the report's confidence and
-    resamples, drawn afresh from the report's seed."""
-    rng = np.random.default_rng(report.seed)
-    return bootstrap_mean(values, report.confidence, report.bootstrap_samples, rng)
+    resamples."""
+    return bootstrap_mean(values, report.confidence, report.bootstrap_samples, fresh_rng(report))
 
 
 def summary_table(
@@ -432,10 +436,6 @@ def summary_table(
     over the runs; and each arm's binned band (:func:`ede.report.curve_band`). Every statistic
     bootstraps from the report's seed afresh."""
     report = params.report
-
-    def fresh() -> np.random.Generator:
-        return np.random.default_rng(report.seed)
-
     lines = [
         f"| {first} | {second} | final return | area under the curve |"
         + "".join(f" steps to reach {t:g} |" for t in thresholds),
@@ -444,9 +444,11 @@ def summary_table(
     bands = {}
     for name, (algo, runs, column) in arms.items():
         row = summarise_task(
-            task, algo, runs, [], [], report.confidence, report.bootstrap_samples, fresh()
+            task, algo, runs, [], [], report.confidence, report.bootstrap_samples, fresh_rng(report)
         )
-        bands[name] = curve_band(runs, report.confidence, report.bootstrap_samples, fresh(), width)
+        bands[name] = curve_band(
+            runs, report.confidence, report.bootstrap_samples, fresh_rng(report), width
+        )
         reached = [
             report_interval(
                 np.array([steps_to_threshold(c.steps, c.returns, t) for c in runs]), report

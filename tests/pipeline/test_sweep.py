@@ -137,6 +137,9 @@ def test_sweep_in_groups_of_seeds_records_what_dvc_repro_records(
     assert_up_to_date(copy)
 
 
+REPORT = Job("report", [["ede-pipeline", "report"]], "/repo", {}, "/logs/report.log")  # no run
+
+
 def job(algo: str, seed: int) -> Job:
     """A train stage's job as the sweep makes it, its command through a shell as DVC runs it."""
     words = train_command(TASK, algo, [seed])
@@ -151,8 +154,7 @@ def job(algo: str, seed: int) -> Job:
 
 
 def test_jobs_of_one_task_and_algorithm_are_grouped_by_seed() -> None:
-    other = Job("report", [["ede-pipeline", "report"]], "/repo", {}, "/logs/report.log")
-    jobs = [job("td3", 0), job("ede-td3", 1), job("td3", 2), job("td3", 1), other]
+    jobs = [job("td3", 0), job("ede-td3", 1), job("td3", 2), job("td3", 1), REPORT]
     grouped = group_jobs(jobs, 2)
     assert [j.stage for j in grouped] == [
         "report",
@@ -171,9 +173,8 @@ def test_jobs_of_one_task_and_algorithm_are_grouped_by_seed() -> None:
 
 
 def test_runs_start_seed_by_seed_so_a_stopped_sweep_leaves_both_algorithms_at_its_seeds() -> None:
-    other = Job("report", [["ede-pipeline", "report"]], "/repo", {}, "/logs/report.log")
     in_dvc_order = [job(algo, seed) for algo in ("td3", "ede-td3") for seed in (0, 1, 2, 3)]
-    order = [j.stage for j in seed_by_seed([*in_dvc_order, other])]
+    order = [j.stage for j in seed_by_seed([*in_dvc_order, REPORT])]
     assert order == ["report"] + [
         f"train@{TASK}-{algo}-{seed}" for seed in (0, 1, 2, 3) for algo in ("td3", "ede-td3")
     ]
