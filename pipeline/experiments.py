@@ -222,6 +222,11 @@ def prepare_workspace(name: str, params: dict[str, Any], update_code: bool = Tru
     copy that exists keeps its files as they are and gets only the params."""
     workspace = WORKSPACES / name
     head = _git("rev-parse", "HEAD").strip()
+    # The copy's record of its finished runs. DVC's autostage (.dvc/config) adds it to the
+    # copy's git index, so the checkout below would delete it, and DVC then restore every
+    # finished run from its run cache, or run it again where the run cache lacks it.
+    lock = workspace / "dvc.lock"
+    records = lock.read_text() if lock.is_file() else None
     if not (workspace / ".git").exists():
         _git("worktree", "prune")  # a working copy deleted by hand leaves its registration
         workspace.parent.mkdir(parents=True, exist_ok=True)
@@ -240,6 +245,8 @@ def prepare_workspace(name: str, params: dict[str, Any], update_code: bool = Tru
         for file in _git("ls-files", "-z", cwd=workspace).split("\0"):
             if file and file not in present:  # deleted here, not yet committed
                 (workspace / file).unlink(missing_ok=True)
+    if records is not None:
+        write_text(lock, records)
     write_text(
         workspace / DEFAULT_PARAMS,
         f"# experiments/{name}.yaml applied to params.yaml "

@@ -405,3 +405,34 @@ def test_an_experiments_tools_run_the_code_of_its_working_copy(
     (workspace / "ede" / "nets.py").write_text("# edited\n", encoding="utf-8")
     assert _tool(workspace, "python", "-c", show) == 0
     assert json.loads(capfd.readouterr().out.strip().splitlines()[-1])[1]["modified"] is True
+
+
+def test_a_working_copy_keeps_its_record_of_finished_runs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Bringing a working copy up to this checkout keeps its ``dvc.lock`` (which DVC's autostage
+    has added to the copy's git index) and its outputs, and takes this checkout's files, a file
+    deleted here included."""
+    from ede_pipeline.experiments import prepare_workspace
+
+    git(tmp_path, "init", "-q")
+    subprocess.run(["dvc", "init", "-q"], cwd=tmp_path, check=True, env=tool_env())
+    (tmp_path / "code.py").write_text("v = 1\n")
+    (tmp_path / "gone.py").write_text("v = 0\n")
+    git(tmp_path, "add", "-A")
+    git(tmp_path, "-c", "user.email=t@example.org", "-c", "user.name=t", "commit", "-qm", "base")
+    monkeypatch.chdir(tmp_path)
+    workspace = prepare_workspace("x", {"td3": {"lr": 0.001}})
+    records = "schema: '2.0'\nstages:\n  train:\n    cmd: python code.py\n"
+    (workspace / "dvc.lock").write_text(records)
+    git(workspace, "add", "dvc.lock")  # as `dvc repro` does with core.autostage
+    (workspace / "data" / "run.csv").write_text("step\n")
+    (tmp_path / "code.py").write_text("v = 2\n")
+    (tmp_path / "gone.py").unlink()
+
+    assert prepare_workspace("x", {"td3": {"lr": 0.0003}}) == workspace
+    assert (workspace / "dvc.lock").read_text() == records
+    assert (workspace / "data" / "run.csv").read_text() == "step\n"
+    assert (workspace / "code.py").read_text() == "v = 2\n"
+    assert not (workspace / "gone.py").exists()
+    assert "lr: 0.0003" in (workspace / "params.yaml").read_text()
