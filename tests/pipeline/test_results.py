@@ -161,16 +161,22 @@ def test_runs_of_different_budgets_are_refused_by_name(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_the_committed_runs_redraw(tmp_path: Path) -> None:
-    done = results(REPO / "docs" / "results" / "runs", tmp_path / "figures")
+@pytest.mark.parametrize(
+    ("runs", "some_tasks"),
+    [
+        # Each task as its runs name it, in the pipeline's layout: ede/ReacherVertical-v0 lives in
+        # ede/ReacherVertical-v0/, and a task beyond the paper keeps its own name (HalfCheetah-v5).
+        ("runs", {"HalfCheetah-v5", "ede/ReacherVertical-v0"}),
+        # A task's runs at another budget than its published one, kept beside them.
+        ("1e6/runs", {"ede/ReacherTurn-v0"}),
+    ],
+)
+def test_the_committed_runs_redraw(tmp_path: Path, runs: str, some_tasks: set[str]) -> None:
+    folder = REPO / "docs" / "results" / runs
+    done = results(folder, tmp_path / "figures")
     assert done.returncode == 0, done.stderr
-    # Each task as its runs name it, in the pipeline's layout: ede/ReacherVertical-v0 lives in
-    # ede/ReacherVertical-v0/, and a task beyond the paper keeps its own name (HalfCheetah-v5).
-    committed = {
-        json.loads(made.read_text())["task"]
-        for made in (REPO / "docs/results/runs").rglob("seed*/run.json")
-    }
-    assert "HalfCheetah-v5" in committed and "ede/ReacherVertical-v0" in committed
+    committed = {json.loads(made.read_text())["task"] for made in folder.rglob("seed*/run.json")}
+    assert some_tasks <= committed
     for task in committed:
         assert f"### {task}\n" in done.stdout
 
