@@ -26,7 +26,6 @@ different random streams).
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import time
 from pathlib import Path
@@ -41,6 +40,7 @@ from ede.stats import area_under_curve, bootstrap_mean
 from ede.tasks import action_bounds, observation_size
 from ede.td3 import Agent, IdentityAdapter
 from ede.training import EVAL_SEED_OFFSET, evaluate, train_run
+from ede.vector import MemberEnvs
 
 TASK = "Reacher-v5"
 START = 1_000
@@ -137,11 +137,11 @@ def untrained(seeds: list[int], confidence: float = 0.95) -> None:
         scores["sb3"].append(evaluate_sb3(sb3_model(seed), seed))
         agent = Agent(obs_size, adapter, ours_config(), torch.device("cpu"), [seed])
         returns = evaluate(
-            env,
-            functools.partial(agent.act, 0, explore=False),
+            MemberEnvs([lambda: env]),
+            agent.act,
             adapter,
             EVAL_EPISODES,
-            EVAL_SEED_OFFSET * (seed + 1),
+            [EVAL_SEED_OFFSET * (seed + 1)],
         )
         scores["ours"].append(float(returns.mean()))
     rng = np.random.default_rng(0)

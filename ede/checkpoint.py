@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -88,18 +88,6 @@ class Episode:
     start: dict[str, Any]  # {"seed": s} for the first episode, else {"rng": bit generator state}
     actions: list[np.ndarray] = field(default_factory=list)
     ret: float = 0.0
-
-    @classmethod
-    def begin(cls, env: gymnasium.Env, seed: int | None) -> tuple[np.ndarray, Episode]:
-        """Reset ``env``, with ``seed`` or (None) from its own generator: the first observation
-        and the episode."""
-        if seed is not None:
-            start: dict[str, Any] = {"seed": seed}
-            obs, _ = env.reset(seed=seed)
-        else:
-            start = {"rng": env.unwrapped.np_random.bit_generator.state}
-            obs, _ = env.reset()
-        return obs, cls(start)
 
     def replay(self, env: gymnasium.Env) -> np.ndarray:
         """Rebuild the environment's state: the same reset, then the same actions."""
@@ -219,22 +207,23 @@ def apply(
     buffer: ReplayBuffer,
     member: int,
     executor: CodeExecutor,
-    env: gymnasium.Env,
-) -> tuple[np.ndarray, Episode]:
-    """Continue ``member`` from a read checkpoint: replay its episode on ``env``, then, once that
-    reached the saved observation, load the agent's and the buffer's member and the executor.
+    replay: Callable[[Episode], np.ndarray],
+) -> Episode:
+    """Continue ``member`` from a read checkpoint: ``replay`` its episode in the member's
+    environment (:meth:`Episode.replay` where that environment lives), then, once that reached
+    the saved observation, load the agent's and the buffer's member and the executor's.
 
     Returns:
-        The observation reached and the episode under way (the caller's own copy).
+        The episode under way (the caller's own copy).
 
     Raises:
         CheckpointError: the replay did not reach the saved state (another environment);
-            only ``env`` was touched.
+            only the member's environment was touched.
     """
     saved = checkpoint.episode
     episode = Episode(dict(saved.start), list(saved.actions), saved.ret)
     try:
-        obs = episode.replay(env)
+        obs = replay(episode)
     except (ValueError, TypeError, KeyError) as error:  # a start the environment rejects
         raise CheckpointError(f"not restorable ({first_line(error)})") from None
     if not np.array_equal(obs, checkpoint.obs):
@@ -243,10 +232,10 @@ def apply(
         )
     agent.load_state_dict(member, checkpoint.agent)
     buffer.load_state_dict(member, checkpoint.buffer)
-    executor.code = checkpoint.code.to(executor.code.device)
-    executor.plan = checkpoint.plan.copy()
-    executor.i = checkpoint.i
-    return obs, episode
+    executor.code[member] = checkpoint.code.to(executor.code.device)
+    executor.plan[member] = checkpoint.plan
+    executor.i[member] = checkpoint.i
+    return episode
 
 
 def write(path: Path, spec: RunSpec, checkpoint: Checkpoint) -> None:

@@ -296,6 +296,14 @@ class TD3Config(_Section):
     )
     device: Device = "cpu"
     threads: Threads = 1
+    env_workers: Literal["auto", "yes", "no"] = Field(
+        "auto",
+        description="a group's environments in worker processes (gymnasium's AsyncVectorEnv, "
+        "one per environment) or in the training process (SyncVectorEnv); auto: workers on a "
+        "GPU machine for a group of several members, given at least 4 cores "
+        '(docs/scaling.md, "Groups")',
+        json_schema_extra=RESULT_NEUTRAL,
+    )
     compile: Literal["none", "default", "reduce-overhead"] = Field(
         "none",
         description="how the update runs: eager (none), compiled whole with "

@@ -20,6 +20,11 @@ module avoids each:
   fused multiply-add differently: a :class:`Stack` pads each member's row to whole vectors, so
   no member's elements fall in a tail whatever M is (and each row starts 64-byte aligned).
 
+Acting runs the stacked actor on one observation per member (:func:`mlp` of one row each): each
+member is then a product of its own, a stack of one evaluated beside a second view of itself. A
+network all members share (the EDE decoder) runs on each member's row alone
+(:func:`row_by_row`), since a product's rows are not computed alike for every number of rows.
+
 ``torch.func.vmap`` would lift the one-member update without the first trick, but at M = 1 its
 batched products are a batch of one: it cannot keep a run's bits equal alone and in a group.
 """
@@ -34,7 +39,17 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["Adam", "Params", "Stack", "grad", "mlp"]
+__all__ = [
+    "Adam",
+    "Layers",
+    "Params",
+    "Stack",
+    "grad",
+    "mlp",
+    "one_row_each",
+    "one_row_layers",
+    "row_by_row",
+]
 
 Params = dict[str, torch.Tensor]  # a network's parameters by name; stacked: member axis first
 ROW_ALIGN = 32  # floats: two AVX-512 vectors, the widest step of torch's CPU elementwise loops
@@ -128,8 +143,10 @@ def mlp(params: Params, x: torch.Tensor) -> torch.Tensor:
             x = torch.relu_(x) if j < len(layers) - 1 else x
         return x
     lead, rows = x.shape[:-2], x.shape[-2]
-    halves = layers[0][0].dim() == 3
     x = x.reshape(-1, rows, x.shape[-1])  # (G, B, in): G networks
+    if rows == 1 and layers[0][0].dim() == 3:
+        return one_row_each(one_row_layers(params), x).reshape(*lead, 1, -1)
+    halves = layers[0][0].dim() == 3
     if halves:
         if rows % 2:
             x = torch.cat([x, x.new_zeros(x.shape[0], 1, x.shape[2])], dim=1)
@@ -144,6 +161,47 @@ def mlp(params: Params, x: torch.Tensor) -> torch.Tensor:
             x = torch.baddbmm(bias.unsqueeze(1), x, weight.mT)
         x = torch.relu_(x) if j < len(layers) - 1 else x
     return x.reshape(*lead, -1, x.shape[-1])[..., :rows, :]
+
+
+Layers = list[tuple[torch.Tensor, torch.Tensor]]  # (weight, bias) per layer, as products take them
+
+
+def one_row_layers(params: Params) -> Layers:
+    """A stack of M one-network members' layers as :func:`one_row_each` takes them: weights
+    ``(G, in, out)``, biases ``(G, 1, out)``, views (valid as long as the stack's tensor), with
+    G = M, or 2 for a stack of one: its network beside a second view of itself, so that every
+    product is a batch of two matrices or more without a weight copied (halving one row, as
+    :func:`mlp` halves batches, would copy every weight at every step)."""
+    count = max(2, params["0.weight"].shape[0])
+    return [
+        (
+            params[f"{2 * j}.weight"].mT.expand(count, -1, -1),  # (M, out, in) -> (G, in, out)
+            params[f"{2 * j}.bias"].unsqueeze(1).expand(count, -1, -1),  # (M, out) -> (G, 1, out)
+        )
+        for j in range(len(params) // 2)
+    ]
+
+
+def one_row_each(layers: Layers, x: torch.Tensor) -> torch.Tensor:
+    """:func:`mlp` of M members on one row each (acting): ``(M, 1, in) -> (M, 1, out)``, from
+    :func:`one_row_layers`."""
+    members = x.shape[0]
+    x = x.expand(layers[0][0].shape[0], -1, -1)  # a stack of one: beside itself
+    for j, (weight, bias) in enumerate(layers):
+        if weight.shape[2] == 1:  # one output: a product and a sum over the inputs
+            x = (x * weight.mT).sum(-1, keepdim=True) + bias
+        else:
+            x = torch.baddbmm(bias, x, weight)
+        x = torch.relu_(x) if j < len(layers) - 1 else x
+    return x[:members]
+
+
+def row_by_row(network: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor) -> torch.Tensor:
+    """``network`` (one network shared by every member, as the decoder is) on each row of ``x``
+    ``(N, in)`` alone: the bits of a product's row depend on how many rows it has (measured on an
+    AMD EPYC: products of 1 to 3 rows differ from those of 64), and a member's result must not
+    depend on how many others compute beside it."""
+    return torch.cat([network(row[None]) for row in x])
 
 
 def grad(

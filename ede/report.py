@@ -37,6 +37,7 @@ from ede.stats import (
 from ede.tasks import action_bounds, make, simulator
 from ede.td3 import CodeExecutor, EmbeddingAdapter, IdentityAdapter
 from ede.training import evaluate
+from ede.vector import MemberEnvs
 
 __all__ = [
     "ALGO_STYLE",
@@ -346,24 +347,26 @@ def exploration(
     seeds = rng.integers(2**31, size=episodes)
     device = embedding.device
 
-    def uniform_action(obs: np.ndarray) -> torch.Tensor:
-        return torch.as_tensor(rng.uniform(low, high).astype(np.float32), device=device)
+    def uniform_action(obs: np.ndarray, _: np.ndarray) -> torch.Tensor:  # (1, O) -> (1, A)
+        return torch.as_tensor(rng.uniform(low, high).astype(np.float32), device=device)[None]
 
-    def uniform_code(obs: np.ndarray) -> torch.Tensor:
+    def uniform_code(obs: np.ndarray, _: np.ndarray) -> torch.Tensor:  # (1, O) -> (1, D)
         z = rng.uniform(-embedding.bound, embedding.bound, size=embedding.dim)  # (D,)
-        return torch.as_tensor(z, dtype=torch.float32, device=device)
+        return torch.as_tensor(z, dtype=torch.float32, device=device)[None]
+
+    envs = MemberEnvs([lambda: env])  # the one environment, as training steps its members'
+    one = np.ones(1, dtype=bool)
 
     def rollout(
-        executor: CodeExecutor, policy: Callable[[np.ndarray], torch.Tensor]
+        executor: CodeExecutor, policy: Callable[[np.ndarray, np.ndarray], torch.Tensor]
     ) -> list[np.ndarray]:  # per episode, (T, 2) positions
-        paths = []
-        for seed in seeds:
-            obs, _ = env.reset(seed=int(seed))
-            paths.append(np.array([data.qpos[:2].copy() for _ in executor.episode(obs, policy)]))
-        return paths
+        return [
+            np.array([data.qpos[:2].copy() for _ in executor.episodes(policy, 1, [seed], one)])
+            for seed in seeds
+        ]
 
-    raw = rollout(CodeExecutor(env, IdentityAdapter(low, high, device)), uniform_action)
-    ede = rollout(CodeExecutor(env, EmbeddingAdapter(embedding)), uniform_code)
+    raw = rollout(CodeExecutor(envs, IdentityAdapter(low, high, device)), uniform_action)
+    ede = rollout(CodeExecutor(envs, EmbeddingAdapter(embedding)), uniform_code)
     env.close()
     raw_cov, ede_cov = _coverage(raw, half_width, cells), _coverage(ede, half_width, cells)
     figure, axes = plt.subplots(1, 2, figsize=(8.4, 4.2))
@@ -420,13 +423,14 @@ def _episode_returns(
         space = env.action_space
         assert isinstance(space, gymnasium.spaces.Box)
         adapter = IdentityAdapter(space.low, space.high, torch.device("cpu"))
-        return evaluate(
-            env,
-            lambda obs: torch.as_tensor(np.asarray(act(space), space.dtype)),
+        returns = evaluate(
+            MemberEnvs([lambda: env]),
+            lambda obs: torch.as_tensor(np.asarray(act(space), space.dtype))[None],
             adapter,
             episodes,
-            seed,
+            [seed],
         )
+        return returns[0]
     finally:
         env.close()
 

@@ -28,9 +28,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple, Protocol
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
-import gymnasium
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -40,6 +39,9 @@ from ede.config import TD3Config
 from ede.embedding import ActionEmbedding
 from ede.ensemble import Params
 from ede.nets import initial_mlp, matmul_precision
+
+if TYPE_CHECKING:
+    from ede.vector import MemberEnvs
 
 __all__ = [
     "TD3",
@@ -132,64 +134,105 @@ class EmbeddingAdapter:
 
     @torch.no_grad()
     def decode(self, codes: torch.Tensor) -> torch.Tensor:
-        return self.embedding.decode(codes)  # (B, D) -> (B, K, A)
+        """(B, D) -> (B, K, A), each code alone (:func:`ede.ensemble.row_by_row`): a member's
+        actions do not depend on how many members chose a code with it."""
+        return ensemble.row_by_row(self.embedding.decode, codes)
 
 
 class CodeStep(NamedTuple):
-    """One environment step of a code."""
+    """One environment step of every member's code (rows of members that sat it out: unused)."""
 
-    code: torch.Tensor  # (C,) the code being executed
-    i: int  # steps of it executed before this one
-    action: np.ndarray  # (A,) its i-th action
-    reward: float
-    next_obs: np.ndarray
-    terminated: bool
-    truncated: bool
+    code: torch.Tensor  # (M, C) the codes being executed
+    i: np.ndarray  # (M,) steps of each executed before this one
+    action: np.ndarray  # (M, A) each code's i-th action
+    reward: np.ndarray  # (M,)
+    next_obs: np.ndarray  # (M, O)
+    terminated: np.ndarray  # (M,) bool
+    truncated: np.ndarray  # (M,) bool
 
     @property
-    def ended(self) -> bool:
-        return self.terminated or self.truncated
+    def ended(self) -> np.ndarray:
+        return self.terminated | self.truncated
 
 
 class CodeExecutor:
-    """Acts in an environment with codes (Section 3), one step at a time.
+    """Acts in M members' environments with codes (Section 3), one step of them at a time.
 
-    When i = 0 the policy chooses a code, which the adapter decodes into K actions; they are
-    executed in order, one per step, and the next code is chosen after the K-th — or at the first
-    step of the next episode, since an episode's end cuts the code short. Its state (the code, its
-    actions, i) is part of a training run's checkpoint.
+    For each member, when its i = 0 the policy chooses a code, which the adapter decodes into K
+    actions; they are executed in order, one per step, and the next code is chosen after the K-th
+    — or at the first step of the next episode, since an episode's end cuts the code short. Its
+    state (each member's code, its actions, i) is part of a training run's checkpoint.
+
+    A step is two calls, so that the caller can look at the codes before any environment moves
+    (a code that is not finite stops its run there): :meth:`choose`, then :meth:`step`.
     """
 
-    def __init__(self, env: gymnasium.Env, adapter: ActionAdapter) -> None:
-        space = env.action_space
-        self.env, self.adapter = env, adapter
-        self.code = torch.zeros(adapter.code_size, device=adapter.code_low.device)  # (C,)
-        self.plan = np.zeros((adapter.k, *(space.shape or ())), dtype=space.dtype)  # (K, A)
-        self.i = 0  # steps of the code executed
+    def __init__(self, envs: MemberEnvs, adapter: ActionAdapter) -> None:
+        space = envs.vector.single_action_space
+        self.envs, self.adapter, members = envs, adapter, envs.members
+        self.code = torch.zeros(members, adapter.code_size, device=adapter.code_low.device)
+        self.plan = np.zeros((members, adapter.k, *(space.shape or ())), dtype=space.dtype)
+        self.i = np.zeros(members, dtype=np.int64)  # steps of each code executed
+        self._rows = np.arange(members)
 
-    def step(self, obs: np.ndarray, policy: Callable[[np.ndarray], torch.Tensor]) -> CodeStep:
-        """One environment step from ``obs``; ``policy(obs)`` gives a new code when i = 0."""
+    def choose(
+        self,
+        obs: np.ndarray,
+        policy: Callable[[np.ndarray, np.ndarray], torch.Tensor],
+        members: np.ndarray,
+    ) -> np.ndarray:
+        """New codes for the members of ``members`` (``(M,)`` bool) at i = 0: rows of
+        ``policy(obs, choosing)`` ``(M, O) -> (M, C)``. Returns ``choosing``."""
+        choosing = members & (self.i == 0)
+        if choosing.all():  # every member: the common case, without indexing
+            self.code = policy(obs, choosing)  # (M, C)
+            self.plan = self.adapter.decode(self.code).cpu().numpy()  # the group's one host copy
+        elif choosing.any():
+            rows = torch.as_tensor(np.flatnonzero(choosing), device=self.code.device)
+            codes = policy(obs, choosing)[rows]  # (M, C) -> (N, C)
+            self.code[rows] = codes
+            plans = self.adapter.decode(codes)  # (N, C) -> (N, K, A)
+            self.plan[choosing] = plans.cpu().numpy()  # the group's one copy to the host
+        return choosing
+
+    def step(self, members: np.ndarray) -> CodeStep:
+        """One environment step of the members in ``members``, each with its code's next
+        action."""
         i = self.i
-        if i == 0:
-            self.code = policy(obs)  # (C,)
-            self.plan = self.adapter.decode(self.code[None])[0].cpu().numpy()  # (1, C) -> (K, A)
-        action = self.plan[i]
-        next_obs, reward, terminated, truncated, _ = self.env.step(action)
-        self.i = 0 if terminated or truncated else (i + 1) % self.adapter.k
-        return CodeStep(
-            self.code, i, action, float(reward), next_obs, bool(terminated), bool(truncated)
-        )
+        action = self.plan[self._rows, i]  # (M, K, A) -> (M, A)
+        next_obs, reward, terminated, truncated = self.envs.step(action, members)
+        if self.adapter.k > 1:  # (with k = 1 every step chooses: i stays 0)
+            after = (i + 1) % self.adapter.k  # an episode's end cuts the code short: i = 0
+            after[terminated | truncated] = 0
+            self.i = np.where(members, after, i)
+        return CodeStep(self.code.clone(), i, action, reward, next_obs, terminated, truncated)
 
-    def episode(
-        self, obs: np.ndarray, policy: Callable[[np.ndarray], torch.Tensor]
-    ) -> Iterator[CodeStep]:
-        """Steps from ``obs`` (just after a reset) until the episode ends."""
-        while True:
-            step = self.step(obs, policy)
-            yield step
-            if step.ended:
-                return
-            obs = step.next_obs
+    def episodes(
+        self,
+        policy: Callable[[np.ndarray, np.ndarray], torch.Tensor],
+        episodes: int,
+        seeds: Sequence[int],
+        members: np.ndarray,
+    ) -> Iterator[tuple[CodeStep, np.ndarray, np.ndarray]]:
+        """``episodes`` episodes of each member of ``members``, one after another, episode e of
+        member m from ``reset(seeds[m] + e)``; the members step together, each through its own
+        episodes. Yields each step with the members that took it and the episode each is in."""
+        members = np.asarray(members, dtype=bool)
+        done = np.zeros(len(members), dtype=np.int64)  # episodes ended, per member
+        seeds = [int(s) for s in seeds]
+        obs = self.envs.reset(members, seeds)
+        self.i[members] = 0
+        while members.any():
+            self.choose(obs, policy, members)
+            step = self.step(members)
+            yield step, members, done
+            ended = step.ended  # (only members step)
+            if ended.any():  # each starts its next (one done, an unused one: the vector wants it)
+                done = done + ended
+                members = members & (done < episodes)
+                obs = self.envs.reset(ended, [s + int(e) for s, e in zip(seeds, done, strict=True)])
+            else:
+                obs = step.next_obs
 
 
 # Random streams -------------------------------------------------------------------------------
@@ -241,7 +284,11 @@ class Actor:
         return initial_mlp(self.sizes, generator)
 
     def __call__(self, params: Params, obs: torch.Tensor) -> torch.Tensor:
-        return self.centre + self.half_range * torch.tanh(ensemble.mlp(params, obs))
+        return self.squash(ensemble.mlp(params, obs))
+
+    def squash(self, raw: torch.Tensor) -> torch.Tensor:
+        """The network's output into the box."""
+        return self.centre + self.half_range * torch.tanh(raw)
 
     def export(self, params: Params) -> dict[str, torch.Tensor]:
         """One member's actor as ``policy.safetensors`` names it: ``net.0.weight``, ...,
@@ -363,24 +410,41 @@ class ReplayBuffer:
 
     def add(
         self,
-        member: int,
+        members: np.ndarray,
         obs: np.ndarray,
         code: torch.Tensor,
-        i: int,
-        reward: float,
+        i: np.ndarray,
+        reward: np.ndarray,
         next_obs: np.ndarray,
-        terminated: bool,
-        truncated: bool,
+        terminated: np.ndarray,
+        truncated: np.ndarray,
     ) -> None:
-        row = int(self.count[member] % self.capacity)
-        self.obs[row, member] = torch.as_tensor(obs, dtype=torch.float32)
-        self.next_obs[row, member] = torch.as_tensor(next_obs, dtype=torch.float32)
-        self.code[row, member] = code
-        self.i[row, member] = i
-        self.reward[row, member] = reward
-        self.terminated[row, member] = terminated
-        self.truncated[row, member] = truncated
-        self.count[member] += 1
+        """One step of each member in ``members`` (``(M,)`` bool), from its rows of the others
+        (``(M, ...)``): one write per field for the group, each member at its own head."""
+        which = np.flatnonzero(members)
+        values = {
+            "obs": obs,
+            "next_obs": next_obs,
+            "code": code,
+            "i": i,
+            "reward": reward,
+            "terminated": terminated,
+            "truncated": truncated,
+        }
+        heads = self.count[which] % self.capacity
+        if len(which) == self.members and (heads == heads[0]).all():  # in step: one row
+            for name, value in values.items():
+                row = getattr(self, name)[int(heads[0])]
+                row.copy_(value if isinstance(value, torch.Tensor) else torch.from_numpy(value))
+        else:
+            rows = torch.as_tensor(heads, device=self.device)
+            cols = torch.as_tensor(which, device=self.device)
+            for name, value in values.items():
+                field = getattr(self, name)
+                field[rows, cols] = torch.as_tensor(value, dtype=field.dtype, device=self.device)[
+                    cols
+                ]
+        self.count[which] += 1
 
     def size(self, member: int) -> int:
         return int(min(self.count[member], self.capacity))
@@ -570,6 +634,7 @@ class Agent:
         self.actor = ensemble.Stack([a for a, _ in initial], device)
         self.critic = ensemble.Stack([c for _, c in initial], device, networks=2)  # the twins
         self.actor_target, self.critic_target = self.actor.clone(), self.critic.clone()
+        self._acting = ensemble.one_row_layers(self.actor.params)  # views of the live weights
         self.actor_adam = ensemble.Adam(self.actor, config.lr)
         self.critic_adam = ensemble.Adam(self.critic, config.lr)
         # Each member's critic steps: the one count of its updates (its actor steps follow).
@@ -588,28 +653,54 @@ class Agent:
             )
         )
 
-    # Acting, one member at a time ----------------------------------------------------------
+    # Acting, every member at once ----------------------------------------------------------
 
     @torch.no_grad()
-    def act(self, member: int, obs: np.ndarray, explore: bool) -> torch.Tensor:
-        """Member ``member``'s code for one observation: μ(s), plus exploration noise from its
-        own stream when ``explore``."""
-        x = torch.as_tensor(obs, dtype=torch.float32, device=self.device)[None]
-        code = self.td3.actor(self.actor.member(member), x)[0]
-        if explore:
-            noise = torch.randn(
-                code.shape, generator=self.streams[member].exploration, device=self.device
-            )
-            code = self.td3.clip(
-                code + noise * self.config.exploration_noise * self.adapter.noise_scale
-            )
-        return code
+    def act(self, obs: np.ndarray) -> torch.Tensor:
+        """μ(s) of every member for its observation, ``(M, O) -> (M, C)``: one forward of the
+        stacked actor."""
+        x = torch.as_tensor(obs, dtype=torch.float32, device=self.device)[:, None]  # (M, 1, O)
+        raw = ensemble.one_row_each(self._acting, x)  # (M, 1, O) -> (M, 1, C)
+        return self.td3.actor.squash(raw[:, 0])
 
-    def random_code(self, member: int) -> torch.Tensor:
-        """A code uniform in the box: the start-steps behaviour."""
-        low, high = self.adapter.code_low, self.adapter.code_high
-        u = torch.rand(low.shape, generator=self.streams[member].start_codes, device=self.device)
-        return low + u * (high - low)
+    @torch.no_grad()
+    def behave(self, obs: np.ndarray, members: np.ndarray, uniform: np.ndarray) -> torch.Tensor:
+        """The codes training acts with, ``(M, C)``, for the members of ``members``: uniform in
+        the box where ``uniform`` (the start steps), else μ(s) plus exploration noise; every
+        draw from the member's own stream (rows of other members: unused)."""
+        low, high, scale = self.adapter.code_low, self.adapter.code_high, self.adapter.noise_scale
+        draw = self._draw
+        if not uniform[members].any():  # every member explores: the common case, in one piece
+            noise = torch.stack(
+                [draw(torch.randn, m, "exploration", members) for m in range(self.members)]
+            )
+            return self.td3.clip(self.act(obs) + noise * self.config.exploration_noise * scale)
+        codes = low.repeat(len(obs), 1)  # (M, C)
+        explore, start = members & ~uniform, members & uniform
+        if start.any():
+            rows = np.flatnonzero(start)
+            u = torch.stack([draw(torch.rand, int(m), "start_codes") for m in rows])
+            codes[rows] = low + u * (high - low)
+        if explore.any():
+            rows = np.flatnonzero(explore)
+            noise = torch.stack([draw(torch.randn, int(m), "exploration") for m in rows])
+            mean = self.act(obs)[rows]  # (N, C)
+            codes[rows] = self.td3.clip(mean + noise * self.config.exploration_noise * scale)
+        return codes
+
+    def _draw(
+        self,
+        sample: Callable[..., torch.Tensor],
+        member: int,
+        purpose: str,
+        members: np.ndarray | None = None,
+    ) -> torch.Tensor:
+        """One code's worth ``(C,)`` of ``sample`` from member ``member``'s stream ``purpose``;
+        zeros, drawing nothing, where ``members`` leaves it out."""
+        if members is not None and not members[member]:
+            return torch.zeros(self.adapter.code_size, device=self.device)
+        generator = getattr(self.streams[member], purpose)
+        return sample(self.adapter.code_size, generator=generator, device=self.device)
 
     def policy(self, member: int) -> dict[str, torch.Tensor]:
         """Member ``member``'s actor as ``policy.safetensors`` holds it."""

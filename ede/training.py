@@ -11,15 +11,18 @@ killed at any point and resumed ends with the same ``eval.csv`` returns as an un
 A group of runs (several seeds of one task and algorithm) is one :class:`ede.td3.Agent` with a
 member per run; a run alone is a group of one. Each run's outputs are what it gets alone.
 
-This module orchestrates: :class:`_Run` steps one run's environment, :class:`_Group` schedules
-the runs' steps and batched updates, and :class:`_Session` writes one run's outputs.
+This module orchestrates: :class:`_Run` keeps one run's counters, episode and history,
+:class:`_Group` steps every member's environment at once (:class:`ede.vector.MemberEnvs`: one
+batched action per step, one write to the replay buffer) and schedules the batched updates, and
+:class:`_Session` writes one run's outputs.
 """
 
 from __future__ import annotations
 
+import os
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -45,6 +48,7 @@ from ede.td3 import (
     IdentityAdapter,
     ReplayBuffer,
 )
+from ede.vector import MemberEnvs
 
 __all__ = ["Diverged", "evaluate", "train_group", "train_run"]
 
@@ -59,20 +63,25 @@ EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes are seeded apart from traini
 
 
 def evaluate(
-    env: gymnasium.Env,
+    envs: MemberEnvs,
     policy: Callable[[np.ndarray], torch.Tensor],
     adapter: ActionAdapter,
     episodes: int,
-    seed: int,
+    seeds: Sequence[int],
+    members: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Returns of ``episodes`` episodes of ``policy`` (deterministic: μ(s)); episode e starts
-    from ``reset(seed + e)``."""
-    executor = CodeExecutor(env, adapter)
-    returns = np.zeros(episodes)
-    for e in range(episodes):
-        obs, _ = env.reset(seed=seed + e)
-        for step in executor.episode(obs, policy):
-            returns[e] += step.reward
+    """Returns ``(M, episodes)`` of ``policy`` (deterministic: μ(s), ``(M, O) -> (M, C)``) in each
+    member's environment of ``envs`` (the members of ``members``, every one by default; rows of
+    others zero); member m's episode e starts from ``reset(seeds[m] + e)``. The members' episodes
+    are stepped together, one batched action per step."""
+    members = np.ones(envs.members, dtype=bool) if members is None else members
+    returns = np.zeros((envs.members, episodes))
+    executor = CodeExecutor(envs, adapter)
+    for step, stepped, episode in executor.episodes(
+        lambda obs, _: policy(obs), episodes, seeds, members
+    ):
+        which = np.flatnonzero(stepped)
+        returns[which, episode[which]] += step.reward[which]
     return returns
 
 
@@ -96,100 +105,33 @@ def _adapter(
 
 
 class _Run:
-    """One run of a group: its environments, the episode under way, its counters and history.
-    Its learner state is member ``index`` of the group's agent and replay buffer, whose count is
-    the run's environment steps (:attr:`step`)."""
+    """One run of a group: its counters, the episode under way and its history. Its learner
+    state is member ``index`` of the group's agent and replay buffer, whose count is the run's
+    environment steps (:attr:`step`); its environments are member ``index`` of the group's."""
 
     def __init__(self, index: int, spec: RunSpec, group: _Group) -> None:
         self.index, self.spec, self.group = index, spec, group
-        self.env = make(spec.task)
-        self.eval_env = make(spec.task)
-        self.executor = CodeExecutor(self.env, group.adapter)
         self.episodes = 0
         self.history: list[dict[str, float]] = []
         self.diagnostics: list[dict[str, float]] = []  # training's means between evaluations
         self.wall = 0.0  # seconds spent, over every session of this run
         self.failed: str | None = None  # why it stopped, once it diverged
-        self.obs, self.episode = Episode.begin(self.env, spec.seed)
+        self.episode = Episode({"seed": spec.seed})  # the actions taken, its return
 
     @property
     def step(self) -> int:
         """Environment steps taken: the steps this run's member wrote to the replay buffer."""
         return int(self.group.buffer.count[self.index])
 
-    # The loop ------------------------------------------------------------------------------
-
-    def act(self, obs: np.ndarray) -> torch.Tensor:
-        """μ(s) of this run's member: what evaluation executes."""
-        return self.group.agent.act(self.index, obs, explore=False)
-
-    def _behaviour(self, obs: np.ndarray) -> torch.Tensor:
-        """The code training acts with: uniform for ``td3.start_steps`` steps, then μ(s) + noise."""
-        agent = self.group.agent
-        if self.step < self.spec.td3.start_steps:
-            return agent.random_code(self.index)
-        code = agent.act(self.index, obs, explore=True)
-        if not bool(torch.isfinite(code).all()):
-            raise self.diverged(
-                self.step + 1, "the actor's " + ("action" if self.spec.algo == "td3" else "code")
-            )
-        return code
-
-    def diverged(self, step: int, quantity: str) -> Diverged:
+    def diverged(self, step: int, quantity: str) -> str:
         spec = self.spec
-        return Diverged(
+        return (
             f"{spec.task} {spec.algo} seed {spec.seed}: diverged at step {step}: "
             f"{quantity} is not finite"
         )
 
-    def env_step(self) -> int:
-        """One environment step (Section 3: learn from every step).
-
-        Returns:
-            The number of updates due after it: with ``td3.update_schedule: step`` one; with
-            ``episode`` none until the episode ends, then one per step of it; none while the
-            start steps last or no batch can be sampled yet.
-        """
-        config, buffer = self.spec.td3, self.group.buffer
-        step = self.executor.step(self.obs, self._behaviour)
-        if not np.isfinite(step.reward):
-            raise self.diverged(self.step + 1, "the environment's reward")
-        if not np.isfinite(step.next_obs).all():
-            raise self.diverged(self.step + 1, "the environment's observation")
-        buffer.add(
-            self.index,
-            self.obs,
-            step.code,
-            step.i,
-            step.reward,
-            step.next_obs,
-            step.terminated,
-            step.truncated,
-        )
-        self.episode.actions.append(step.action)
-        self.episode.ret += step.reward
-        updates = 1 if config.update_schedule == "step" else 0
-        if step.ended:
-            if config.update_schedule == "episode":
-                updates = len(self.episode.actions)  # one per step of the episode just ended
-            self.episodes += 1
-            self.obs, self.episode = Episode.begin(self.env, None)
-        else:
-            self.obs = step.next_obs
-        if self.step < config.start_steps or buffer.sampleable(self.index) < config.batch_size:
-            return 0
-        return updates
-
-    def evaluate(self) -> dict[str, float]:
-        returns = evaluate(
-            self.eval_env,
-            self.act,
-            self.group.adapter,
-            self.spec.td3.eval_episodes,
-            EVAL_SEED_OFFSET * (self.spec.seed + 1),
-        )
-        if not np.isfinite(returns).all():
-            raise self.diverged(self.step, "the evaluation's return")
+    def record(self, returns: np.ndarray) -> dict[str, float]:
+        """An evaluation's ``returns``: its row of ``eval.csv``, and of ``diagnostics.csv``."""
         row = {
             "step": self.step,
             "episode": self.episodes,
@@ -212,15 +154,16 @@ class _Run:
         Raises:
             CheckpointWriteError: it could not be written; the previous one is intact.
         """
-        group, executor = self.group, self.executor
+        group, executor, j = self.group, self.group.executor, self.index
+        episode = Episode(group.envs.starts()[j], self.episode.actions, self.episode.ret)
         state = checkpoint.Checkpoint(
-            agent=group.agent.state_dict(self.index),
-            buffer=group.buffer.state_dict(self.index),
-            code=executor.code,
-            plan=executor.plan,
-            i=executor.i,
-            episode=self.episode,
-            obs=self.obs,
+            agent=group.agent.state_dict(j),
+            buffer=group.buffer.state_dict(j),
+            code=executor.code[j],
+            plan=executor.plan[j],
+            i=int(executor.i[j]),
+            episode=episode,
+            obs=group.envs.obs[j],
             episodes=self.episodes,
             history=self.history,
             diagnostics=self.diagnostics,
@@ -239,10 +182,15 @@ class _Run:
         """
         if not path.exists():
             return False
-        group = self.group
+        group, j = self.group, self.index
         saved = checkpoint.read(path, self.spec, group.layout)
-        self.obs, self.episode = checkpoint.apply(
-            saved, group.agent, group.buffer, self.index, self.executor, self.env
+        self.episode = checkpoint.apply(
+            saved,
+            group.agent,
+            group.buffer,
+            j,
+            group.executor,
+            lambda episode: group.envs.restore({j: episode})[j],
         )
         self.episodes, self.wall = saved.episodes, saved.wall_seconds
         self.history, self.diagnostics = list(saved.history), list(saved.diagnostics)
@@ -251,7 +199,8 @@ class _Run:
 
 class _Group:
     """The runs of one task and algorithm that differ in their seeds, as one agent with a
-    member per run (M = 1 for a run alone) and one replay buffer."""
+    member per run (M = 1 for a run alone), one replay buffer, and the members' training and
+    evaluation environments as two vector environments (:class:`ede.vector.MemberEnvs`)."""
 
     def __init__(
         self, specs: list[RunSpec], embedding: ActionEmbedding | None, device: torch.device
@@ -269,13 +218,46 @@ class _Group:
             capacity, obs_size, self.adapter.code_size, self.adapter.k, device, len(specs)
         )
         self.layout = Layout.of(self.agent, self.buffer, obs_shape, (self.adapter.k, *space.shape))
+        workers = env_workers(spec.td3.env_workers, len(specs), device)
+        self.envs = MemberEnvs.of_task(spec.task, len(specs), workers)
+        self.eval_envs = MemberEnvs.of_task(spec.task, len(specs), workers)
+        self.executor = CodeExecutor(self.envs, self.adapter)
         self.runs = [_Run(j, s, self) for j, s in enumerate(specs)]
+        self.envs.reset(np.ones(len(specs), dtype=bool), [s.seed for s in specs])
+
+    def close(self) -> None:
+        self.envs.close()
+        self.eval_envs.close()
 
     def restart(self, index: int) -> _Run:
-        """Run ``index`` from its start again, with fresh environments (after a checkpoint that
-        could not be used, which left its member of the agent and buffer as they were)."""
-        self.runs[index] = _Run(index, self.runs[index].spec, self)
-        return self.runs[index]
+        """Run ``index`` from its start again, in a fresh episode from its seed (after a
+        checkpoint that could not be used, which left its member of the agent and buffer as
+        they were)."""
+        run = self.runs[index] = _Run(index, self.runs[index].spec, self)
+        only = np.arange(len(self.runs)) == index
+        self.envs.reset(only, [r.spec.seed for r in self.runs])
+        self.executor.i[index] = 0
+        return run
+
+    def _behaviour(self, obs: np.ndarray, choosing: np.ndarray) -> torch.Tensor:
+        """The codes training acts with: uniform for ``td3.start_steps`` steps, then μ(s) +
+        noise (:meth:`ede.td3.Agent.behave`)."""
+        start_steps = self.runs[0].spec.td3.start_steps
+        uniform = self.buffer.count < start_steps
+        return self.agent.behave(obs, choosing, uniform)
+
+    def evaluate(self, members: np.ndarray) -> None:
+        """Evaluate the runs of ``members`` (their μ(s), ``td3.eval_episodes`` episodes each)
+        and record each one's row."""
+        runs = self.runs
+        seeds = [EVAL_SEED_OFFSET * (run.spec.seed + 1) for run in runs]
+        episodes = runs[0].spec.td3.eval_episodes
+        returns = evaluate(self.eval_envs, self.agent.act, self.adapter, episodes, seeds, members)
+        for m in np.flatnonzero(members):
+            if not np.isfinite(returns[m]).all():
+                runs[m].failed = runs[m].diverged(runs[m].step, "the evaluation's return")
+            else:
+                runs[m].record(returns[m])
 
     def update(self, due: np.ndarray) -> None:
         """The updates due after a step, ``due[m]`` for member m: as many batched updates as
@@ -284,26 +266,68 @@ class _Group:
             self.agent.update(self.buffer, due > u)
 
     def advance(self) -> list[_Run]:
-        """One step of the runs furthest behind (every run, while they are in step) and the
-        updates it makes due; returns the runs that stepped (none once every run is done)."""
-        active = [run for run in self.runs if run.step < run.spec.budget and run.failed is None]
-        if not active:
+        """One environment step (Section 3: learn from every step) of the runs furthest behind
+        (every run, while they are in step), then the updates it makes due; returns the runs
+        that stepped (none once every run is done).
+
+        A run is due one update after a step with ``td3.update_schedule: step``; with
+        ``episode`` none until its episode ends, then one per step of it; none while the start
+        steps last or no batch can be sampled yet.
+        """
+        runs, config, buffer = self.runs, self.runs[0].spec.td3, self.buffer
+        active = np.array([run.step < run.spec.budget and run.failed is None for run in runs])
+        if not active.any():
             return []
-        behind = min(run.step for run in active)
-        stepping = [run for run in active if run.step == behind]
-        due = np.zeros(len(self.runs), dtype=np.int64)
-        for run in stepping:
-            try:
-                due[run.index] = run.env_step()
-            except Diverged as error:
-                run.failed = str(error)
+        stepping = active & (buffer.count == buffer.count[active].min())
+        obs = self.envs.obs.copy()
+        if self.executor.choose(obs, self._behaviour, stepping).any():
+            code = "the actor's " + ("action" if runs[0].spec.algo == "td3" else "code")
+            finite = np.isfinite(self.executor.code.cpu().numpy()).all(-1)
+            self._stop(stepping, ~finite, code)
+        step = self.executor.step(stepping)
+        self._stop(stepping, ~np.isfinite(step.reward), "the environment's reward")
+        self._stop(stepping, ~np.isfinite(step.next_obs).all(-1), "the environment's observation")
+        buffer.add(stepping, obs, step.code, step.i, step.reward, step.next_obs,
+                   step.terminated, step.truncated)  # fmt: skip
+        due, ended = np.zeros(len(runs), dtype=np.int64), step.ended
+        for m in np.flatnonzero(stepping):
+            run = runs[m]
+            run.episode.actions.append(step.action[m])
+            run.episode.ret += float(step.reward[m])
+            due[m] = 1 if config.update_schedule == "step" else 0
+            if ended[m]:
+                if config.update_schedule == "episode":
+                    due[m] = len(run.episode.actions)  # one per step of the episode just ended
+                run.episodes += 1
+                run.episode = Episode({})
+            if run.step < config.start_steps or buffer.sampleable(int(m)) < config.batch_size:
+                due[m] = 0
+        if ended.any():  # each starts its next episode from its environment's own generator
+            self.envs.reset(ended, [None] * len(runs))
         self.update(due)
         losses = self.agent.non_finite() if due.any() else {}  # they change only in updates
         for member, quantity in losses.items():
-            run = self.runs[member]
+            run = runs[member]
             if run.failed is None:  # a member that stopped earlier keeps its first reason
-                run.failed = str(run.diverged(run.step, quantity))
-        return [run for run in stepping if run.failed is None]
+                run.failed = run.diverged(run.step, quantity)
+        return [runs[m] for m in np.flatnonzero(stepping) if runs[m].failed is None]
+
+    def _stop(self, stepping: np.ndarray, bad: np.ndarray, quantity: str) -> None:
+        """The members of ``stepping`` where ``bad`` stop at this step, ``quantity`` not finite:
+        they are out of ``stepping`` (nothing of the step is written for them)."""
+        for m in np.flatnonzero(stepping & bad):
+            run = self.runs[m]
+            run.failed, stepping[m] = run.diverged(run.step + 1, quantity), False
+
+
+def env_workers(setting: str, members: int, device: torch.device) -> bool:
+    """Whether a group's environments step in worker processes (``AsyncVectorEnv``):
+    ``td3.env_workers`` "yes" or "no", or for "auto" where it pays — a group of several members
+    on a GPU machine with a core for each of at least four workers (on CPU the cores are the
+    sweep's, one run or group per core)."""
+    if setting != "auto":
+        return setting == "yes"
+    return device.type == "cuda" and members > 1 and (os.cpu_count() or 1) >= 4
 
 
 def train_run(
@@ -363,20 +387,49 @@ def train_group(
     if not alike or len({s.seed for s in specs}) != len(specs):
         raise ValueError("a group's runs must differ in their seeds only")
     group = _Group(specs, embedding, device)
-    sessions = [_Session.start(group, j, out, bad_checkpoint, notice) for j, out in enumerate(outs)]
-    if progress is not None:
-        progress(sum(run.step for run in group.runs))
-    while stepped := group.advance():
-        for run in stepped:
-            try:
-                sessions[run.index].after_step(progress)
-            except Diverged as error:
-                run.failed = str(error)
-    results = [s.finish(keep_checkpoint) for s in sessions if s.run.failed is None]
-    failed = [s.stopped() for s in sessions if s.run.failed is not None]
+    try:
+        sessions = [
+            _Session.start(group, j, out, bad_checkpoint, notice) for j, out in enumerate(outs)
+        ]
+        _evaluate(sessions, [s.run for s in sessions if not s.run.history])  # from the start
+        if progress is not None:
+            progress(sum(run.step for run in group.runs))
+        while stepped := group.advance():
+            if progress is not None:
+                progress(len(stepped))
+            _evaluate(
+                sessions,
+                [
+                    r
+                    for r in stepped
+                    if r.step % r.spec.td3.eval_every == 0 or r.step == r.spec.budget
+                ],
+            )
+            for run in stepped:
+                if run.failed is None and run.step % run.spec.td3.checkpoint_every == 0:
+                    if run.step < run.spec.budget:
+                        sessions[run.index].clock()
+                        run.save(sessions[run.index].out / "checkpoint")
+        results = [s.finish(keep_checkpoint) for s in sessions if s.run.failed is None]
+        failed = [s.stopped() for s in sessions if s.run.failed is not None]
+    finally:
+        group.close()
     if failed:
         raise Diverged("\n".join(failed))
     return results
+
+
+def _evaluate(sessions: list[_Session], runs: list[_Run]) -> None:
+    """Evaluate ``runs`` together and write each one's curves."""
+    if not runs:
+        return
+    for run in runs:
+        sessions[run.index].clock()
+    group = sessions[0].group
+    group.evaluate(np.isin(np.arange(len(group.runs)), [run.index for run in runs]))
+    for run in runs:
+        if run.failed is None:
+            write_curves(sessions[run.index].out, run.history, run.diagnostics)
 
 
 @dataclass
@@ -415,27 +468,10 @@ class _Session:
             aside = _move_aside(path)
             notice(f"{path}: {error}; moved aside to {aside.name}, starting over")
             run, resumed = group.restart(index), False
-        session = cls(group, index, out, resumed, steps_at_start=run.step, wall_at_start=run.wall)
-        if not run.history:
-            run.evaluate()
-            write_curves(out, run.history, run.diagnostics)
-        return session
+        return cls(group, index, out, resumed, steps_at_start=run.step, wall_at_start=run.wall)
 
     def clock(self) -> None:
         self.run.wall = self.wall_at_start + time.perf_counter() - self.started
-
-    def after_step(self, progress: Callable[[int], None] | None) -> None:
-        """Evaluate and checkpoint when the step calls for it."""
-        run, config = self.run, self.run.spec.td3
-        if progress is not None:
-            progress(1)
-        if run.step % config.eval_every == 0 or run.step == run.spec.budget:
-            self.clock()
-            run.evaluate()
-            write_curves(self.out, run.history, run.diagnostics)
-        if run.step % config.checkpoint_every == 0 and run.step < run.spec.budget:
-            self.clock()
-            run.save(self.out / "checkpoint")
 
     def stopped(self) -> str:
         """A diverged run's line, with where it would resume: its last checkpoint."""

@@ -138,3 +138,41 @@ def one_task_runs(
         params["runs"]["budgets"] = {name: steps for name in params["runs"]["budgets"]}
 
     return edit
+
+
+def add_step(
+    buffer: Any,
+    member: int,
+    obs: Any,
+    code: Any,
+    i: int,
+    reward: float,
+    next_obs: Any,
+    terminated: bool,
+    truncated: bool,
+) -> None:
+    """One step of member ``member`` alone into an ``ede.td3.ReplayBuffer``, whose ``add`` takes
+    a step of every member (rows of the others unused)."""
+    import numpy as np
+    import torch
+
+    m = buffer.members
+    rows = np.arange(m) == member
+
+    def spread(value: Any, dtype: Any = None) -> np.ndarray:
+        out = np.zeros((m, *np.shape(value)), dtype=dtype or np.asarray(value).dtype)
+        out[member] = value
+        return out
+
+    codes = torch.zeros(m, *torch.as_tensor(code).shape)
+    codes[member] = torch.as_tensor(code)
+    buffer.add(
+        rows,
+        spread(obs, np.float64),
+        codes,
+        spread(i, np.int64),
+        spread(reward, np.float64),
+        spread(next_obs, np.float64),
+        spread(terminated, bool),
+        spread(truncated, bool),
+    )

@@ -36,7 +36,7 @@ def trained(steps: int, config: TD3Config = CONFIG) -> _Group:
     group = _Group([spec(config=config)], None, CPU)
     for _ in range(steps):
         group.advance()
-    group.runs[0].evaluate()
+    group.evaluate(np.ones(1, dtype=bool))
     return group
 
 
@@ -85,8 +85,8 @@ def test_read_gives_back_what_the_run_held(saved: Path) -> None:
     assert held.agent.keys() == group.agent.state_dict(0).keys()
     assert all(torch.equal(held.agent[k], v) for k, v in group.agent.state_dict(0).items())
     assert all(torch.equal(held.buffer[k], v) for k, v in group.buffer.state_dict(0).items())
-    assert held.i == run.executor.i and np.array_equal(held.plan, run.executor.plan)
-    assert np.array_equal(held.obs, run.obs) and held.episode.start == {"seed": 0}
+    assert held.i == group.executor.i[0] and np.array_equal(held.plan, group.executor.plan[0])
+    assert np.array_equal(held.obs, group.envs.obs[0]) and held.episode.start == {"seed": 0}
     assert len(held.episode.actions) == SAVED_AT and held.episode.ret == run.episode.ret
     assert held.history == run.history and len(held.history) == 1
     assert held.diagnostics == run.diagnostics and held.diagnostics[0]["updates"] > 0
@@ -101,7 +101,7 @@ def test_a_resumed_run_steps_on_as_the_run_it_was_saved_from(saved: Path) -> Non
         resumed.advance()
     first, second = learner_state(ahead), learner_state(resumed)
     assert all(torch.equal(v, second[k]) for k, v in first.items())
-    assert np.array_equal(ahead.runs[0].obs, resumed.runs[0].obs)
+    assert np.array_equal(ahead.envs.obs, resumed.envs.obs)
 
 
 def test_an_interval_without_an_actor_step_is_saved_and_read_back(tmp_path: Path) -> None:

@@ -20,6 +20,7 @@ import torch
 
 from ede.config import TD3Config
 from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
+from tests.support import add_step
 
 pytestmark = pytest.mark.slow
 
@@ -44,7 +45,8 @@ def trained(mode: str) -> Agent:
     rng = np.random.default_rng(0)
     for member in range(len(SEEDS)):
         for t in range(100):
-            buffer.add(
+            add_step(
+                buffer,
                 member,
                 rng.normal(size=OBS),
                 torch.as_tensor(rng.uniform(-1, 1, ACT)),

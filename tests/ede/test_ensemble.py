@@ -91,3 +91,31 @@ def test_adam_is_torchs_adam_for_one_member() -> None:
     # AMD EPYC (AVX2 kernels); a tolerance, since other CPUs' vector kernels may round apart.
     for k, v in theirs.items():
         torch.testing.assert_close(stack.member(0)[k], v.detach(), rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("count", [2, 5, 64])
+def test_acting_one_row_per_member_gives_each_member_its_bits_alone(count: int) -> None:
+    """Acting: the stacked actor on one observation per member; member m's action is the one
+    it computes alone (a stack of one) whatever the number of members, at the paper's sizes."""
+    torch.set_num_threads(1)
+    sizes = [11, 400, 300, 2]
+    params = []
+    for m in range(count):
+        params.append(initial_mlp(sizes, torch.Generator().manual_seed(m)))
+    x = torch.randn(count, 1, sizes[0], generator=torch.Generator().manual_seed(100))
+    together = ensemble.mlp(ensemble.Stack(params, CPU).params, x)  # (M, 1, O) -> (M, 1, C)
+    for m in (0, count - 1):
+        alone = ensemble.mlp(ensemble.Stack(params[m : m + 1], CPU).params, x[m : m + 1])
+        assert torch.equal(together[m], alone[0]), m
+
+
+@pytest.mark.parametrize("count", [1, 3, 64])
+def test_a_shared_network_row_by_row_gives_each_row_its_bits_alone(count: int) -> None:
+    torch.set_num_threads(1)
+    network = torch.nn.Sequential(
+        torch.nn.Linear(7, 400), torch.nn.SELU(), torch.nn.Linear(400, 28)
+    )
+    x = torch.randn(count, 7, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        rows = ensemble.row_by_row(network, x)
+        assert torch.equal(rows[-1:], network(x[-1:]))

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ import torch
 
 from ede.atomic import MARK
 from ede.config import EdeTD3Config, TD3Config
+from ede.embedding import ActionEmbedding
 from ede.runs import RunSpec
 from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
 from ede.training import train_group, train_run
@@ -129,11 +131,10 @@ def test_a_member_masked_out_of_an_update_keeps_its_learner_state_bit_for_bit() 
     agent = Agent(3, adapter, config, CPU, seeds=[0, 1, 2])
     buffer = ReplayBuffer(100, 3, 2, 1, CPU, members=3)
     rng = np.random.default_rng(0)
-    for member in range(3):
-        for _ in range(50):
-            buffer.add(
-                member, rng.normal(size=3), torch.zeros(2), 0, 1.0, rng.normal(size=3), False, False
-            )
+    every, no = np.ones(3, dtype=bool), np.zeros(3, dtype=bool)
+    for _ in range(50):
+        obs, next_obs = rng.normal(size=(3, 3)), rng.normal(size=(3, 3))
+        buffer.add(every, obs, torch.zeros(3, 2), np.zeros(3, int), np.ones(3), next_obs, no, no)
     agent.update(buffer)  # everyone: every member's moments are no longer zero
     before = agent.state_dict(1)
     agent.update(buffer, np.array([True, False, True]))
@@ -161,3 +162,44 @@ def test_adding_a_member_or_a_purpose_shifts_no_stream() -> None:
         purpose: torch.rand(4, generator=getattr(Streams(7, CPU), purpose)) for purpose in PURPOSES
     }
     assert len({tuple(d.tolist()) for d in firsts.values()}) == len(PURPOSES)  # all apart
+
+
+@pytest.fixture(scope="module")
+def point_embedding(point_store: Path) -> object:
+    """A small embedding of ede/Point-v0's actions (k = 4), trained for one epoch."""
+    from ede.config import DecoderConfig, EmbeddingConfig
+    from ede.embedding import ActionEmbedding, train_decoder, train_encoder
+    from ede.rollouts import Rollouts
+
+    rollouts = Rollouts.open(point_store)
+    small = {"hidden": [64, 64], "epochs": 1}
+    encoded = train_encoder(rollouts, EmbeddingConfig.model_validate(small))
+    decoded = train_decoder(
+        rollouts, encoded, DecoderConfig.model_validate(small), 4, -np.ones(2), np.ones(2)
+    )
+    return ActionEmbedding(encoded.encoder, decoded.decoder, encoded.code_whitening, decoded.bound)
+
+
+def test_an_ede_td3_member_of_a_group_ends_as_it_ends_alone(
+    point_embedding: object, tmp_path: Path
+) -> None:
+    """Codes chosen in one batched forward and decoded for the members choosing at that step:
+    each member's codes, actions and outputs are those it has alone."""
+    config = CONFIG.model_copy(update={"start_steps": 100})
+    specs = [RunSpec("ede/Point-v0", "ede-td3", s, 400, config, EdeTD3Config()) for s in (0, 1, 2)]
+    embedding = cast(ActionEmbedding, point_embedding)
+    train_group(specs, [tmp_path / f"seed{s.seed}" for s in specs], embedding, CPU)
+    train_run(specs[1], tmp_path / "alone", embedding, CPU)
+    assert outputs(tmp_path / "seed1") == outputs(tmp_path / "alone")
+    assert outputs(tmp_path / "seed0") != outputs(tmp_path / "seed1")
+
+
+def test_environments_in_worker_processes_change_nothing(tmp_path: Path) -> None:
+    """``td3.env_workers: yes`` (gymnasium's AsyncVectorEnv) steps each member's episodes as the
+    training process does (SyncVectorEnv): the same outputs."""
+    config = CONFIG.model_copy(update={"env_workers": "yes"})
+    specs = [spec(s, config) for s in (0, 1)]
+    train_group(specs, [tmp_path / f"workers{s}" for s in (0, 1)], device=CPU)
+    train_group([spec(s) for s in (0, 1)], [tmp_path / f"here{s}" for s in (0, 1)], device=CPU)
+    for s in (0, 1):
+        assert outputs(tmp_path / f"workers{s}") == outputs(tmp_path / f"here{s}"), s

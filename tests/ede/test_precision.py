@@ -9,6 +9,7 @@ import torch
 from ede.config import TD3Config
 from ede.nets import matmul_precision, product_error
 from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
+from tests.support import add_step
 
 PRECISIONS = ["fp32", "bf16-matmul", "bf16"]
 
@@ -83,7 +84,8 @@ def trained_agent(precision: str, updates: int = 6) -> Agent:
     buffer = ReplayBuffer(256, 5, 2, 1, device)
     rng = np.random.default_rng(0)
     for t in range(200):
-        buffer.add(
+        add_step(
+            buffer,
             0,
             rng.normal(size=5),
             torch.as_tensor(rng.uniform(-1, 1, 2), dtype=torch.float32),

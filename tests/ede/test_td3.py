@@ -3,6 +3,7 @@ and the executor of codes."""
 
 from __future__ import annotations
 
+import functools
 from typing import Any, cast
 
 import gymnasium
@@ -22,6 +23,8 @@ from ede.td3 import (
     ReplayBuffer,
     k_step_targets,
 )
+from ede.vector import MemberEnvs
+from tests.support import add_step
 
 GAMMA = 0.9
 K, OBS, CODE = 4, 3, 2
@@ -52,7 +55,8 @@ def filled_buffer(rewards, terminated=(), truncated=(), i=None) -> ReplayBuffer:
     n = len(rewards)
     buffer = ReplayBuffer(32, OBS, CODE, K, torch.device("cpu"))
     for t in range(n):
-        buffer.add(
+        add_step(
+            buffer,
             0,
             obs=np.full(OBS, t, dtype=np.float32),
             code=torch.tensor([t / 10, -t / 10]),
@@ -148,7 +152,8 @@ def test_with_k_1_the_target_is_td3s() -> None:
     agent = agent_for(adapter)
     buffer = ReplayBuffer(8, OBS, CODE, 1, torch.device("cpu"))
     for t in range(4):
-        buffer.add(
+        add_step(
+            buffer,
             0,
             np.full(OBS, t, dtype=np.float32),
             torch.zeros(CODE),
@@ -250,7 +255,8 @@ def largest_target_noise(adapter, noise_clip: float = 0.5, **overrides) -> float
 def filled_buffer_k1() -> ReplayBuffer:
     buffer = ReplayBuffer(32, OBS, CODE, 1, torch.device("cpu"))
     for t in range(8):
-        buffer.add(
+        add_step(
+            buffer,
             0,
             np.full(OBS, t, dtype=np.float32),
             torch.zeros(CODE),
@@ -280,9 +286,9 @@ def test_td3_noise_is_absolute_or_relative_to_the_action_box(units, expected) ->
     assert largest_target_noise(adapter) == pytest.approx(expected, abs=1e-5)
     config = TD3Config(hidden=[16, 16], exploration_noise=0.1)
     agent = Agent(OBS, adapter, config, torch.device("cpu"), seeds=[0])
-    obs = np.zeros(OBS, dtype=np.float32)
-    mean = agent.act(0, obs, explore=False)
-    noise = torch.stack([agent.act(0, obs, explore=True) - mean for _ in range(4000)])
+    obs, one = np.zeros((1, OBS), dtype=np.float32), np.ones(1, dtype=bool)
+    mean = agent.act(obs)
+    noise = torch.stack([agent.behave(obs, one, ~one) - mean for _ in range(4000)])
     assert noise.std().item() == pytest.approx(0.1 * expected / 0.5, rel=0.05)
 
 
@@ -358,31 +364,46 @@ class StepAdapter(FixedAdapter):
 
 
 class CountingPolicy:
-    """The n-th code chosen is (n, -n); records the observation it was chosen at."""
+    """The n-th code chosen for a member is (n, -n); records the observation it was chosen at.
+    Batched as the executor calls it: ``(M, O) -> (M, C)``, one count per member."""
 
-    def __init__(self) -> None:
-        self.chosen_at: list[float] = []
+    def __init__(self, members: int = 1) -> None:
+        self.chosen_at: list[list[float]] = [[] for _ in range(members)]
 
-    def __call__(self, obs: np.ndarray) -> torch.Tensor:
-        n = len(self.chosen_at)
-        self.chosen_at.append(float(obs[0]))
-        return torch.tensor([float(n), float(-n)])
+    def __call__(self, obs: np.ndarray, choosing: np.ndarray) -> torch.Tensor:
+        codes = torch.zeros(len(obs), CODE)
+        for m in np.flatnonzero(choosing):
+            n = len(self.chosen_at[m])
+            self.chosen_at[m].append(float(obs[m, 0]))
+            codes[m] = torch.tensor([float(n), float(-n)])
+        return codes
+
+
+def executor_of(*envs: StepEnv, adapter=None) -> CodeExecutor:
+    """An executor over ``envs``, one member each."""
+    return CodeExecutor(
+        MemberEnvs([functools.partial(lambda e: e, env) for env in envs]), adapter or StepAdapter()
+    )
+
+
+ONE = np.ones(1, dtype=bool)
 
 
 def test_a_codes_k_actions_are_executed_in_order_and_the_next_code_is_chosen_at_i_0() -> None:
     env, policy = StepEnv(length=100), CountingPolicy()
-    executor = CodeExecutor(env, StepAdapter())
-    obs, _ = env.reset()
+    executor = executor_of(env)
+    obs = executor.envs.reset(ONE, [0])
     steps = []
     for _ in range(2 * K + 1):
-        steps.append(executor.step(obs, policy))
+        executor.choose(obs, policy, ONE)
+        steps.append(executor.step(ONE))
         obs = steps[-1].next_obs
-    assert [step.i for step in steps] == [0, 1, 2, 3, 0, 1, 2, 3, 0]
-    assert policy.chosen_at == [0.0, 4.0, 8.0]  # at i = 0 only
+    assert [int(step.i[0]) for step in steps] == [0, 1, 2, 3, 0, 1, 2, 3, 0]
+    assert policy.chosen_at == [[0.0, 4.0, 8.0]]  # at i = 0 only
     expected = [[10 * n + m, -10 * n + m] for n in range(3) for m in range(K)][: 2 * K + 1]
     assert np.array_equal(np.array(env.actions), expected)
-    assert [step.code.tolist() for step in steps[K : 2 * K]] == [[1.0, -1.0]] * K
-    assert executor.i == 1
+    assert [step.code[0].tolist() for step in steps[K : 2 * K]] == [[1.0, -1.0]] * K
+    assert executor.i.tolist() == [1]
 
 
 @pytest.mark.parametrize("truncate", [False, True])
@@ -390,23 +411,39 @@ def test_an_episode_end_inside_a_code_cuts_it_and_the_next_episode_chooses_anew(
     truncate: bool,
 ) -> None:
     env, policy = StepEnv(length=K + 2, truncate=truncate), CountingPolicy()
-    executor = CodeExecutor(env, StepAdapter())
-    steps = list(executor.episode(env.reset()[0], policy))
-    assert len(steps) == K + 2 and [step.ended for step in steps] == [False] * (K + 1) + [True]
-    assert [step.i for step in steps] == [0, 1, 2, 3, 0, 1]  # the second code cut after 2 steps
-    assert (steps[-1].truncated, steps[-1].terminated) == (truncate, not truncate)
-    assert executor.i == 0
-    first = executor.step(env.reset()[0], policy)
-    assert first.i == 0 and first.code.tolist() == [2.0, -2.0]  # a new code, not the cut one's rest
-    assert policy.chosen_at == [0.0, float(K), 0.0]
-    assert np.array_equal(env.actions[-1], [20.0, -20.0])
+    executor = executor_of(env)
+    steps = [step for step, _, _ in executor.episodes(policy, 2, [0], ONE)]
+    first = steps[: K + 2]
+    assert [bool(step.ended[0]) for step in first] == [False] * (K + 1) + [True]
+    assert [int(step.i[0]) for step in first] == [0, 1, 2, 3, 0, 1]  # the second code cut after 2
+    assert (first[-1].truncated[0], first[-1].terminated[0]) == (truncate, not truncate)
+    second = steps[K + 2]
+    assert second.i[0] == 0 and second.code[0].tolist() == [2.0, -2.0]  # a new code, not the rest
+    assert policy.chosen_at[0][:3] == [0.0, float(K), 0.0]
+    assert np.array_equal(env.actions[K + 2], [20.0, -20.0])
 
 
 def test_with_k_1_every_step_chooses_a_code_that_is_the_action() -> None:
     env, policy = StepEnv(length=3), CountingPolicy()
-    executor = CodeExecutor(
-        env, IdentityAdapter(-np.ones(CODE), np.ones(CODE), torch.device("cpu"))
-    )
-    steps = list(executor.episode(env.reset()[0], policy))
-    assert [step.i for step in steps] == [0, 0, 0] and policy.chosen_at == [0.0, 1.0, 2.0]
+    adapter = IdentityAdapter(-np.ones(CODE), np.ones(CODE), torch.device("cpu"))
+    steps = list(executor_of(env, adapter=adapter).episodes(policy, 1, [0], ONE))
+    assert [int(step.i[0]) for step, _, _ in steps] == [0, 0, 0]
+    assert policy.chosen_at == [[0.0, 1.0, 2.0]]
     assert np.array_equal(np.array(env.actions), [[0, 0], [1, -1], [2, -2]])
+
+
+def test_members_step_together_each_through_its_own_episodes_as_alone() -> None:
+    """Two members whose episodes end at different steps: each member's actions and codes are
+    those it gets alone, and a member whose episodes are done sits the other's steps out."""
+    short, long = StepEnv(length=3), StepEnv(length=K + 3)
+    policy = CountingPolicy(members=2)
+    episodes = list(executor_of(short, long).episodes(policy, 2, [0, 0], np.ones(2, bool)))
+    assert len(episodes) == 2 * (K + 3)  # the longer member's two episodes
+    assert len(short.actions) == 2 * 3  # the shorter one stepped its own two and then sat out
+    alone = [StepEnv(length=3), StepEnv(length=K + 3)]
+    for member, env in enumerate(alone):
+        lone = CountingPolicy()
+        list(executor_of(env).episodes(lone, 2, [0], ONE))
+        assert policy.chosen_at[member] == lone.chosen_at[0]
+    assert np.array_equal(short.actions, alone[0].actions)
+    assert np.array_equal(long.actions, alone[1].actions)

@@ -28,22 +28,19 @@ def schedule(start_steps: int, steps: int, monkeypatch: pytest.MonkeyPatch) -> t
     )
     run, group = run_of(config)
     chosen_by, updated_at = [], []
-    act, random_code, update = group.agent.act, group.agent.random_code, group.agent.update
+    behave, update = group.agent.behave, group.agent.update
 
-    def recording_act(member, obs, explore):
-        chosen_by.append("actor+noise" if explore else "actor")
-        return act(member, obs, explore)
-
-    def recording_random(member):
-        chosen_by.append("uniform")
-        return random_code(member)
+    def recording_behave(obs, members, uniform):
+        chosen_by.extend(
+            "uniform" if uniform[m] else "actor+noise" for m in np.flatnonzero(members)
+        )
+        return behave(obs, members, uniform)
 
     def recording_update(buffer, due):
         updated_at.append(run.step)
         return update(buffer, due)
 
-    monkeypatch.setattr(group.agent, "act", recording_act)
-    monkeypatch.setattr(group.agent, "random_code", recording_random)
+    monkeypatch.setattr(group.agent, "behave", recording_behave)
     monkeypatch.setattr(group.agent, "update", recording_update)
     for _ in range(steps):
         group.advance()
@@ -95,7 +92,7 @@ def test_diagnostics_are_the_means_of_the_updates_since_the_last_evaluation(
         before = group.agent.loss_sums[:, 0].clone()
         group.advance()
         losses.append((group.agent.loss_sums[:, 0] - before).tolist())
-    run.evaluate()
+    group.evaluate(np.ones(1, dtype=bool))
     (row,) = run.diagnostics
     steps = [loss for loss in losses if loss[1]]  # the updates (from step 8 on)
     assert row["step"] == 20 and row["updates"] == len(steps) == 13
@@ -156,12 +153,13 @@ def test_a_checkpoint_taken_inside_a_code_resumes_its_remaining_actions(
     group = _Group([spec], embedding, CPU)
     run = group.runs[0]
     actions_after(group, 6)
-    assert run.executor.i == 2  # two actions of the second code are left
+    assert group.executor.i[0] == 2  # two actions of the second code are left
     run.save(tmp_path / "checkpoint")
     again = _Group([spec], embedding, CPU)
     resumed = again.runs[0]
     assert resumed.load(tmp_path / "checkpoint")
-    assert resumed.executor.i == 2 and np.array_equal(resumed.executor.plan, run.executor.plan)
-    assert torch.equal(resumed.executor.code, run.executor.code)
+    assert resumed.step == run.step
+    assert again.executor.i[0] == 2 and np.array_equal(again.executor.plan, group.executor.plan)
+    assert torch.equal(again.executor.code, group.executor.code)
     ahead, after = actions_after(group, 6), actions_after(again, 6)
     assert all(np.array_equal(a, b) for a, b in zip(ahead, after, strict=True))
