@@ -194,12 +194,16 @@ def test_an_ede_td3_member_of_a_group_ends_as_it_ends_alone(
     assert outputs(tmp_path / "seed0") != outputs(tmp_path / "seed1")
 
 
-def test_environments_in_worker_processes_change_nothing(tmp_path: Path) -> None:
+def test_environments_in_worker_processes_change_nothing(group: Path, tmp_path: Path) -> None:
     """``td3.env_workers: yes`` (gymnasium's AsyncVectorEnv) steps each member's episodes as the
-    training process does (SyncVectorEnv): the same outputs."""
+    training process does (SyncVectorEnv): the same outputs, also where a member resumes from a
+    checkpoint (its episode replayed in its worker) while another starts over and catches up
+    (the one ahead sitting steps out)."""
     config = CONFIG.model_copy(update={"env_workers": "yes"})
-    specs = [spec(s, config) for s in (0, 1)]
-    train_group(specs, [tmp_path / f"workers{s}" for s in (0, 1)], device=CPU)
-    train_group([spec(s) for s in (0, 1)], [tmp_path / f"here{s}" for s in (0, 1)], device=CPU)
-    for s in (0, 1):
-        assert outputs(tmp_path / f"workers{s}") == outputs(tmp_path / f"here{s}"), s
+    outs = [tmp_path / f"seed{s}" for s in (0, 1)]
+    shutil.copytree(group / "seed1" / "checkpoint", outs[1] / "checkpoint")  # at step 400
+    shutil.copy(group / "seed1" / MARK, outs[1] / MARK)  # the run folder's own
+    metrics = train_group([spec(s, config) for s in (0, 1)], outs, device=CPU)
+    assert [m["resumed_from_step"] for m in metrics] == [None, 400]
+    for seed, out in zip((0, 1), outs, strict=True):
+        assert outputs(out) == outputs(group / f"seed{seed}"), seed
