@@ -1,6 +1,6 @@
 """Aggregate training throughput on one GPU machine: P processes, each a group of M members.
 
-    python benchmarks/gpu_throughput.py [--device cuda|cpu] [--tiny] [--plan 1x1,1x16,4x16,8x16]
+    python benchmarks/gpu_throughput.py [--device cuda|cpu] [--tiny] [--plan 1x1,1x16,8x16]
                                         [--tasks ede/ReacherVertical-v0,ede/Pusher-v0]
                                         [--algos td3,ede-td3] [--steps 3000] [--minutes 7]
 
@@ -210,7 +210,7 @@ def main() -> None:
     parser.add_argument("--compile", default=None, choices=["none", "default", "reduce-overhead"])
     parser.add_argument("--minutes", type=float, default=7.0)
     args = parser.parse_args()
-    plan = args.plan or ("1x1,2x2" if args.tiny else "1x1,1x16,4x16,8x16")
+    plan = args.plan or ("1x1,2x2" if args.tiny else "1x1,1x16,8x16")
     steps = args.steps or (700 if args.tiny else 3_000)
     warmup = min(WARMUP, steps // 2)
     compile = args.compile or ("reduce-overhead" if args.device == "cuda" else "none")
