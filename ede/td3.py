@@ -670,10 +670,8 @@ class Agent:
         draw from the member's own stream (rows of other members: unused)."""
         low, high, scale = self.adapter.code_low, self.adapter.code_high, self.adapter.noise_scale
         draw = self._draw
-        if not uniform[members].any():  # every member explores: the common case, in one piece
-            noise = torch.stack(
-                [draw(torch.randn, m, "exploration", members) for m in range(self.members)]
-            )
+        if (members & ~uniform).all():  # every member explores: the common case, in one piece
+            noise = torch.stack([draw(torch.randn, m, "exploration") for m in range(self.members)])
             return self.td3.clip(self.act(obs) + noise * self.config.exploration_noise * scale)
         codes = low.repeat(len(obs), 1)  # (M, C)
         explore, start = members & ~uniform, members & uniform
@@ -688,17 +686,8 @@ class Agent:
             codes[rows] = self.td3.clip(mean + noise * self.config.exploration_noise * scale)
         return codes
 
-    def _draw(
-        self,
-        sample: Callable[..., torch.Tensor],
-        member: int,
-        purpose: str,
-        members: np.ndarray | None = None,
-    ) -> torch.Tensor:
-        """One code's worth ``(C,)`` of ``sample`` from member ``member``'s stream ``purpose``;
-        zeros, drawing nothing, where ``members`` leaves it out."""
-        if members is not None and not members[member]:
-            return torch.zeros(self.adapter.code_size, device=self.device)
+    def _draw(self, sample: Callable[..., torch.Tensor], member: int, purpose: str) -> torch.Tensor:
+        """One code's worth ``(C,)`` of ``sample`` from member ``member``'s stream ``purpose``."""
         generator = getattr(self.streams[member], purpose)
         return sample(self.adapter.code_size, generator=generator, device=self.device)
 
