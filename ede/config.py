@@ -707,6 +707,15 @@ def read_yaml(path: Path) -> Any:
         raise ParamsError(path, ["no such file"]) from None
     except (OSError, UnicodeDecodeError) as error:
         raise ParamsError(path, [f"not readable YAML ({first_line(error)})"]) from None
+    return parse_yaml(text, path)
+
+
+def parse_yaml(text: str, path: Path) -> Any:
+    """YAML text's content, each key of a mapping given once; ``path`` names it in errors.
+
+    Raises:
+        ParamsError: one line saying where the text cannot be read, and why.
+    """
     try:
         return yaml.load(text, Loader=_UniqueKeyLoader)
     except _DuplicateKey as error:

@@ -8,7 +8,7 @@ checkout's files (the code that runs, committed or not), the experiment's params
 outputs, so that experiments neither touch this workspace nor each other, and a killed one
 resumes there. Running it again brings the copy's code up to this checkout's, but not over
 finished runs made with other code (DVC would run them again): that is refused unless
-``--keep-code`` (finish with the copy's code) or ``--update-code`` (run them again) says which.
+``--keep-code`` (finish with the copy's code and the params.yaml of its commit) or ``--update-code`` (run them again) says which.
 Families that none of its tasks uses and no figure draws are left out, so it learns only the
 embeddings it needs; an embedding another experiment already made with the same code and
 params comes from DVC's run cache instead of being made again. The train stages run through
@@ -48,7 +48,15 @@ import click
 import yaml
 
 from ede.atomic import write_json, write_text
-from ede.config import ALGO_LABELS, Params, ParamsError, overridden, read_yaml, validate_params
+from ede.config import (
+    ALGO_LABELS,
+    Params,
+    ParamsError,
+    overridden,
+    parse_yaml,
+    read_yaml,
+    validate_params,
+)
 from ede.errors import first_line
 from ede.runs import PUBLISHED
 from ede_pipeline import layout
@@ -186,12 +194,14 @@ def experiment_file(name: str) -> Path:
     return path
 
 
-def experiment_params(name: str, base: Path = DEFAULT_PARAMS) -> dict[str, Any]:
-    """The experiment's params: ``base`` with ``experiments/NAME.yaml`` applied
-    (:func:`ede.config.overridden`), less the families that none of its tasks uses and no
-    figure draws. Bad params end here: one line naming the file and the key."""
+def experiment_params(name: str, base: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The experiment's params: ``base`` (``params.yaml``'s content by default) with
+    ``experiments/NAME.yaml`` applied (:func:`ede.config.overridden`), less the families that
+    none of its tasks uses and no figure draws. Bad params end here: one line naming the file
+    and the key."""
     try:
-        merged, _ = overridden(read_yaml(base), experiment_file(name))
+        base = read_yaml(DEFAULT_PARAMS) if base is None else base
+        merged, _ = overridden(base, experiment_file(name))
     except ParamsError as error:
         raise BadInput(first_line(error)) from None
     used = set(merged["runs"]["tasks"].values())
@@ -255,6 +265,16 @@ def prepare_workspace(name: str, params: dict[str, Any], update_code: bool = Tru
     write_text(workspace / ".dvc" / "config.local", _shared_config())
     (workspace / layout.DATA).mkdir(exist_ok=True)
     return workspace
+
+
+def _copy_params(workspace: Path) -> dict[str, Any]:
+    """The params of the commit a working copy holds (before its experiment's were applied):
+    the base an experiment keeping the copy's code runs on, whose keys that code knows."""
+    committed = Path(f"{workspace}@HEAD") / DEFAULT_PARAMS  # a name for errors only
+    try:
+        return parse_yaml(_git("show", f"HEAD:{DEFAULT_PARAMS}", cwd=workspace), committed)
+    except ParamsError as error:
+        raise BadInput(first_line(error)) from None
 
 
 def _contents(path: Path) -> bytes | None:
@@ -412,7 +432,7 @@ def list_experiments() -> None:
     "--keep-code/--update-code",
     default=None,
     help="Run again after the code changed: finish the experiment with the code its working "
-    "copy holds (its finished runs' code), or bring the copy up to this checkout, which runs "
+    "copy holds (its finished runs' code, with the params.yaml of its commit), or bring the copy up to this checkout, which runs "
     "its finished runs again. Without either, a change to the code the runs depend on is "
     "refused while the experiment has finished runs.",
 )
@@ -440,10 +460,14 @@ def run_experiment(
             f"experiment {name}: stages ({', '.join(targets)}) are not taken: an experiment runs "
             f"all of experiments/{name}.yaml's runs (its runs.seeds and runs.algos choose them)"
         )
-    params = experiment_params(name)
+    workspace = WORKSPACES / name
+    if keep_code and (workspace / ".git").exists():  # the copy's code reads the copy's params
+        params = experiment_params(name, _copy_params(workspace))
+    else:
+        params = experiment_params(name)
     if keep_code is None:
         _check_code_keeps_runs(name, WORKSPACES / name)
-    workspace = prepare_workspace(name, params, update_code=not keep_code)
+    prepare_workspace(name, params, update_code=not keep_code)
     kept = " with the code it started with" if keep_code else ""
     click.echo(f"experiment {name}: in {workspace}{kept}", err=True)
     if code := _tool(workspace, "ede-pipeline", "sweep", *sweep_args):

@@ -179,7 +179,8 @@ def test_experiments_of_one_family_share_its_embedding(repo: Path) -> None:
 def test_a_changed_code_keeps_finished_runs_unless_told(tmp_path: Path) -> None:
     """Running an experiment again after its runs' code changed is refused while runs have
     finished (DVC would run them again); --keep-code finishes it with the code they were made
-    with, --update-code runs them again with the checkout's."""
+    with and the params of that code's commit (a key added here since is one that code does not
+    know), --update-code runs them again with the checkout's."""
     repo = scratch_copy(tmp_path / "repo", tiny)
     (repo / "experiments").mkdir(exist_ok=True)
     (repo / "experiments" / "one-seed.yaml").write_text(
@@ -193,6 +194,9 @@ def test_a_changed_code_keeps_finished_runs_unless_told(tmp_path: Path) -> None:
     code = repo / "ede" / "td3.py"
     original = code.read_bytes()
     code.write_bytes(original + b"\n# edited after the run\n")  # not committed: it counts
+    params = repo / "params.yaml"
+    base = yaml.safe_load(params.read_text())
+    params.write_text(yaml.safe_dump({**base, "td3": {**base["td3"], "lr": 0.005}}))
 
     refused = experiment(repo, "run", "one-seed", "--jobs", "1")
     assert refused.returncode == 2, refused.stderr
@@ -212,4 +216,5 @@ def test_a_changed_code_keeps_finished_runs_unless_told(tmp_path: Path) -> None:
     again = ok(experiment(repo, "run", "one-seed", "--update-code", "--jobs", "1"))
     assert "sweep: 1 of 1 stages out of date" in again, again[-3000:]
     assert (workspace / "ede" / "td3.py").read_bytes() == code.read_bytes()
+    assert json.loads((finished / "run.json").read_text())["params"]["td3"]["lr"] == 0.005
     assert json.loads((finished / "run.json").read_text())["code"]["modified"] is True
