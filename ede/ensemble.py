@@ -39,6 +39,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ede.nets import to_device
+
 __all__ = [
     "Adam",
     "Layers",
@@ -55,7 +57,7 @@ Params = dict[str, torch.Tensor]  # a network's parameters by name; stacked: mem
 ROW_ALIGN = 32  # floats: two AVX-512 vectors, the widest step of torch's CPU elementwise loops
 
 
-class Stack:
+class Stack(torch.nn.Module):
     """A network's parameters of M members as one tensor ``flat`` ``(M, L·W)``: row m holds member
     m's L networks (L = 2 for the twin critics), each as its parameters one after another,
     flattened, then zeros to W, a multiple of ``ROW_ALIGN``. ``params`` names views of it,
@@ -66,19 +68,33 @@ class Stack:
     AMD EPYC, the critic's Adam step takes 0.6 ms instead of 1.6-1.9 ms, about 1.5 ms of an
     update's 11 ms with the actor's. A member's L networks are rows of their own so that the
     members' networks stack as ``(M·L, out, in)`` views, which a batched product takes uncopied.
+
+    ``flat`` is a module's buffer, as every tensor the update writes in place (:class:`Adam`'s
+    moments, the agent's loss sums): ``torch.compile`` treats a module's buffers as static inputs,
+    the only inputs a CUDA graph (``td3.compile: reduce-overhead``) may write.
     """
 
     def __init__(self, members: Sequence[Params], device: torch.device, networks: int = 1) -> None:
+        super().__init__()
         self.networks = networks
         lead = 1 if networks > 1 else 0  # a member's parameters: (L, *shape) where L > 1
         self.shapes = {name: tuple(value.shape[lead:]) for name, value in members[0].items()}
         used = sum(math.prod(shape) for shape in self.shapes.values())
         self.width = -(-used // ROW_ALIGN) * ROW_ALIGN
-        self.flat = torch.zeros(len(members), networks * self.width, device=device)
-        self.params = self.views(self.flat)
+        self.register_buffer(
+            "flat", torch.zeros(len(members), networks * self.width, device=device)
+        )
+        self._params = self.views(self.flat)
         self._members = [self.views(row) for row in self.flat]  # acting reads them every step
         for m, params in enumerate(members):
             self.load(m, params)
+
+    @property
+    def params(self) -> Params:
+        """The members' named parameters, ``(M, *shape)`` or ``(M, L, *shape)`` views of
+        :attr:`flat`. Made anew where ``torch.compile`` traces: the compiled update's inputs are
+        then the buffers alone, none a view of another (aliased inputs lose their static mark)."""
+        return self.views(self.flat) if torch.compiler.is_compiling() else self._params
 
     def views(self, flat: torch.Tensor) -> Params:
         """The named parameters of which ``flat`` (``(M, L·W)``, or one row ``(L·W,)``) holds the
@@ -111,12 +127,8 @@ class Stack:
             value.copy_(params[name])
 
     def clone(self) -> Stack:
-        other = object.__new__(Stack)
-        other.networks, other.width, other.shapes = self.networks, self.width, self.shapes
-        other.flat = self.flat.clone()
-        other.params = other.views(other.flat)
-        other._members = [other.views(row) for row in other.flat]
-        return other
+        members = [self.member(m) for m in range(self.flat.shape[0])]
+        return Stack(members, self.flat.device, self.networks)
 
     @torch.no_grad()
     def polyak(self, online: Stack, tau: float, due: torch.Tensor | None = None) -> None:
@@ -228,24 +240,27 @@ def grad(
     return stack.flatten(dict(zip(params, grads, strict=True))), losses.detach()
 
 
-class Adam:
+class Adam(torch.nn.Module):
     """Adam (Kingma and Ba, 2015) on a :class:`Stack`, with a step count per member, masked: a
     member not due a step keeps its weights and moments bit for bit.
 
     Each member's step is torch's ``Adam`` (its single-tensor form) on that member alone, as
     plain tensor arithmetic: the bias corrections come from the member's step count, on the host,
-    as torch computes them; the caller counts the steps.
+    as torch computes them; the caller counts the steps. Its moments are buffers, as the stack's
+    parameters are (:class:`Stack` says why).
     """
 
     def __init__(
         self, stack: Stack, lr: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8
     ) -> None:
+        super().__init__()
         self.stack, self.lr, self.betas, self.eps = stack, lr, betas, eps
-        self.exp_avg = torch.zeros_like(stack.flat)
-        self.exp_avg_sq = torch.zeros_like(stack.flat)
+        self.register_buffer("exp_avg", torch.zeros_like(stack.flat))
+        self.register_buffer("exp_avg_sq", torch.zeros_like(stack.flat))
         # Room for Adam's denominator and step, written in place each step: a fresh tensor of
         # this size costs more to allocate on CPU than the arithmetic done in it.
-        self._denom, self._step = torch.zeros_like(stack.flat), torch.zeros_like(stack.flat)
+        self.register_buffer("_denom", torch.zeros_like(stack.flat))
+        self.register_buffer("_step", torch.zeros_like(stack.flat))
 
     def corrections(self, steps: Sequence[int] | np.ndarray, device: torch.device) -> torch.Tensor:
         """``(2, M, 1)``: each member's step size lr / (1 − β₁ᵗ) and √(1 − β₂ᵗ), for its t-th
@@ -254,7 +269,7 @@ class Adam:
         rows = [
             (self.lr / (1 - beta1 ** max(t, 1)), math.sqrt(1 - beta2 ** max(t, 1))) for t in steps
         ]
-        return torch.tensor(rows, dtype=torch.float32, device=device).T[..., None]
+        return to_device(np.array(rows, dtype=np.float32).T[..., None], device)
 
     @torch.no_grad()
     def step(

@@ -8,6 +8,7 @@ from contextlib import contextmanager, nullcontext
 from functools import cache
 from itertools import pairwise
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -19,6 +20,7 @@ __all__ = [
     "mlp",
     "pick_device",
     "product_error",
+    "to_device",
 ]
 
 
@@ -72,6 +74,16 @@ def pick_device(name: str) -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
         raise ValueError("device 'cuda' was asked for, but torch sees no CUDA device")
     return torch.device(name)
+
+
+def to_device(values: np.ndarray | list, device: torch.device) -> torch.Tensor:
+    """Host values as a tensor on ``device``, without waiting: on a GPU a copy from ordinary host
+    memory first waits for every kernel queued before it, one from pinned memory does not, so
+    the updates of an episode queue one after another with no round trip to the host."""
+    tensor = torch.from_numpy(np.ascontiguousarray(values))
+    if device.type == "cuda":
+        return tensor.pin_memory().to(device, non_blocking=True)
+    return tensor.to(device)
 
 
 @contextmanager

@@ -38,7 +38,7 @@ from ede import ensemble
 from ede.config import TD3Config
 from ede.embedding import ActionEmbedding
 from ede.ensemble import Params
-from ede.nets import initial_mlp, matmul_precision
+from ede.nets import initial_mlp, matmul_precision, to_device
 
 if TYPE_CHECKING:
     from ede.vector import MemberEnvs
@@ -641,8 +641,9 @@ class Agent:
         self.updates = np.zeros(self.members, dtype=np.int64)
         # Sums per member since the last take_diagnostics(), kept on the device so that no
         # update waits for the host: critic loss, critic steps, actor loss (−mean Q(s, μ(s), 0)),
-        # actor steps.
-        self.loss_sums = torch.zeros(4, self.members, device=device)
+        # actor steps. A module's buffer, as the networks are (ensemble.Stack says why).
+        self._sums = torch.nn.Module()
+        self._sums.register_buffer("losses", torch.zeros(4, self.members, device=device))
         self._update = (
             self._update_eager
             if config.compile == "none"
@@ -652,6 +653,11 @@ class Agent:
                 mode=None if config.compile == "default" else config.compile,
             )
         )
+
+    @property
+    def loss_sums(self) -> torch.Tensor:
+        """``(4, M)``: each member's sums since its last :meth:`take_diagnostics`."""
+        return self._sums.losses
 
     # Acting, every member at once ----------------------------------------------------------
 
@@ -733,7 +739,7 @@ class Agent:
                 self.actor_adam.corrections(self.updates // delay, self.device),
             ]
         )
-        masks = torch.as_tensor(np.stack([due, actor_due]), device=self.device)
+        masks = to_device(np.stack([due, actor_due]), self.device)
         with matmul_precision(self.config.precision):
             self._update(
                 batch,

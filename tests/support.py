@@ -176,3 +176,41 @@ def add_step(
         spread(terminated, bool),
         spread(truncated, bool),
     )
+
+
+SEEDS, UPDATES = [3, 4], 12  # updated_agent's members, and its updates
+
+
+def updated_agent(mode: str, device: str = "cpu") -> tuple[Any, Any]:
+    """An ``ede.td3.Agent`` of two members (seeds ``SEEDS``) at small sizes after ``UPDATES``
+    updates from its replay buffer of random steps, member 1 sitting every third out, its update
+    compiled as ``td3.compile: mode`` says, and the buffer: the compiled update's tests compare
+    these."""
+    import numpy as np
+    import torch
+
+    from ede.config import TD3Config
+    from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
+
+    obs, act = 5, 2
+    config = TD3Config.model_validate({"hidden": [32, 32], "batch_size": 16, "compile": mode})
+    where = torch.device(device)
+    agent = Agent(obs, IdentityAdapter(-np.ones(act), np.ones(act), where), config, where, SEEDS)
+    buffer = ReplayBuffer(200, obs, act, 1, where, members=len(SEEDS))
+    rng = np.random.default_rng(0)
+    for member in range(len(SEEDS)):
+        for t in range(100):
+            add_step(
+                buffer,
+                member,
+                rng.normal(size=obs),
+                torch.as_tensor(rng.uniform(-1, 1, act)),
+                0,
+                float(rng.normal()),
+                rng.normal(size=obs),
+                t % 40 == 39,
+                False,
+            )
+    for u in range(UPDATES):
+        agent.update(buffer, np.array([True, u % 3 != 1]))  # member 1 sits some out
+    return agent, buffer

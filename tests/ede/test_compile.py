@@ -14,17 +14,13 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
 import pytest
 import torch
 
-from ede.config import TD3Config
-from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
-from tests.support import add_step
+from tests.support import SEEDS, UPDATES, updated_agent
 
 pytestmark = pytest.mark.slow
 
-OBS, ACT, SEEDS, UPDATES = 5, 2, [3, 4], 12
 MEASURED: dict[str, Any] = {
     "rtol": 1e-6,
     "atol": 1e-7,
@@ -37,34 +33,10 @@ def labelled(where: str) -> Callable[[str], str]:
     return lambda message: f"{where}: {message}"
 
 
-def trained(mode: str) -> Agent:
-    config = TD3Config.model_validate({"hidden": [32, 32], "batch_size": 16, "compile": mode})
-    cpu = torch.device("cpu")
-    agent = Agent(OBS, IdentityAdapter(-np.ones(ACT), np.ones(ACT), cpu), config, cpu, SEEDS)
-    buffer = ReplayBuffer(200, OBS, ACT, 1, cpu, members=len(SEEDS))
-    rng = np.random.default_rng(0)
-    for member in range(len(SEEDS)):
-        for t in range(100):
-            add_step(
-                buffer,
-                member,
-                rng.normal(size=OBS),
-                torch.as_tensor(rng.uniform(-1, 1, ACT)),
-                0,
-                float(rng.normal()),
-                rng.normal(size=OBS),
-                t % 40 == 39,
-                False,
-            )
-    for u in range(UPDATES):
-        agent.update(buffer, np.array([True, u % 3 != 1]))  # member 1 sits some out
-    return agent
-
-
 def test_the_compiled_update_is_one_graph_and_computes_what_eager_computes() -> None:
     torch.set_num_threads(1)
     torch._dynamo.reset()
-    eager, compiled = trained("none"), trained("default")
+    (eager, _), (compiled, _) = updated_agent("none"), updated_agent("default")
     for member in range(len(SEEDS)):
         mine, theirs = eager.state_dict(member), compiled.state_dict(member)
         for key, value in mine.items():
@@ -78,3 +50,41 @@ def test_the_compiled_update_is_one_graph_and_computes_what_eager_computes() -> 
                     msg=labelled(f"member {member} {key}"),
                 )
         assert int(theirs["updates"]) == UPDATES - (UPDATES // 3) * member
+
+
+def test_the_compiled_update_writes_only_static_inputs_so_a_cuda_graph_can_capture_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``td3.compile: reduce-overhead`` captures the update as a CUDA graph only where every input
+    it writes in place is static (``torch.compile`` marks a module's buffers so: the networks,
+    Adam's moments, the loss sums); a mutated input that is not static makes Inductor skip the
+    capture ("mutated inputs"). Checked here on the CPU, where the same graphs are compiled, from
+    what Inductor records of each graph: the inputs it mutates and those it takes as static. The
+    capture itself is tested on CUDA (``tests/ede/test_group_cuda.py``)."""
+    import inspect
+
+    import torch._functorch.config
+    import torch._inductor.config
+    from torch._inductor.output_code import CompiledFxGraph
+
+    graphs: list[tuple[list[int], list[int]]] = []
+    made = CompiledFxGraph.__init__
+    signature = inspect.signature(made)
+
+    def recording(self: CompiledFxGraph, *args: Any, **kwargs: Any) -> None:
+        made(self, *args, **kwargs)
+        static = signature.bind(self, *args, **kwargs).arguments["static_input_idxs"]
+        graphs.append((sorted(self.mutated_input_idxs), sorted(static)))
+
+    monkeypatch.setattr(CompiledFxGraph, "__init__", recording)
+    torch.set_num_threads(1)
+    torch._dynamo.reset()
+    with (
+        torch._inductor.config.patch(fx_graph_cache=False),  # each graph compiled, not loaded
+        torch._functorch.config.patch(enable_autograd_cache=False),
+    ):
+        updated_agent("reduce-overhead")
+    assert len(graphs) >= 2  # the update with an actor step and without
+    for mutated, static in graphs:
+        assert mutated, "the update writes its state in place"
+        assert set(mutated) <= set(static), f"mutated inputs {mutated}, static {static}"
