@@ -74,6 +74,8 @@ class Stack(torch.nn.Module):
     the only inputs a CUDA graph (``td3.compile: reduce-overhead``) may write.
     """
 
+    flat: torch.Tensor
+
     def __init__(self, members: Sequence[Params], device: torch.device, networks: int = 1) -> None:
         super().__init__()
         self.networks = networks
@@ -249,6 +251,11 @@ class Adam(torch.nn.Module):
     as torch computes them; the caller counts the steps. Its moments are buffers, as the stack's
     parameters are (:class:`Stack` says why).
     """
+
+    exp_avg: torch.Tensor
+    exp_avg_sq: torch.Tensor
+    _denom: torch.Tensor
+    _step: torch.Tensor
 
     def __init__(
         self, stack: Stack, lr: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8

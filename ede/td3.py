@@ -657,7 +657,7 @@ class Agent:
     @property
     def loss_sums(self) -> torch.Tensor:
         """``(4, M)``: each member's sums since its last :meth:`take_diagnostics`."""
-        return self._sums.losses
+        return self._sums.get_buffer("losses")
 
     # Acting, every member at once ----------------------------------------------------------
 

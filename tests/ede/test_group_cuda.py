@@ -13,6 +13,7 @@ compiled-against-eager tolerance (``tests/ede/test_compile.py``), not yet measur
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -40,7 +41,7 @@ CONFIG = TD3Config(
     device="cuda",
 )
 BOUND = 1e-3  # largest |difference| of a policy weight after 300 steps (provisional)
-CAPTURED_BOUND = {"rtol": 1e-5, "atol": 1e-6}  # captured against eager, 12 updates (provisional)
+CAPTURED_BOUND: dict[str, Any] = {"rtol": 1e-5, "atol": 1e-6}  # captured against eager, 12 updates (provisional)
 
 
 def spec(seed: int) -> RunSpec:
