@@ -350,7 +350,10 @@ class RunsConfig(_Section):
     )
     algos: list[Algo] = Field(default_factory=lambda: list(ALGOS), min_length=1)
     seeds: list[Seed] = Field(min_length=1)
-    budgets: dict[str, PositiveInt] = Field(description="environment steps per task")
+    budgets: dict[TaskId, PositiveInt] = Field(
+        description="environment steps per task: every task of runs.tasks, and any other "
+        "registered task (the budgets of the paper's tasks stay when an experiment trains fewer)"
+    )
 
     @field_validator("tasks", mode="before")
     @classmethod
@@ -774,7 +777,8 @@ def validate_params(raw: Any, path: Path) -> Params:
 
 
 def _describe(error: Any) -> str:
-    where = ".".join(str(part) for part in error["loc"]) or "(top level)"
+    loc = error["loc"][:-1] if error["loc"][-1:] == ("[key]",) else error["loc"]  # a bad key
+    where = ".".join(str(part) for part in loc) or "(top level)"
     message = error["msg"].removeprefix("Value error, ")
     if error["type"] == "extra_forbidden":
         return f"{where}: unknown key"

@@ -13,6 +13,9 @@ gymnasium-robotics)::
 or, with no import at all, ``gym.make("ede_envs:ede/ReacherTurn-v0")``: gymnasium imports the
 module named before the colon first. Registration imports gymnasium's registry, not MuJoCo: a
 task's module loads when the task is made.
+
+Every task refuses a NaN or infinite action with a ``ValueError`` before its simulator sees it
+(``ede_envs._actions``), so a later valid step is unaffected.
 """
 
 from __future__ import annotations

@@ -12,6 +12,7 @@ from gymnasium.envs.mujoco import MujocoEnv
 from gymnasium.spaces import Box
 from numpy.typing import NDArray
 
+from ede_envs._actions import check_action
 from ede_envs._numerics import norm
 
 XML_FILE: Final[Path] = Path(__file__).parent / "assets" / "point.xml"
@@ -48,7 +49,8 @@ class PointEnv(MujocoEnv, utils.EzPickle):
     goal is a site (`goal`), not a joint, so it is not part of `qpos`.
 
     ## Action Space
-    The action space is a `Box(-1, 1, (2,), float32)`. Actions outside it are clipped.
+    The action space is a `Box(-1, 1, (2,), float32)`. Actions outside it are clipped; a NaN or
+    infinite one is refused (`ValueError`), as by every `ede/` task.
 
     | Num | Action                        | Min | Max | Name (in XML) | Type (Unit)        |
     |-----|-------------------------------|-----|-----|---------------|--------------------|
@@ -137,6 +139,7 @@ class PointEnv(MujocoEnv, utils.EzPickle):
     def step(  # type: ignore[override]
         self, action: NDArray[np.float32]
     ) -> tuple[NDArray[np.float64], float, bool, bool, dict[str, Any]]:
+        check_action(self, action)
         action_clipped = np.clip(np.asarray(action, dtype=np.float64), -ACTION_LIMIT, ACTION_LIMIT)
         if action_clipped.shape != (2,):
             raise ValueError(f"Action shape mismatch: expected (2,), found {action_clipped.shape}")

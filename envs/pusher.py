@@ -8,6 +8,7 @@ import numpy as np
 from gymnasium.envs.mujoco.pusher_v5 import PusherEnv as GymnasiumPusherEnv
 from numpy.typing import NDArray
 
+from ede_envs._actions import check_action
 from ede_envs._numerics import norm
 
 __all__ = ["PusherEnv"]
@@ -20,7 +21,7 @@ class PusherEnv(GymnasiumPusherEnv):
     space, observation, reward terms and weights, reset and episode length (100 steps). See
     `gymnasium.envs.mujoco.pusher_v5.PusherEnv` for the full specification.
 
-    The one difference is arithmetic. `Pusher-v5` computes its distances with `np.linalg.norm`,
+    The one difference in what a rollout holds is arithmetic. `Pusher-v5` computes its distances with `np.linalg.norm`,
     which hands the 3-vectors to BLAS, whose kernel (chosen by the CPU at run time) decides how
     the squares are added and fused: the last bit of the reward then depends on the machine.
     Here the same norms are summed in a fixed order (`ede_envs._numerics`), so a rollout is
@@ -34,8 +35,16 @@ class PusherEnv(GymnasiumPusherEnv):
 
     ## Version History
 
-    * v0: `Pusher-v5` with its reward's norms summed in a fixed order.
+    * v0: `Pusher-v5` with its reward's norms summed in a fixed order, refusing a non-finite
+      action (`ede_envs._actions`).
     """
+
+    # Pusher-v5's step, after the check every ede/ task makes; the types are gymnasium's Env API.
+    def step(  # type: ignore[override]
+        self, action: NDArray[np.float32]
+    ) -> tuple[NDArray[np.float64], float, bool, bool, dict[str, Any]]:
+        check_action(self, action)
+        return super().step(action)
 
     def _get_rew(self, action: NDArray[np.float32]) -> tuple[float, dict[str, Any]]:
         object_com = self.get_body_com("object")

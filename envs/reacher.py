@@ -18,6 +18,7 @@ from gymnasium.envs.mujoco import MujocoEnv
 from gymnasium.spaces import Box
 from numpy.typing import NDArray
 
+from ede_envs._actions import check_action
 from ede_envs._numerics import cos_sin, sum_of_squares
 
 __all__ = ["ASSETS_DIR", "DEFAULT_CAMERA_CONFIG", "FRAME_SKIP", "ReacherFamilyEnv", "control_cost"]
@@ -132,6 +133,7 @@ class ReacherFamilyEnv(MujocoEnv, utils.EzPickle):
     def step(  # type: ignore[override]
         self, action: NDArray[np.float32]
     ) -> tuple[NDArray[np.float64], float, bool, bool, dict[str, Any]]:
+        check_action(self, action)
         self.do_simulation(action, self.frame_skip)
         # mj_step leaves body and site positions one substep behind qpos; bring them level so
         # that the observation and the reward describe a single state.

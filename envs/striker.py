@@ -11,6 +11,7 @@ from gymnasium.envs.mujoco import MujocoEnv
 from gymnasium.spaces import Box
 from numpy.typing import NDArray
 
+from ede_envs._actions import check_action
 from ede_envs._numerics import norm, sum_of_squares
 
 XML_FILE: Final[Path] = Path(__file__).parent / "assets" / "striker.xml"
@@ -201,6 +202,7 @@ class StrikerEnv(MujocoEnv, utils.EzPickle):
     def step(  # type: ignore[override]
         self, action: NDArray[np.float32]
     ) -> tuple[NDArray[np.float64], float, bool, bool, dict[str, Any]]:
+        check_action(self, action)
         self.do_simulation(action, self.frame_skip)
 
         observation = self._get_obs()

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from contextlib import ExitStack
+from itertools import pairwise
 from pathlib import Path
 
 import click
+import numpy as np
 import torch
 
 from ede.artifacts import ArtifactError, load_action_embedding, params_mismatches
@@ -14,6 +17,8 @@ from ede.checkpoint import CheckpointError, CheckpointWriteError
 from ede.config import ALGOS, SEED_RANGE, Params, is_seed
 from ede.nets import pick_device
 from ede.runs import RUN_KIND, RunSpec
+from ede.tasks import action_bounds, make
+from ede.td3 import Critic
 from ede.training import Diverged, train_group
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, Failed, check_outputs, holding, params_option
@@ -89,6 +94,7 @@ def train(
         device = pick_device(config.device)
     except ValueError as error:
         raise BadInput(str(error)) from None
+    check_group_memory(params, task, algo, seeds, len(seed_list), device)
     embedding, embedding_id = None, ""
     if algo == "ede-td3":
         folder = layout.embedding(family)
@@ -172,6 +178,94 @@ def parse_seeds(text: str) -> list[int]:
             f"--seed {text}: {len(seeds)} seeds; expected at most {MAX_GROUP} in one process"
         )
     return seeds
+
+
+# float32 copies a group keeps of each network: weights, target, gradient, Adam's two moments
+# and the two tensors its step works in (ede.ensemble.Adam).
+NETWORK_COPIES = 7
+
+
+# The share of the free memory a group may fill by group_memory's count: the rest is for what it
+# leaves out. (A group estimated at 21.1 GiB, 201 TD3 runs of ede/ReacherVertical-v0 with 10^6
+# steps of replay each, was killed for memory where 21.2 GiB were available.)
+USABLE_SHARE = 0.8
+
+
+def group_memory(
+    members: int, capacity: int, obs_size: int, code_size: int, networks: Sequence[Sequence[int]]
+) -> int:
+    """The bytes a group of ``members`` runs holds while it trains, at least.
+
+    Counts the replay buffer, ``capacity`` steps of each member as :class:`ede.td3.ReplayBuffer`
+    stores them (two float32 observations of ``obs_size``, a float32 code of ``code_size``, an
+    int64 plan step, a float32 reward, two bool flags), and each member's ``networks``, given by
+    their layer widths (a twin critic given twice), :data:`NETWORK_COPIES` times in float32.
+    Not counted: the environments, an update's activations, the embedding (one for the group,
+    a few MB) and torch itself.
+    """
+    step = 4 * (2 * obs_size + code_size + 1) + 8 + 2
+    weights = sum((n_in + 1) * n_out for widths in networks for n_in, n_out in pairwise(widths))
+    return members * (capacity * step + NETWORK_COPIES * 4 * weights)
+
+
+def check_group_memory(
+    params: Params, task: str, algo: str, seeds: str, members: int, device: torch.device
+) -> None:
+    """Refuse a group whose :func:`group_memory` is more than :data:`USABLE_SHARE` of the memory
+    free where its tensors go (the GPU's, or the host's available memory), before any work.
+
+    Raises:
+        BadInput: naming the seeds, the estimate, what is free and how many seeds would fit.
+    """
+    env = make(task)  # its spaces size a step and the networks
+    obs_size = int(np.prod(env.observation_space.shape or ()))
+    action_size = action_bounds(env)[0].size
+    env.close()
+    td3 = params.td3
+    if algo == "td3":
+        code_size, k, plan_step = action_size, 1, "onehot"
+    else:
+        code_size = params.embedding.dim or action_size
+        k, plan_step = params.embedding.k, params.ede_td3.plan_step_input
+    actor = [obs_size, *td3.hidden, code_size]
+    critic = Critic(obs_size, code_size, k, td3.hidden, plan_step, td3.critic_action_repeat).sizes
+    capacity = min(td3.buffer_size, params.runs.budgets[task])  # as ede.training sizes it
+    one = group_memory(1, capacity, obs_size, code_size, [actor, critic, critic])
+    need = group_memory(members, capacity, obs_size, code_size, [actor, critic, critic])
+    free, where = free_memory(device)
+    usable = int(USABLE_SHARE * free)
+    if need <= usable:
+        return
+    fits = usable // one
+    advice = (
+        f"train at most {fits} seed{'s' if fits > 1 else ''} per process"
+        if fits
+        else "not one run fits: lower td3.buffer_size or the task's budget"
+    )
+    raise BadInput(
+        f"--seed {seeds}: {algo} on {task} for {members} seed{'s' if members > 1 else ''} in "
+        f"one process needs about {_in_units(need)} (replay buffers and networks), more than "
+        f"{USABLE_SHARE:.0%} of the {_in_units(free)} {where}; {advice}"
+    )
+
+
+def free_memory(device: torch.device) -> tuple[int, str]:
+    """The bytes free where a group's tensors go, and where that is, in words: the GPU's free
+    memory, or the host's available memory (what it can use without swapping)."""
+    if device.type == "cuda":
+        return torch.cuda.mem_get_info(device)[0], f"free on {device}"
+    for line in Path("/proc/meminfo").read_text().splitlines():  # Linux's own estimate
+        if line.startswith("MemAvailable:"):
+            return int(line.split()[1]) * 1024, "of memory available"
+    raise OSError("/proc/meminfo holds no MemAvailable line")
+
+
+def _in_units(size: int) -> str:
+    """``size`` bytes in the largest binary unit it fills, to a tenth."""
+    for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if size >= scale:
+            return f"{size / scale:.1f} {unit}"
+    return f"{size} bytes"
 
 
 def run_dirs(task: str, algo: str, seeds: list[int], out: Path | None) -> list[Path]:

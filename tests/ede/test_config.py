@@ -74,7 +74,7 @@ def test_defaults_in_the_model_match_the_committed_file() -> None:
         (lambda p: p["td3"].update(eval_every=0), "td3.eval_every: got 0"),
         (
             lambda p: p["runs"]["tasks"].update({"ede/Nope-v0": "reacher"}),
-            "runs.tasks.ede/Nope-v0.[key]: got 'ede/Nope-v0'",
+            "runs.tasks.ede/Nope-v0: got 'ede/Nope-v0'",
         ),
         (
             lambda p: p["runs"]["tasks"].update({"ede/Pusher-v0": "reacher"}),
@@ -284,6 +284,21 @@ def test_sources_without_a_time_limit_bound_sub_environments_by_steps(
         "collect.num_envs: got 5; expected at most collect.steps (3): each sub-environment "
         "records an equal share of the steps, so some would record none",
     ]
+
+
+@pytest.mark.parametrize("key", ["ede/Nope-v0", "ReacherVertical-v0"])
+def test_a_budget_of_no_registered_task_is_refused_by_name(write_params, key: str) -> None:
+    """A budgets key is a task id as runs.tasks' are (a typo is caught); the budgets of registered
+    tasks that no run trains stay, so an experiment training fewer tasks keeps params.yaml's."""
+    path = write_params(lambda p: p["runs"]["budgets"].update({key: 1000}))
+    with pytest.raises(ParamsError) as caught:
+        load_params(path)
+    assert caught.value.problems == [
+        f"runs.budgets.{key}: got '{key}'; expected a registered gymnasium task id "
+        "(see `ede-pipeline envs`)"
+    ]
+    narrowed = write_params(lambda p: p["runs"]["tasks"].pop("ede/Pusher-v0"))
+    assert "ede/Pusher-v0" in load_params(narrowed).runs.budgets
 
 
 def test_every_problem_is_reported_not_just_the_first(write_params) -> None:

@@ -70,6 +70,40 @@ def test_observation_moves_and_is_finite(task: str) -> None:
     assert np.ptp(observations, axis=0).max() > 1e-3, "random actions change nothing"
 
 
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("task", OUR_TASKS)
+def test_a_non_finite_action_is_refused_and_later_steps_are_unaffected(
+    task: str, bad: float
+) -> None:
+    refused, untouched = make(task), make(task)
+    low, high = action_bounds(refused)
+    actions = np.random.default_rng(7).uniform(low, high, size=(6, *low.shape)).astype(np.float32)
+    poisoned = actions[0].copy()
+    poisoned[-1] = bad
+    for env in (refused, untouched):
+        env.reset(seed=5)
+        env.step(actions[0])
+    with pytest.raises(ValueError, match=rf"^{task}: expected a finite action, got \[.*{bad}\]$"):
+        refused.step(poisoned)
+    for action in actions[1:]:
+        obs, reward, *_ = refused.step(action)
+        expected_obs, expected_reward, *_ = untouched.step(action)
+        np.testing.assert_array_equal(obs, expected_obs)
+        assert reward == expected_reward
+    refused.close()
+    untouched.close()
+
+
+def test_a_task_made_by_its_class_names_its_class_when_it_refuses() -> None:
+    from ede_envs.point import PointEnv
+
+    env = PointEnv()
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"^PointEnv: expected a finite action, got \[0.0, nan\]$"):
+        env.step(np.array([0.0, np.nan], dtype=np.float32))
+    env.close()
+
+
 @pytest.mark.parametrize("task", OUR_TASKS)
 def test_weighted_reward_terms_in_info_sum_to_the_reward(task: str) -> None:
     _, rewards, infos = rollout(task, seed=1)

@@ -51,6 +51,7 @@ def test_a_record_names_the_tasks_module_its_imports_and_its_model_files() -> No
         "ede_envs/reacher_push.py",
         "ede_envs/reacher.py",
         "ede_envs/_numerics.py",
+        "ede_envs/_actions.py",
         "ede_envs/assets/reacher_push.xml",
         "ede_envs/assets/reacher_arm.xml",
     }

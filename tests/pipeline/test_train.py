@@ -390,3 +390,114 @@ def test_through_embedding_rebuilds_the_final_actor_and_runs_it_through_the_embe
     assert missing.returncode == 2 and missing.stderr.count("\n") == 1, missing.stderr
     assert "nowhere: expected families/point/embedding/" in missing.stderr
     assert "Traceback" not in missing.stderr
+
+
+def test_a_groups_memory_estimate_is_what_its_replay_buffer_and_networks_hold() -> None:
+    import torch
+
+    from ede.config import TD3Config
+    from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
+    from ede_pipeline.train import group_memory
+
+    obs, code, members, capacity, cpu = 7, 3, 5, 300, torch.device("cpu")
+    buffer = ReplayBuffer(capacity, obs, code, 4, cpu, members)
+    stored = sum(getattr(buffer, name).nbytes for name in ReplayBuffer.FIELDS)
+    assert group_memory(members, capacity, obs, code, []) == stored  # the buffer: exactly
+
+    config = TD3Config.model_validate({"hidden": [64, 64]})
+    adapter = IdentityAdapter(-np.ones(code), np.ones(code), cpu)
+    agent = Agent(obs, adapter, config, cpu, seeds=range(members))
+    stacks = [agent.actor, agent.actor_target, agent.critic, agent.critic_target]
+    parts = [*stacks, agent.actor_adam, agent.critic_adam]  # an Adam holds its stack too: once
+    held = stored + sum({t.data_ptr(): t.nbytes for p in parts for t in p.buffers()}.values())
+    critic = agent.td3.critic.sizes
+    estimate = group_memory(members, capacity, obs, code, [agent.td3.actor.sizes, critic, critic])
+    # At least what the group holds, and at most a fifth more: the estimate counts a gradient of
+    # each network too, which lives only during an update (7 copies against 6 held), and not the
+    # padding of a network's row to 32 floats (here under 1%).
+    assert held <= estimate <= 1.2 * held, (held, estimate)
+
+
+class _Trained(Exception):
+    """Raised in place of training: the command got past every check."""
+
+
+def _no_training(*args: object, **kwargs: object) -> list:
+    raise _Trained
+
+
+def test_a_group_too_big_for_the_memory_is_refused_in_one_line_before_any_work(
+    write_params, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def huge(params: dict) -> None:  # 4096 runs of 10M steps: over 2 TB of replay buffers
+        params["td3"]["buffer_size"] = 10_000_000
+        params["runs"].update(tasks={"ede/Point-v0": "point"}, budgets={"ede/Point-v0": 10**7})
+
+    path = write_params(huge)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("ede_pipeline.train.train_group", _no_training)
+    start = time.perf_counter()
+    result = run(
+        "train", "--params", str(path), "--task", "ede/Point-v0", "--algo", "td3",
+        "--seeds", "0-4095", "--out", "runs/seed{seed}",
+    )  # fmt: skip
+    assert time.perf_counter() - start < 30
+    bad(result, "--seed 0-4095: td3 on ede/Point-v0 for 4096 seeds in one process needs about ")
+    assert "(replay buffers and networks), more than 80% of the " in result.stderr
+    assert "GiB of memory available; train at most " in result.stderr
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]
+
+
+@pytest.mark.parametrize(
+    ("algo", "free", "message"),
+    [
+        ("td3", 10**15, None),
+        (
+            "td3",
+            700 * 2**10,
+            "more than 80% of the 700.0 KiB of memory; train at most 1 seed per process",
+        ),
+        (
+            "ede-td3",
+            10**5,
+            "more than 80% of the 97.7 KiB of memory; not one run fits: lower td3.buffer_size",
+        ),
+    ],
+)
+def test_a_group_is_refused_only_when_its_estimate_exceeds_the_free_memory(
+    write_params,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    algo: str,
+    free: int,
+    message: str | None,
+) -> None:
+    path = write_params(tiny)  # runs of 3,000 steps: about 0.5 MiB each
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("ede_pipeline.train.train_group", _no_training)
+    monkeypatch.setattr("ede_pipeline.train.free_memory", lambda device: (free, "of memory"))
+    result = run(
+        "train", "--params", str(path), "--task", "ede/Point-v0", "--algo", algo,
+        "--seeds", "0,1", "--out", "runs/seed{seed}",
+    )  # fmt: skip
+    if message is None:
+        assert isinstance(result.exception, _Trained), result.output
+    else:
+        bad(result, f"--seed 0,1: {algo} on ede/Point-v0 for 2 seeds in one process needs about ")
+        assert message in result.stderr
+        assert [p.name for p in tmp_path.iterdir()] == [path.name]
+
+
+def test_a_groups_memory_is_compared_with_the_memory_where_its_tensors_go(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import psutil
+    import torch
+
+    from ede_pipeline.train import free_memory
+
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device: (123, 456))
+    assert free_memory(torch.device("cuda:0")) == (123, "free on cuda:0")
+    free, where = free_memory(torch.device("cpu"))
+    assert where == "of memory available"
+    assert abs(free - psutil.virtual_memory().available) < 2**30  # read again: it moves a little
