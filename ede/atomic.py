@@ -21,7 +21,10 @@ __all__ = [
     "NotOurs",
     "NotWritten",
     "claim",
+    "file_problem",
+    "mark_file",
     "ownership_problem",
+    "place",
     "remove_stale_temporaries",
     "save_tensors",
     "sha256",
@@ -34,7 +37,20 @@ __all__ = [
 # entries it owns (fnmatch patterns). A stage replaces or writes into an existing folder only where
 # that folder is empty or is its own kind's, holding nothing but what the mark owns: a folder of a
 # user's files, another stage's output, or a folder with a user's file added is never deleted.
+# A file a stage writes outside such a folder (a metrics JSON) has its mark beside it,
+# ``.<name>.ede-output.json``: its kind and the SHA-256 of the bytes written, so that the file is
+# replaced only while it is what that stage wrote (:func:`file_problem`).
 MARK = ".ede-output.json"
+# The longest name a temporary or lock adds to an output's: ``.tmp-<pid>`` (PIDs reach 4194304),
+# ``.<name>.lock``, ``.<name>.ede-output.json``.
+NAME_ROOM = len(".ede-output.json") + 1
+
+
+def place(path: str | Path) -> Path:
+    """The place ``path`` names, every symbolic link in it followed: a stage writes there, so
+    that a link to a folder is written through, never replaced or deleted, and two names of
+    one place are one output (one lock)."""
+    return Path(os.path.realpath(path))
 
 
 class NotOurs(ValueError):
@@ -87,6 +103,37 @@ def ownership_problem(path: str | Path, kind: str) -> str | None:
     return None
 
 
+def _file_mark(path: Path) -> Path:
+    return path.with_name(f".{path.name}{MARK}")
+
+
+def file_problem(path: str | Path, kind: str) -> str | None:
+    """Why a writer of ``kind`` may not replace the file ``path``; None where it may: nothing
+    there, or the very file a writer of ``kind`` wrote (its mark names the kind, and the bytes
+    are those it wrote: a file edited since, or put there by hand, is kept)."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        mark = json.loads(_file_mark(place(path)).read_text())
+        ours = mark["kind"] == kind and mark["sha256"] == sha256(path)
+    except (OSError, ValueError, KeyError, TypeError):
+        ours = False
+    if ours:
+        return None
+    return (
+        f"{path}: a file {_a(kind)} writer did not write there, or one changed since; expected "
+        "a new path or that writer's own file: move it, or choose another place"
+    )
+
+
+def mark_file(path: str | Path, kind: str) -> None:
+    """Record that a writer of ``kind`` wrote the file ``path`` as it is now
+    (:func:`file_problem`)."""
+    path = place(path)
+    write_text(_file_mark(path), json.dumps({"kind": kind, "sha256": sha256(path)}) + "\n")
+
+
 def _read_mark(folder: Path) -> dict[str, Any] | None:
     try:
         mark = json.loads((folder / MARK).read_text())
@@ -123,7 +170,7 @@ def claim(path: str | Path, kind: str, owns: Iterable[str]) -> None:
     Raises:
         NotOurs: naming the folder and what is in it.
     """
-    path = Path(path)
+    path = place(path)
     if problem := ownership_problem(path, kind):
         raise NotOurs(problem)
     path.mkdir(parents=True, exist_ok=True)
@@ -144,8 +191,8 @@ def write_atomically(path: str | Path, write: Callable[[Path], object], kind: st
         NotOurs: ``path`` holds what this writer did not write; nothing is touched.
         NotWritten: the write failed with an OSError; the old ``path`` is left as it was.
     """
-    path = Path(path)
-    if problem := ownership_problem(path, kind):
+    given, path = Path(path), place(path)
+    if problem := ownership_problem(given, kind):
         raise NotOurs(problem)
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(path)
@@ -157,7 +204,7 @@ def write_atomically(path: str | Path, write: Callable[[Path], object], kind: st
     except BaseException as error:
         shutil.rmtree(tmp, ignore_errors=True)
         if isinstance(error, OSError) and not isinstance(error, NotWritten):
-            raise NotWritten(path, error) from None
+            raise NotWritten(given, error) from None
         raise
     if path.exists():
         shutil.rmtree(path)
@@ -214,8 +261,8 @@ def sha256(path: str | Path) -> str:
 
 
 def write_text(path: str | Path, text: str) -> None:
-    """Write a file atomically (temporary file, then rename)."""
-    path = Path(path)
+    """Write a file atomically (temporary file, then rename), through a symbolic link to it."""
+    given, path = Path(path), place(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(path)
     tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
@@ -223,13 +270,34 @@ def write_text(path: str | Path, text: str) -> None:
         tmp.write_text(text)
     except OSError as error:
         tmp.unlink(missing_ok=True)
-        raise NotWritten(path, error) from None
+        raise NotWritten(given, error) from None
     os.replace(tmp, path)
 
 
 def write_json(path: str | Path, data: Any) -> None:
     """Write JSON atomically."""
     write_text(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
+
+
+def _too_long(path: Path) -> str | None:
+    """Why ``path``'s name, with what a writer adds to it, does not fit the filesystem."""
+    real = place(path)
+    parent = real.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    try:
+        longest = os.pathconf(parent, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        longest = 255
+    for part in real.parts:
+        fits = longest - NAME_ROOM if part == real.name else longest
+        if len(os.fsencode(part)) > fits:
+            shown = part if len(part) <= 40 else f"{part[:20]}…{part[-12:]}"
+            return (
+                f"{path}: the name {shown!r} is {len(os.fsencode(part))} bytes; at most {fits} "
+                f"fit here, with the temporary and lock a stage writes beside it"
+            )
+    return None
 
 
 def unwritable(path: str | Path, directory: bool) -> str | None:
@@ -241,6 +309,8 @@ def unwritable(path: str | Path, directory: bool) -> str | None:
     take a new file with data (a read-only or full location cannot). Creates nothing it leaves.
     """
     path = Path(path)
+    if problem := _too_long(path):
+        return problem
     if directory and path.exists() and not path.is_dir():
         return f"{path}: a file is in the way; expected a directory there, or nothing"
     if not directory and path.is_dir():

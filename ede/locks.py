@@ -17,6 +17,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from ede.atomic import place
+
 __all__ = ["OutputBusy", "exclusive", "lock_path"]
 
 
@@ -33,7 +35,10 @@ class OutputBusy(Exception):
 
 
 def lock_path(output: Path) -> Path:
-    return output.with_name(f".{output.name}.lock")
+    """The lock of the place ``output`` names (every symbolic link followed: two names of one
+    place share it)."""
+    real = place(output)
+    return real.with_name(f".{real.name}.lock")
 
 
 def _holder(fd: int) -> int | None:

@@ -9,14 +9,17 @@ module is the one place that knows the folder's files:
 * ``run.json``: what made the run — its identity (:meth:`RunSpec.identity`: task, algorithm,
   seed, budget, the params that change its result, the embedding's checksum), the versions of
   the software, the code (commit, and whether the tree differed from it) and the machine (CPU
-  model, the instruction sets that change results, torch's threads);
+  model, the instruction sets that change results, torch's threads), and the SHA-256 of each of
+  its result files (:data:`CHECKSUMMED`; older runs record none) as it wrote them;
 * ``metrics.json``: final and best return, area under the curve, steps per second, episodes;
   written last, so a run with ``metrics.json`` is finished;
 * ``policy/``: the final actor (``policy.safetensors`` beside ``policy.json``);
 * ``checkpoint/`` while it trains (:mod:`ede.checkpoint`).
 
 :func:`read_run` reads a finished run back for the report and the results page, checked against
-the identity it must have (:func:`identity_difference`, which the checkpoint uses too).
+the identity it must have (:func:`identity_difference`, which the checkpoint uses too) and against
+the checksums its ``run.json`` records; :func:`unshared_params` finds the run of a task made with
+other params than its others.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ import csv
 import hashlib
 import io
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,12 +36,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from ede.atomic import save_tensors, write_atomically, write_json, write_text
+from ede.atomic import save_tensors, sha256, write_atomically, write_json, write_text
 from ede.config import Algo, EdeTD3Config, TD3Config, result_neutral
 from ede.errors import first_line
 from ede.provenance import code_version, machine, software_versions
 
 __all__ = [
+    "CHECKSUMMED",
     "DIAGNOSTIC_COLUMNS",
     "EVAL_COLUMNS",
     "PUBLISHED",
@@ -50,6 +54,7 @@ __all__ = [
     "RunSpec",
     "identity_difference",
     "read_run",
+    "unshared_params",
     "write_curves",
     "write_finished",
     "write_policy",
@@ -71,6 +76,14 @@ RUN_OWNS = (
 )
 # A finished run's files that are published (docs/results/runs/): its numbers and what made it.
 PUBLISHED = ("eval.csv", "diagnostics.csv", "run.json", "metrics.json")
+# A finished run's files whose SHA-256 its run.json records (the policy stays with the run).
+CHECKSUMMED = (
+    "eval.csv",
+    "diagnostics.csv",
+    "metrics.json",
+    "policy/policy.safetensors",
+    "policy/policy.json",
+)
 
 
 @dataclass(frozen=True)
@@ -103,10 +116,13 @@ class RunSpec:
         return hashlib.sha256(text.encode()).hexdigest()
 
 
-def identity_difference(found: Any, expected: Mapping[str, Any]) -> str | None:
+def identity_difference(
+    found: Any, expected: Mapping[str, Any], said: str = "the params say"
+) -> str | None:
     """How a recorded identity differs from ``expected`` (any of :meth:`RunSpec.identity`'s keys),
     the first key that does, in words: ``seed is 0, expected 1``, ``made with td3.lr = 0.01, but
-    the params say 0.001``; None where every key of ``expected`` agrees."""
+    the params say 0.001`` (``said`` names where ``expected``'s params come from); None where
+    every key of ``expected`` agrees."""
     if not isinstance(found, dict):
         return "its identity is not recorded"
     for key, value in expected.items():
@@ -122,10 +138,55 @@ def identity_difference(found: Any, expected: Mapping[str, Any]) -> str | None:
                     if ours.get(name) != theirs.get(name):
                         return (
                             f"made with {section}.{name} = {json.dumps(ours.get(name))}, but "
-                            f"the params say {json.dumps(theirs.get(name))}"
+                            f"{said} {json.dumps(theirs.get(name))}"
                         )
         return f"{key} is {json.dumps(recorded)}, expected {json.dumps(value)}"
     return None
+
+
+# Per section of run.json's params, the keys that leave a result alone.
+_NEUTRAL = {"td3": result_neutral(TD3Config), "ede_td3": result_neutral(EdeTD3Config)}
+
+
+def unshared_params(runs: Sequence[tuple[Path, Mapping[str, Any]]]) -> str | None:
+    """The first of a task's ``runs`` (each its folder and its ``run.json``) made with other
+    params than a run before it, in one line naming its folder, the key and both values
+    (:func:`identity_difference`); None where they agree. Every run shares td3's params (both
+    algorithms train with them), the EDE-TD3 runs ede_td3's too; keys that leave a result alone
+    (:func:`ede.config.result_neutral`, which an older ``run.json`` may record) are set aside."""
+    first: dict[str, tuple[Path, Mapping[str, Any]]] = {}  # the first run, and of each algorithm
+    for folder, made in runs:
+        for which in ("any", str(made.get("algo"))):
+            earlier, theirs = first.setdefault(which, (folder, made))
+            both = {made.get("algo"), theirs.get("algo")} == {"ede-td3"}
+            sections = ("td3", "ede_td3") if both else ("td3",)
+            difference = identity_difference(
+                _result_params(made, sections),
+                _result_params(theirs, sections),
+                said=f"{earlier} was made with",
+            )
+            if difference is not None:
+                return (
+                    f"{folder / 'run.json'}: {difference}; a task's runs share every param "
+                    "that changes a result"
+                )
+    return None
+
+
+def _result_params(made: Mapping[str, Any], sections: tuple[str, ...]) -> dict[str, Any]:
+    """The params ``sections`` of a ``run.json`` that change a result, as an identity's."""
+    params = made.get("params")
+    if not isinstance(params, dict):
+        return {"params": params}
+    kept = {}
+    for section in sections:
+        values = params.get(section)
+        kept[section] = (
+            {k: v for k, v in values.items() if k not in _NEUTRAL[section]}
+            if isinstance(values, dict)
+            else values
+        )
+    return {"params": kept}
 
 
 # Writing ----------------------------------------------------------------------------------------
@@ -161,7 +222,16 @@ def write_policy(path: Path, tensors: Mapping[str, torch.Tensor], meta: dict[str
 
 
 def write_finished(out: Path, spec: RunSpec, metrics: dict[str, Any], device: torch.device) -> None:
-    """``run.json``, then ``metrics.json``: from then on the run is finished."""
+    """``run.json``, with the SHA-256 of each result file there (:data:`CHECKSUMMED`;
+    ``metrics.json``'s as it is about to be written), then ``metrics.json``: from then on the run
+    is finished."""
+    text = json.dumps(metrics, indent=2, allow_nan=False) + "\n"
+    checksums = {
+        name: sha256(out / name)
+        for name in CHECKSUMMED
+        if name != "metrics.json" and (out / name).is_file()
+    }
+    checksums["metrics.json"] = hashlib.sha256(text.encode()).hexdigest()
     write_json(
         out / "run.json",
         {
@@ -169,9 +239,10 @@ def write_finished(out: Path, spec: RunSpec, metrics: dict[str, Any], device: to
             "software": software_versions(),
             "code": code_version(),
             "machine": machine(device),
+            "sha256": checksums,
         },
     )
-    write_json(out / "metrics.json", metrics)
+    write_text(out / "metrics.json", text)
 
 
 # Reading ----------------------------------------------------------------------------------------
@@ -197,7 +268,8 @@ class Run:
 
     curve: Curve
     diagnostics: dict[str, np.ndarray] | None  # None: the run has no diagnostics.csv
-    made: dict[str, Any]  # run.json: identity, software, code, machine (the last two since 2026-12)
+    # run.json: identity, software, code, machine, sha256 (the last three since 2026-12)
+    made: dict[str, Any]
 
     @property
     def software(self) -> dict[str, Any] | None:
@@ -209,9 +281,11 @@ def read_run(run_dir: Path, expected: dict[str, Any]) -> Run | None:
 
     A run is finished when its ``metrics.json`` exists: ``train`` writes it (atomically) last.
     ``expected`` holds what the run must be, any of :meth:`RunSpec.identity`'s keys (task, algo,
-    seed, budget, params, embedding): each must equal its value in ``run.json``.
-    ``eval.csv`` must hold its columns, finite numbers, and steps that start at 0, rise, and end
-    at the run's budget; ``diagnostics.csv``, where there is one, its columns and numbers.
+    seed, budget, params, embedding): each must equal its value in ``run.json``. Each file whose
+    SHA-256 ``run.json`` records must be the one the run wrote (a published copy holds no policy;
+    runs finished before it recorded any are read as they are). ``eval.csv`` must hold its
+    columns, finite numbers, and steps that start at 0, rise, and end at the run's budget;
+    ``diagnostics.csv``, where there is one, its columns and numbers.
 
     Raises:
         RunRejected: the first problem found, naming the file.
@@ -222,6 +296,7 @@ def read_run(run_dir: Path, expected: dict[str, Any]) -> Run | None:
     difference = identity_difference(made, expected)
     if difference is not None:
         raise RunRejected(f"{run_dir / 'run.json'}: {difference}")
+    _check_files(run_dir, made.get("sha256"))
     table = _numbers(run_dir / "eval.csv", ("step", "mean_return"), finite=True)
     steps, returns = table["step"], table["mean_return"]
     where = run_dir / "eval.csv"
@@ -254,6 +329,31 @@ def _run_json(path: Path) -> dict[str, Any]:
     if not isinstance(made, dict):
         raise RunRejected(f"{path}: expected a JSON object, found {type(made).__name__}")
     return made
+
+
+def _check_files(run_dir: Path, recorded: Any) -> None:
+    """Each file of ``recorded`` (``run.json``'s ``sha256``; None: recorded none) has its SHA-256,
+    those published (:data:`PUBLISHED`) are there, the policy where it is kept."""
+    if recorded is None:
+        return
+    if not isinstance(recorded, dict) or not all(
+        name in CHECKSUMMED and isinstance(digest, str) for name, digest in recorded.items()
+    ):
+        raise RunRejected(
+            f"{run_dir / 'run.json'}: 'sha256' is not a SHA-256 by file name "
+            f"({', '.join(CHECKSUMMED)})"
+        )
+    for name, digest in recorded.items():
+        path = run_dir / name
+        if not path.is_file():
+            if name in PUBLISHED:
+                raise RunRejected(f"{path}: missing, though run.json records its SHA-256")
+            continue
+        if (found := sha256(path)) != digest:
+            raise RunRejected(
+                f"{path}: not the file its run wrote (SHA-256 {found[:12]}…, run.json "
+                f"records {digest[:12]}…)"
+            )
 
 
 def _short(values: np.ndarray) -> str:

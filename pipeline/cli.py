@@ -16,7 +16,7 @@ import click
 
 from ede.config import Params, ParamsError, overridden
 from ede.errors import first_line
-from ede_pipeline.common import BadInput, check_mujoco_gl, params_option
+from ede_pipeline.common import BadInput, check_mujoco_gl, follow_parent, params_option
 
 # The stages' commands, each imported only when it runs: DVC starts a process per stage, and the
 # stages' own dependencies (torch, matplotlib, rliable, DVC) cost seconds each to import.
@@ -52,6 +52,7 @@ class _Pipeline(click.Group):
 @click.version_option(package_name="ede")
 def main() -> None:
     """The EDE pipeline: collect → pretrain → train → report (see README.md)."""
+    follow_parent()
     check_mujoco_gl()
 
 

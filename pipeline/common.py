@@ -13,7 +13,14 @@ from typing import Any
 
 import click
 
-from ede.atomic import NotOurs, NotWritten, ownership_problem, unwritable
+from ede.atomic import (
+    NotOurs,
+    NotWritten,
+    file_problem,
+    mark_file,
+    ownership_problem,
+    unwritable,
+)
 from ede.config import Params, ParamsError, load_params
 from ede.locks import OutputBusy, exclusive
 from ede_pipeline.progress import PROGRESS_ENV
@@ -74,41 +81,51 @@ def check_family(params: Params, family: str) -> None:
         )
 
 
-Folder = tuple[Path | None, str]  # an output folder and the kind of output it is
+Output = tuple[Path | None, str]  # a place a stage writes, and the kind of output it is
 
 
 def check_outputs(
-    output: Folder,
-    files: tuple[Path | None, ...] = (),
-    dirs: tuple[Folder, ...] = (),
+    output: Output,
+    files: tuple[Output, ...] = (),
+    dirs: tuple[Output, ...] = (),
     inputs: tuple[Path | None, ...] = (),
 ) -> None:
-    """Before any work: every place a stage will write can be written
-    (:func:`ede.atomic.unwritable`) — ``output`` (a folder, with its kind) with its lock and
-    temporaries, the other outputs ``files`` and ``dirs``, and the progress file ``EDE_PROGRESS``
-    names — and no output folder would delete what the stage did not write: each is new, empty
-    or its own kind's earlier output (:func:`ede.atomic.ownership_problem`), and none is the
-    working directory or a folder above it. No output is, holds or lies inside one of ``inputs``.
+    """Before any work, the one rule for every place a stage writes — ``output`` (a folder) with
+    its lock and temporaries, the other folders ``dirs`` and files ``files``, each with its
+    kind, and the progress file ``EDE_PROGRESS`` names — each taken where its symbolic links
+    lead: it can be written (:func:`ede.atomic.unwritable`: its name fits, nothing in the way, a
+    location that takes data); it is new or this kind's own earlier output (a folder holding
+    only what its mark owns, :func:`ede.atomic.ownership_problem`; a file as its mark records
+    it, :func:`ede.atomic.file_problem`), never a user's or another stage's; a folder is not the
+    working directory or a folder above it; and none is, holds or lies inside one of ``inputs``
+    or the params file.
 
     Raises:
         BadInput: one line naming the place and what is in the way.
     """
-    progress_file = os.environ.get(PROGRESS_ENV)
-    places = [output, *dirs, *((f, None) for f in files)]
-    for place, kind in places:
-        if place is None:
+    inputs = (*inputs, _params_file())
+    places = [(output, True), *((d, True) for d in dirs), *((f, False) for f in files)]
+    for (where, kind), folder in places:
+        if where is None:
             continue
-        folder = kind is not None
         problem = (
-            unwritable(place, folder)
-            or (folder and _above_working_directory(place))
-            or _overlap(place, inputs)
-            or (kind is not None and ownership_problem(place, kind))
+            unwritable(where, folder)
+            or (folder and _above_working_directory(where))
+            or _overlap(where, inputs)
+            or (ownership_problem(where, kind) if folder else file_problem(where, kind))
         )
         if problem:
             raise BadInput(problem)
+    progress_file = os.environ.get(PROGRESS_ENV)
     if progress_file and (problem := unwritable(Path(progress_file), directory=False)):
         raise BadInput(f"{PROGRESS_ENV}={problem}")
+
+
+def _params_file() -> Path:
+    """The params file the running command reads (``--params``, or params.yaml)."""
+    context = click.get_current_context(silent=True)
+    given = context.params.get("params_path") if context is not None else None
+    return Path(given or DEFAULT_PARAMS)
 
 
 def _above_working_directory(folder: Path) -> str | None:
@@ -124,6 +141,8 @@ def _above_working_directory(folder: Path) -> str | None:
 def _overlap(output: Path, inputs: tuple[Path | None, ...]) -> str | None:
     there = output.resolve()
     for given in filter(None, inputs):
+        if not given.exists():  # the params file of a command that reads none
+            continue
         source = given.resolve()
         if there == source or source.is_relative_to(there) or there.is_relative_to(source):
             how = (
@@ -139,16 +158,17 @@ def _overlap(output: Path, inputs: tuple[Path | None, ...]) -> str | None:
 
 @contextmanager
 def holding(
-    output: Folder,
-    files: tuple[Path | None, ...] = (),
-    dirs: tuple[Folder, ...] = (),
+    output: Output,
+    files: tuple[Output, ...] = (),
+    dirs: tuple[Output, ...] = (),
     inputs: tuple[Path | None, ...] = (),
 ) -> Iterator[None]:
     """The stage's exclusive lock on its output (:func:`ede.locks.exclusive`) for the block,
-    after :func:`check_outputs`. A place that cannot be written or that holds what the stage did
-    not write, and a second process on the same output, are refused as bad input: one line,
-    exit 2, nothing written. A write that fails in the block (a full disk) is one line, exit 1,
-    its temporaries removed (:class:`ede.atomic.NotWritten`)."""
+    after :func:`check_outputs`, and each file of ``files`` marked as its kind's once the block
+    has written it. A place that cannot be written or that holds what the stage did not write,
+    and a second process on the same output, are refused as bad input: one line, exit 2,
+    nothing written. A write that fails in the block (a full disk) is one line, exit 1, its
+    temporaries removed (:class:`ede.atomic.NotWritten`)."""
     check_outputs(output, files, dirs, inputs)
     folder = output[0]
     assert folder is not None
@@ -160,10 +180,38 @@ def holding(
     with lock:
         try:
             yield
+            for file, kind in files:
+                if file is not None and file.is_file():
+                    mark_file(file, kind)
         except NotOurs as error:  # what the checks above could not see (a nested folder)
             raise BadInput(str(error)) from None
         except NotWritten as error:
             raise Failed(error.strerror or str(error)) from None
+
+
+# A command that starts ede-pipeline commands of its own (the sweep its runs, an experiment its
+# sweep) names itself here, and each such child ends when it does (follow_parent).
+PARENT_ENV = "EDE_PARENT"
+
+
+def follow_parent() -> None:
+    """End with the process ``EDE_PARENT`` names, however it ends (SIGKILL included): Linux
+    sends this process SIGTERM when its parent dies (``PR_SET_PDEATHSIG``), so that killing an
+    experiment stops its sweep, and killing a sweep stops its runs (they resume from their
+    checkpoints), instead of leaving them running on, holding their outputs' locks. A parent
+    that died before this call is seen at once. Elsewhere than Linux, nothing. The variable
+    names this process's parent only: it is removed here, so that what this process starts
+    (DVC's stages, say) does not take it for its own."""
+    parent = os.environ.pop(PARENT_ENV, "")
+    if not parent.isdigit() or not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    import signal
+
+    pr_set_pdeathsig = 1  # <linux/prctl.h>
+    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
+    if os.getppid() != int(parent):
+        os.kill(os.getpid(), signal.SIGTERM)
 
 
 # The values of MUJOCO_GL that MuJoCo accepts on Linux, and "disable", which needs no OpenGL.

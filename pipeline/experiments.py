@@ -41,6 +41,7 @@ import subprocess
 import sys
 import textwrap
 from collections.abc import Iterable
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
@@ -58,9 +59,10 @@ from ede.config import (
     validate_params,
 )
 from ede.errors import first_line
+from ede.locks import OutputBusy, exclusive
 from ede.runs import PUBLISHED
 from ede_pipeline import layout
-from ede_pipeline.common import DEFAULT_PARAMS, BadInput, Failed, read_params
+from ede_pipeline.common import DEFAULT_PARAMS, PARENT_ENV, BadInput, Failed, read_params
 
 __all__ = ["experiment", "experiment_blocks", "experiment_params", "prepare_workspace"]
 
@@ -191,6 +193,14 @@ def experiment_file(name: str) -> Path:
     if "/" in name or not path.is_file():
         known = ", ".join(sorted(p.stem for p in EXPERIMENTS.glob("*.yaml"))) or "none"
         raise BadInput(f"experiment {name!r}: no {path}; the experiments are: {known}")
+    # DVC saves an experiment as a git ref of its name: one git refuses would fail only at the
+    # end, after all its runs (`dvc exp save`).
+    ref = subprocess.run(["git", "check-ref-format", f"refs/exps/{name}"], capture_output=True)
+    if ref.returncode:
+        raise BadInput(
+            f"experiment {name!r}: not a name git takes for a ref (no spaces, '..', '~', '^', "
+            f"':', '?', '*', '[', '\\', and no '.' at either end): rename {path}"
+        )
     return path
 
 
@@ -237,6 +247,14 @@ def prepare_workspace(name: str, params: dict[str, Any], update_code: bool = Tru
     # finished run from its run cache, or run it again where the run cache lacks it.
     lock = workspace / "dvc.lock"
     records = lock.read_text() if lock.is_file() else None
+    if records is not None and not _records_readable(records):  # a kill while DVC wrote it
+        records = None
+        lock.unlink()
+        click.echo(
+            f"experiment {name}: its working copy's dvc.lock was damaged (empty, or not DVC's "
+            "YAML) and is removed; DVC restores the finished runs from its run cache",
+            err=True,
+        )
     if not (workspace / ".git").exists():
         _git("worktree", "prune")  # a working copy deleted by hand leaves its registration
         workspace.parent.mkdir(parents=True, exist_ok=True)
@@ -265,6 +283,15 @@ def prepare_workspace(name: str, params: dict[str, Any], update_code: bool = Tru
     write_text(workspace / ".dvc" / "config.local", _shared_config())
     (workspace / layout.DATA).mkdir(exist_ok=True)
     return workspace
+
+
+def _records_readable(text: str) -> bool:
+    """Whether ``text`` is a ``dvc.lock`` DVC reads: YAML, a mapping of its stages."""
+    try:
+        records = yaml.safe_load(text)
+    except yaml.YAMLError:
+        return False
+    return isinstance(records, dict) and isinstance(records.get("stages"), dict)
 
 
 def _copy_params(workspace: Path) -> dict[str, Any]:
@@ -375,6 +402,8 @@ def _tool(workspace: Path, *argv: str) -> int:
         "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}",
         "PYTHONPATH": python_path,
     }
+    if argv[0] == "ede-pipeline":  # it ends with this process, however this one ends
+        env[PARENT_ENV] = str(os.getpid())
     child = subprocess.Popen([str(bin_dir / argv[0]), *argv[1:]], cwd=workspace, env=env)
     before = signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     try:
@@ -463,10 +492,27 @@ def run_experiment(
     workspace = WORKSPACES / name
     if keep_code and (workspace / ".git").exists():  # the copy's code reads the copy's params
         params = experiment_params(name, _copy_params(workspace))
-    else:
+    else:  # an unknown name, one git refuses, and bad params end here, before the lock
         params = experiment_params(name)
+    with ExitStack() as held:
+        try:  # one writer per experiment: a second run of it is refused before it changes anything
+            held.enter_context(exclusive(workspace))
+        except OutputBusy as error:
+            raise BadInput(f"experiment {name}: {error}") from None
+        _run_held(name, workspace, params, push, keep_code, sweep_args)
+
+
+def _run_held(
+    name: str,
+    workspace: Path,
+    params: dict[str, Any],
+    push: bool,
+    keep_code: bool | None,
+    sweep_args: tuple[str, ...],
+) -> None:
+    """:func:`run_experiment`'s work, its working copy's lock held."""
     if keep_code is None:
-        _check_code_keeps_runs(name, WORKSPACES / name)
+        _check_code_keeps_runs(name, workspace)
     prepare_workspace(name, params, update_code=not keep_code)
     kept = " with the code it started with" if keep_code else ""
     click.echo(f"experiment {name}: in {workspace}{kept}", err=True)
@@ -509,7 +555,10 @@ def export(name: str, to: Path) -> None:
     experiment file, the commits its runs were made at (an earlier export's too), its seeds,
     and report.thresholds' returns for it. Where the task's folder already holds seeds from
     other experiments (an experiment adding seeds to a published task), source.json keeps their
-    parts beside this one; seeds already published by another experiment are refused.
+    parts beside this one; seeds already published by another experiment are refused, and so
+    are runs there that `ede-pipeline results` would refuse (a folder not named seed<N>, a file
+    not the one its run.json records) or that were made with other params than this export's.
+    Nothing is written unless every task's runs pass.
     """
     experiment_file(name)
     workspace = WORKSPACES / name
@@ -534,6 +583,7 @@ def export(name: str, to: Path) -> None:
         if not runs:  # none of this task's runs has finished yet
             click.echo(f"{task}: no run finished yet; nothing exported", err=True)
             continue
+        published = _published_beside(task, runs, to)
         commits = sorted(
             {made["code"]["commit"] for *_, made in runs} | _earlier_commits(task, params, runs, to)
         )
@@ -544,7 +594,7 @@ def export(name: str, to: Path) -> None:
         }
         if task in params.report.thresholds:
             part["thresholds"] = params.report.thresholds[task]
-        exported[task] = runs, _merged_source(layout.task_runs(task, to), part)
+        exported[task] = runs, _merged_source(layout.task_runs(task, to), part, published)
     for task, (runs, source) in exported.items():
         for algo, seed, folder, _ in runs:
             target = layout.run(task, algo, seed, to)
@@ -578,16 +628,38 @@ def _earlier_commits(task: str, params: Params, runs: list[tuple], to: Path) -> 
     return commits
 
 
-def _merged_source(folder: Path, part: dict) -> dict | list[dict]:
+def _published_beside(task: str, runs: list[tuple], to: Path) -> set[int]:
+    """The seeds of ``task`` with finished runs in ``to``, beside which this export puts its
+    ``runs``: those there read and checked as ``results`` reads them
+    (:func:`ede_pipeline.results.published_runs`: folders named seed<N>, files those their
+    run.json records), and the ones that stay made with the same params as ``runs``
+    (:func:`ede.runs.unshared_params`). Raises :class:`BadInput` where not."""
+    from ede.runs import unshared_params
+    from ede_pipeline.results import published_runs
+
+    published = published_runs(to, task)
+    replaced = {(algo, seed) for algo, seed, *_ in runs}
+    staying = [
+        (run, record.made)
+        for run, record in published
+        if (record.made["algo"], record.curve.seed) not in replaced
+    ]
+    joining = [(folder, made) for *_, folder, made in runs]
+    if (difference := unshared_params(staying + joining)) is not None:
+        raise BadInput(difference)
+    return {record.curve.seed for _, record in published}
+
+
+def _merged_source(folder: Path, part: dict, published: set[int]) -> dict | list[dict]:
     """A task folder's source.json with ``part`` (one experiment's) in it: the part alone, or
     beside the parts of other experiments already there, replacing an earlier export of the same
-    experiment file. A seed another part already names is refused (:class:`BadInput`)."""
+    experiment file. A seed another part already names is refused (:class:`BadInput`), and so is
+    one of ``published`` (the seeds with runs there) that no earlier export of it named."""
     from ede_pipeline.results import read_source
 
-    if not (folder / "source.json").is_file():
-        return part
-    checked = read_source(folder).parts
-    written = json.loads((folder / "source.json").read_text())
+    there = (folder / "source.json").is_file()
+    checked = read_source(folder).parts if there else []
+    written = json.loads((folder / "source.json").read_text()) if there else []
     kept = [
         (json_part, read)
         for json_part, read in zip(
@@ -601,6 +673,14 @@ def _merged_source(folder: Path, part: dict) -> dict | list[dict]:
                 f"{folder / 'source.json'}: seeds {twice} are already published by "
                 f"{read.maker()}; an experiment adds seeds the task has not"
             )
+    ours = {
+        seed for read in checked if read.experiment == part["experiment"] for seed in read.seeds
+    }
+    if twice := sorted(published & set(part["seeds"]) - ours):
+        raise BadInput(
+            f"{folder}: seeds {twice} have runs there that no earlier export of "
+            f"{part['experiment']} made; an experiment adds seeds the task has not"
+        )
     return [*(json_part for json_part, _ in kept), part] if kept else part
 
 

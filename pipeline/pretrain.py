@@ -110,7 +110,8 @@ def encoder(
     out = out or folder / "encoder"
     metrics = metrics or folder / "encoder_metrics.json"
     plots = plots or folder / "encoder_history.csv"
-    with holding((out, "encoder"), files=(metrics, plots), inputs=(data.path,)):
+    files = ((metrics, "encoder metrics"), (plots, "encoder history"))
+    with holding((out, "encoder"), files=files, inputs=(data.path,)):
         with progress(config.epochs, f"encoder {family}", unit="epoch") as advance:
             result = train_encoder(data, config, device, on_epoch=lambda row: advance(1))
         low, high = (np.asarray(data.attrs["spaces"][key]) for key in ("action_low", "action_high"))
@@ -178,7 +179,8 @@ def decoder(
     out = out or folder / "decoder"
     metrics = metrics or folder / "decoder_metrics.json"
     plots = plots or folder / "decoder_history.csv"
-    with holding((out, "decoder"), files=(metrics, plots), inputs=(data.path, encoder_path)):
+    files = ((metrics, "decoder metrics"), (plots, "decoder history"))
+    with holding((out, "decoder"), files=files, inputs=(data.path, encoder_path)):
         with progress(config.epochs, f"decoder {family}", unit="epoch") as advance:
             result = train_decoder(
                 data, encoded, config, meta.k, low, high, device, on_epoch=lambda row: advance(1)

@@ -646,7 +646,7 @@ def report(
     given = (Path(path) for pair in (*embeddings, *rollouts) if (path := pair.partition("=")[2]))
     with holding(
         (out, "report"),
-        files=(metrics,),
+        files=((metrics, "report metrics"),),
         dirs=((curves, "report curves"),),
         inputs=(runs, families, *given),
     ):

@@ -64,22 +64,30 @@ The confidence, the bootstrap's resamples and its seed are the report's (``repor
 from that seed, so a number depends on its own runs alone: the same on every machine, whatever
 other tasks, algorithms or thresholds are beside it. Bad input (a run, ``source.json``, an
 embedding's metrics, a task's folder not at its task's path, an ablation without its default) is
-one line and exit code 2 (:class:`ede_pipeline.common.BadInput`), before anything is written.
+one line and exit code 2 (:class:`ede_pipeline.common.BadInput`), before anything is written. A
+run is bad where its folder is not named ``seed<N>`` (a copy ``seed00`` beside ``seed0`` would
+count seed 0 twice), its ``run.json`` names another task, algorithm or seed than its folder, a
+file of it is not the one its ``run.json`` records the SHA-256 of (runs that record none are
+read as they are), or it was made with other params than its task's other runs (those of both
+algorithms, and of EDE-TD3's between its runs; :func:`ede.runs.unshared_params`).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import re
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import click
 import gymnasium
 import matplotlib.pyplot as plt
 import numpy as np
 
+from ede.atomic import mark_file
 from ede.config import Params, ReportConfig
 from ede.provenance import INSTRUCTION_SETS
 from ede.report import (
@@ -95,11 +103,12 @@ from ede.report import (
     summarise_task,
     zero_action_return,
 )
-from ede.runs import Curve, RunRejected, read_run
+from ede.runs import Curve, Run, RunRejected, read_run, unshared_params
 from ede.stats import Interval, bootstrap_mean, divergence, separation, steps_to_threshold
 from ede_pipeline import layout
-from ede_pipeline.common import BadInput, params_option
+from ede_pipeline.common import BadInput, check_outputs, params_option
 
+FIGURE_KIND = "results figure"  # what a figure's mark says drew it (ede.atomic.mark_file)
 ZERO_EPISODES = (
     100  # episodes behind a task's zero-action return (its standard error ~10 on Reacher's)
 )
@@ -173,30 +182,57 @@ class TaskRuns:
     cpus: dict[str | None, int]  # runs per CPU (with its instruction sets); None: unrecorded
 
 
-def read_folder(root: Path, task: str) -> TaskRuns | None:
-    """A task's finished runs under ``root`` (:func:`ede_pipeline.layout.run`) with its
-    ``source.json`` and embedding figures; None where no run is finished."""
-    folder = layout.task_runs(task, root)
-    curves: dict[str, list[Curve]] = {}
-    budgets: set[int] = set()
-    cpus: Counter[str | None] = Counter()
-    embeddings: dict[str, list[int]] = {}  # EDE-TD3's seeds by the embedding each used
+SEED_FOLDER = re.compile(r"seed(0|[1-9][0-9]*)")  # seed<N>, as layout.run names it
+
+
+def published_runs(root: Path, task: str) -> list[tuple[Path, Run]]:
+    """A task's finished runs under ``root`` (:func:`ede_pipeline.layout.run`), per algorithm by
+    seed, each checked (:func:`ede.runs.read_run`: the task, algorithm and seed of its folder,
+    its files those its ``run.json`` records). Every folder of an algorithm's is a run, named
+    ``seed<N>`` as ``layout.run`` names it, so that no seed is read twice (``seed00`` beside
+    ``seed0``); each run's ``run.json`` names its folder's seed."""
+    found = []
     for algo in ALGO_STYLE:
-        seeds = sorted(
-            int(p.name[4:]) for p in layout.run(task, algo, 0, root).parent.glob("seed*")
-        )
-        for seed in seeds:
+        seeds = []
+        for path in sorted(layout.run(task, algo, 0, root).parent.glob("*")):
+            if not path.is_dir():
+                continue
+            if not SEED_FOLDER.fullmatch(path.name):
+                raise BadInput(
+                    f"{path}: not a run's folder name; expected seed<N>, N a whole number "
+                    ">= 0 without leading zeros (seed0, seed12)"
+                )
+            seeds.append(int(path.name.removeprefix("seed")))
+        for seed in sorted(seeds):
             run = layout.run(task, algo, seed, root)
             try:
                 record = read_run(run, {"task": task, "algo": algo, "seed": seed})
             except RunRejected as error:
                 raise BadInput(str(error)) from None
             if record is not None:
-                curves.setdefault(algo, []).append(record.curve)
-                budgets.add(int(record.curve.steps[-1]))  # checked: the run's budget
-                cpus[cpu(run / "run.json", record.made)] += 1
-                if algo == "ede-td3":
-                    embeddings.setdefault(str(record.made.get("embedding", "")), []).append(seed)
+                found.append((run, record))
+    return found
+
+
+def read_folder(root: Path, task: str) -> TaskRuns | None:
+    """A task's finished runs under ``root`` (:func:`published_runs`), made with the same params
+    (:func:`ede.runs.unshared_params`), with its ``source.json`` and embedding figures; None
+    where no run is finished."""
+    folder = layout.task_runs(task, root)
+    curves: dict[str, list[Curve]] = {}
+    budgets: set[int] = set()
+    cpus: Counter[str | None] = Counter()
+    embeddings: dict[str, list[int]] = {}  # EDE-TD3's seeds by the embedding each used
+    found = published_runs(root, task)
+    if (difference := unshared_params([(run, record.made) for run, record in found])) is not None:
+        raise BadInput(difference)
+    for run, record in found:
+        algo, seed = record.made["algo"], record.curve.seed
+        curves.setdefault(algo, []).append(record.curve)
+        budgets.add(int(record.curve.steps[-1]))  # checked: the run's budget
+        cpus[cpu(run / "run.json", record.made)] += 1
+        if algo == "ede-td3":
+            embeddings.setdefault(str(record.made.get("embedding", "")), []).append(seed)
     if len(budgets) > 1:
         raise BadInput(f"{folder}: runs of different budgets {sorted(budgets)}; keep one per task")
     if not curves:
@@ -770,6 +806,18 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
     refs = references([f.task for found in families.values() for f in found], params)
     lows = {task: refs[task][0] for task in both}
     planned = {f.task: f.source.seeds for found in families.values() for f in found}
+    drawings = [*families, "performance-profile", *(f"ablation-{v}" for v, *_ in found_ablations)]
+    check_outputs(  # each figure a new file or one this command drew, before any is drawn
+        (None, FIGURE_KIND),
+        files=tuple((figures / f"{name}.png", FIGURE_KIND) for name in drawings),
+        inputs=(runs, ablations),
+    )
+
+    def save(figure: Any, name: str) -> None:
+        figures.mkdir(parents=True, exist_ok=True)
+        figure.savefig(figures / f"{name}.png", dpi=120)
+        mark_file(figures / f"{name}.png", FIGURE_KIND)
+
     # Every input is read and checked: from here on, print and draw.
     for family, found in families.items():
         source = params.families[family].source if family in params.families else found[0].task
@@ -796,8 +844,7 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
             {f.task: f.budget / bins for f in found},
             bands,
         )
-        figures.mkdir(parents=True, exist_ok=True)
-        figure.savefig(figures / f"{family}.png", dpi=120)
+        save(figure, family)
         plt.close(figure)
         click.echo(f"Figure: {figures / f'{family}.png'}\n")
     everything = {key: c for curves in curves_of.values() for key, c in curves.items()}
@@ -822,7 +869,7 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
         if aggregates is not None:
             click.echo(across_section(title, aggregates, params) + waiting)
             if title == "every task" or len(curves_of) == 1:
-                aggregates.figure.savefig(figures / "performance-profile.png", dpi=120)
+                save(aggregates.figure, "performance-profile")
             plt.close(aggregates.figure)
     drawn: dict[str, list[tuple[TaskRuns, dict[str, tuple]]]] = {}
     for variant, ours, theirs in found_ablations:
@@ -842,6 +889,6 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
             {(k.task, a): band for k, bands in kept for a, band in bands.items()},
             title=f"the {variant} variant (a fidelity ablation)",
         )
-        figure.savefig(figures / f"ablation-{variant}.png", dpi=120)
+        save(figure, f"ablation-{variant}")
         plt.close(figure)
         click.echo(f"Figure: {figures / f'ablation-{variant}.png'}\n")

@@ -53,11 +53,17 @@ import click
 from click.core import ParameterSource
 from tqdm import tqdm
 
-from ede.atomic import unwritable
+from ede.atomic import claim, unwritable
 from ede.config import Params
 from ede.errors import first_line
 from ede_pipeline import layout
-from ede_pipeline.common import DEFAULT_PARAMS, BadInput, read_params
+from ede_pipeline.common import (
+    DEFAULT_PARAMS,
+    PARENT_ENV,
+    BadInput,
+    check_outputs,
+    read_params,
+)
 from ede_pipeline.progress import PROGRESS_ENV, read_progress
 
 if TYPE_CHECKING:
@@ -66,6 +72,7 @@ if TYPE_CHECKING:
 
 TRAIN_STAGES = "train*"  # dvc.yaml's train stage (one instance per run), unless told others
 LOGS = Path(".dvc") / "tmp" / "sweep"  # DVC's own git-ignored scratch folder
+LOGS_KIND = "folder of sweep logs"
 TAIL = 20  # lines of a failed run's log shown in the report
 
 
@@ -206,6 +213,7 @@ def run_job(job: Job, where: str = "") -> Outcome:
     bin_dir = str(Path(sys.executable).parent)
     env["PATH"] = os.pathsep.join([bin_dir, env.get("PATH", "")])
     env[PROGRESS_ENV] = str(progress_file(job))  # the sweep's overall line reads it
+    env[PARENT_ENV] = str(os.getpid())  # the run ends with this process (follow_parent)
     progress_file(job).unlink(missing_ok=True)  # an earlier sweep's, or the lost attempt's
     log_path = Path(job.log)
     log_path.parent.mkdir(parents=True, exist_ok=True)
@@ -788,13 +796,23 @@ def sweep(
             "and the next sweep resumes it)"
         )
     if executor == "ray":
+        given = address is not None
         check_ray_address(
-            address or os.environ.get("RAY_ADDRESS"), name="--address" if address else "RAY_ADDRESS"
+            address if given else os.environ.get("RAY_ADDRESS"),
+            name="--address" if given else "RAY_ADDRESS",
         )
     params = read_params(DEFAULT_PARAMS)  # bad params end here, before anything runs
     runs = train_runs(params)
-    if problem := unwritable(logs, directory=True):
-        raise BadInput(f"--logs {problem}")
+    # A folder given for the logs is checked as every output is (new, empty or an earlier
+    # sweep's), and marked; the default is inside DVC's own scratch folder, where no user's file is.
+    chosen = ctx.get_parameter_source("logs") != ParameterSource.DEFAULT
+    try:
+        if chosen:
+            check_outputs((logs, LOGS_KIND))
+        elif problem := unwritable(logs, directory=True):
+            raise BadInput(problem)
+    except BadInput as error:
+        raise BadInput(f"--logs {error.format_message()}") from None
     try:
         Repo(".").close()
     except NotDvcRepoError:
@@ -813,6 +831,8 @@ def sweep(
         click.echo(f"sweep: {len(stale)} of {len(stages)} stages out of date", err=True)
         if not stale:
             return
+        if chosen:
+            claim(logs, LOGS_KIND, ("*.log", "*.attempts"))
         tally = Tally(len(stale))
         failed: list[str] = []
         pending: list[Job] = []

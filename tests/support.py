@@ -10,6 +10,7 @@ the sweep benchmark imports it from here too (it runs from the checkout), rather
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -90,16 +91,25 @@ def dvc(copy: Path, *args: str) -> subprocess.CompletedProcess[str]:
     return run(copy, BIN / "dvc", *args)
 
 
-WALL_TIMES = {"metrics.json", "eval.csv"}  # a run's files that hold wall times
+# A run's files that hold wall times, and run.json, which holds their SHA-256s.
+WALL_TIMES = {"metrics.json", "eval.csv", "run.json"}
+
+
+def untimed_run_json(path: Path) -> dict[str, Any]:
+    """A run's ``run.json`` less the checksums of its files, which hold wall times."""
+    record = json.loads(path.read_text())
+    record.pop("sha256", None)
+    return record
 
 
 def train_record(copy: Path) -> dict[str, Any]:
     """What two trainings of the same runs on one machine agree on to the bit, from ``copy``'s
     ``dvc.lock``: each train stage's entry, the hashes of the files that hold wall times set
-    aside, and its ``eval.csv`` without the wall time (its last column)."""
+    aside, its ``eval.csv`` without the wall time (its last column) and its ``run.json``
+    without the checksums."""
     lock = yaml.safe_load((copy / "dvc.lock").read_text())["stages"]
     entries = {name: entry for name, entry in lock.items() if name.startswith("train@")}
-    returns = {}
+    returns, records = {}, {}
     for name, entry in entries.items():
         for out in entry["outs"]:
             if Path(out["path"]).name in WALL_TIMES:
@@ -107,7 +117,9 @@ def train_record(copy: Path) -> dict[str, Any]:
             if Path(out["path"]).name == "eval.csv":
                 lines = (copy / out["path"]).read_text().splitlines()
                 returns[name] = [line.rsplit(",", 1)[0] for line in lines]
-    return {"lock": entries, "returns": returns}
+            if Path(out["path"]).name == "run.json":
+                records[name] = untimed_run_json(copy / out["path"])
+    return {"lock": entries, "returns": returns, "records": records}
 
 
 def ok(result: subprocess.CompletedProcess[str]) -> str:

@@ -41,7 +41,8 @@ CONFIG = TD3Config(
     device="cuda",
 )
 BOUND = 1e-3  # largest |difference| of a policy weight after 300 steps (provisional)
-CAPTURED_BOUND: dict[str, Any] = {"rtol": 1e-5, "atol": 1e-6}  # captured against eager, 12 updates (provisional)
+# Captured against eager, 12 updates (provisional).
+CAPTURED_BOUND: dict[str, Any] = {"rtol": 1e-5, "atol": 1e-6}
 
 
 def spec(seed: int) -> RunSpec:

@@ -4,6 +4,7 @@ run.json records of the code and the machine (ede.provenance)."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -11,14 +12,18 @@ import pytest
 import torch
 
 from ede import provenance
-from ede.config import EdeTD3Config, TD3Config
+from ede.atomic import sha256
+from ede.config import Algo, EdeTD3Config, TD3Config
 from ede.runs import (
+    CHECKSUMMED,
     RunRejected,
     RunSpec,
     identity_difference,
     read_run,
+    unshared_params,
     write_curves,
     write_finished,
+    write_policy,
 )
 
 SPEC = RunSpec("ede/Point-v0", "td3", 3, 2_000, TD3Config(), EdeTD3Config())
@@ -114,3 +119,112 @@ def test_outside_a_checkout_the_commit_comes_from_the_build(
     assert provenance.code_version.__wrapped__() == {"commit": "f" * 40, "modified": None}
     monkeypatch.delenv(provenance.COMMIT_ENV)
     assert provenance.code_version.__wrapped__() == {"commit": None, "modified": None}
+
+
+def test_run_json_records_the_sha256_of_each_result_file(tmp_path: Path) -> None:
+    """Of the files there when the run finishes, metrics.json's as written after run.json; the
+    rest of run.json as before."""
+    write_policy(tmp_path / "policy", {"w": torch.ones(2)}, {"k": 1})
+    finished(tmp_path)
+    made = json.loads((tmp_path / "run.json").read_text())
+    assert made["sha256"] == {name: sha256(tmp_path / name) for name in CHECKSUMMED}
+    assert set(made) == {*SPEC.identity(), "software", "code", "machine", "sha256"}
+    assert {k: made[k] for k in SPEC.identity()} == SPEC.identity()
+    finished(tmp_path / "no-policy")
+    assert set(json.loads((tmp_path / "no-policy" / "run.json").read_text())["sha256"]) == {
+        "eval.csv",
+        "diagnostics.csv",
+        "metrics.json",
+    }
+
+
+def change(path: Path) -> None:
+    """The last digit of ``path`` changed: a CSV or JSON file still reads, to another number."""
+    data = bytearray(path.read_bytes())
+    at = max(i for i, byte in enumerate(data) if byte in b"0123456789")
+    data[at] = ord("1") if data[at] != ord("1") else ord("2")
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("name", CHECKSUMMED)
+def test_a_file_changed_after_its_run_finished_is_rejected_by_name(
+    tmp_path: Path, name: str
+) -> None:
+    write_policy(tmp_path / "policy", {"w": torch.ones(2)}, {"k": 1})
+    finished(tmp_path)
+    recorded = json.loads((tmp_path / "run.json").read_text())["sha256"][name]
+    change(tmp_path / name)
+    with pytest.raises(RunRejected) as rejected:
+        read_run(tmp_path, SPEC.identity())
+    assert str(rejected.value) == (
+        f"{tmp_path / name}: not the file its run wrote (SHA-256 "
+        f"{sha256(tmp_path / name)[:12]}…, run.json records {recorded[:12]}…)"
+    )
+
+
+def test_a_published_copy_without_its_policy_reads_and_one_without_a_recorded_file_does_not(
+    tmp_path: Path,
+) -> None:
+    write_policy(tmp_path / "policy", {"w": torch.ones(2)}, {"k": 1})
+    finished(tmp_path)
+    shutil.rmtree(tmp_path / "policy")  # as `experiment export` publishes it
+    assert read_run(tmp_path, SPEC.identity()) is not None
+    (tmp_path / "diagnostics.csv").unlink()
+    with pytest.raises(RunRejected) as rejected:
+        read_run(tmp_path, SPEC.identity())
+    assert str(rejected.value) == (
+        f"{tmp_path / 'diagnostics.csv'}: missing, though run.json records its SHA-256"
+    )
+
+
+def test_a_run_that_records_no_checksums_reads_as_it_is(tmp_path: Path) -> None:
+    """Runs finished before run.json recorded checksums (the committed docs/results/runs)."""
+    finished(tmp_path)
+    made = json.loads((tmp_path / "run.json").read_text())
+    del made["sha256"]
+    (tmp_path / "run.json").write_text(json.dumps(made))
+    change(tmp_path / "eval.csv")
+    assert read_run(tmp_path, SPEC.identity()) is not None
+    (tmp_path / "run.json").write_text(json.dumps({**made, "sha256": ["eval.csv"]}))
+    with pytest.raises(RunRejected, match=r"run.json: 'sha256' is not a SHA-256 by file name"):
+        read_run(tmp_path, SPEC.identity())
+
+
+def made_with(algo: Algo, td3: TD3Config | None = None) -> dict:
+    """A run.json's identity: seed 0 of ``algo`` made with ``td3``."""
+    return RunSpec("ede/Point-v0", algo, 0, 2_000, td3 or TD3Config(), EdeTD3Config()).identity()
+
+
+def test_unshared_params_names_the_run_the_key_and_both_values() -> None:
+    first, second = Path("runs/td3/seed0"), Path("runs/td3/seed1")
+    assert unshared_params([(first, made_with("td3")), (second, made_with("td3"))]) is None
+    assert unshared_params(
+        [(first, made_with("td3")), (second, made_with("td3", TD3Config(lr=0.002)))]
+    ) == (
+        "runs/td3/seed1/run.json: made with td3.lr = 0.002, but runs/td3/seed0 was made with "
+        "0.001; a task's runs share every param that changes a result"
+    )
+    # td3's params are shared by both algorithms.
+    other = Path("runs/ede-td3/seed0")
+    assert unshared_params(
+        [(first, made_with("td3")), (other, made_with("ede-td3", TD3Config(tau=0.01)))]
+    ) == (
+        "runs/ede-td3/seed0/run.json: made with td3.tau = 0.01, but runs/td3/seed0 was made with "
+        "0.005; a task's runs share every param that changes a result"
+    )
+
+
+def test_unshared_params_sets_aside_result_neutral_keys_and_ede_td3_for_td3_runs() -> None:
+    td3, ede = made_with("td3"), made_with("ede-td3")
+    older = json.loads(json.dumps(td3))
+    older["params"]["td3"].update(device="cuda", threads=4, checkpoint_every=10)  # as recorded
+    assert unshared_params([(Path("a"), td3), (Path("b"), older)]) is None
+    wider = json.loads(json.dumps(ede))
+    wider["params"]["ede_td3"]["bound_scale"] = 2.0
+    assert unshared_params([(Path("td3/seed0"), td3), (Path("ede-td3/seed0"), wider)]) is None
+    assert unshared_params(
+        [(Path("td3/seed0"), td3), (Path("ede-td3/seed0"), ede), (Path("ede-td3/seed1"), wider)]
+    ) == (
+        "ede-td3/seed1/run.json: made with ede_td3.bound_scale = 2.0, but ede-td3/seed0 was made "
+        "with 1.0; a task's runs share every param that changes a result"
+    )

@@ -51,6 +51,8 @@ def repo(tmp_path_factory: pytest.TempPathFactory) -> Path:
     (copy / "experiments" / "two-seeds.yaml").write_text(EXPERIMENT)
     (copy / "experiments" / "two-seeds-lr.yaml").write_text(EXPERIMENT + "td3:\n  lr: 0.002\n")
     (copy / "experiments" / "bad.yaml").write_text("td3:\n  batch_size: 0\n")
+    for name in ("x..y", "my exp"):  # names git refuses for a ref
+        (copy / "experiments" / f"{name}.yaml").write_text(EXPERIMENT)
     commit(copy)
     return copy
 
@@ -75,6 +77,8 @@ def experiment(repo: Path, *args: str) -> subprocess.CompletedProcess[str]:
             "experiment runs all of experiments/two-seeds.yaml's runs",
         ),
         (["export", "two-seeds-lr"], "experiment two-seeds-lr: not run here yet"),
+        (["run", "x..y"], "experiment 'x..y': not a name git takes for a ref"),
+        (["run", "my exp"], "experiment 'my exp': not a name git takes for a ref"),
     ],
 )
 def test_bad_input_is_one_line_and_makes_nothing(repo: Path, args: list[str], line: str) -> None:
@@ -218,3 +222,37 @@ def test_a_changed_code_keeps_finished_runs_unless_told(tmp_path: Path) -> None:
     assert (workspace / "ede" / "td3.py").read_bytes() == code.read_bytes()
     assert json.loads((finished / "run.json").read_text())["params"]["td3"]["lr"] == 0.005
     assert json.loads((finished / "run.json").read_text())["code"]["modified"] is True
+
+
+def test_one_experiment_runs_once_at_a_time(repo: Path) -> None:
+    """A second ``experiment run`` of an experiment that runs is refused in one line before it
+    touches the working copy (it once rewrote it and left its dvc.lock empty)."""
+    from ede.locks import exclusive
+
+    workspace = repo / ".dvc" / "tmp" / "experiments" / "two-seeds"
+    before = sorted(str(p) for p in workspace.parent.rglob("*")) if workspace.exists() else []
+    with exclusive(workspace):  # as a first run holds it
+        second = experiment(repo, "run", "two-seeds", "--jobs", "1")
+    assert second.returncode == 2, second.stderr
+    lines = second.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error: experiment two-seeds: "), lines
+    assert "being written by process" in lines[0]
+    after = sorted(str(p) for p in workspace.parent.rglob("*")) if workspace.exists() else []
+    assert [p for p in after if not p.endswith(".two-seeds.lock")] == before
+
+
+def test_a_damaged_dvc_lock_in_the_working_copy_is_removed_and_the_runs_restored(
+    repo: Path,
+) -> None:
+    """A kill while DVC wrote the working copy's dvc.lock can leave it empty; the next run says
+    so in one line, removes it, and DVC restores the finished runs from its run cache."""
+    ok(experiment(repo, "run", "two-seeds", "--jobs", "2"))
+    workspace = repo / ".dvc" / "tmp" / "experiments" / "two-seeds"
+    finished = workspace / "data" / "runs" / TASK / "td3" / "seed1" / "metrics.json"
+    made = finished.read_bytes()
+    (workspace / "dvc.lock").write_text("")
+    again = experiment(repo, "run", "two-seeds", "--jobs", "2")
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "its working copy's dvc.lock was damaged (empty, or not DVC's YAML)" in again.stderr
+    assert "Running stage" not in again.stdout + again.stderr  # restored, not trained again
+    assert finished.read_bytes() == made

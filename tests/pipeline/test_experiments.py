@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -11,10 +12,11 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
+from ede.atomic import sha256
 from ede.config import Algo
 from ede_pipeline.cli import main
 from ede_pipeline.experiments import WIDTH, experiment_blocks
-from tests.support import tool_env
+from tests.support import REPO, tool_env
 
 TASK = "ede/ReacherVertical-v0"
 
@@ -212,11 +214,12 @@ def finished_workspace(
     tasks: tuple[str, ...] = ("ede/ReacherVertical-v0",),
     finished: tuple[str, ...] = ("ede/ReacherVertical-v0",),
     embedding: str = "e0" * 32,
+    td3: dict[str, Any] | None = None,
 ) -> Path:
     """``experiments/NAME.yaml`` and its working copy as ``experiment run`` leaves it: the runs
     of ``seeds`` finished on the ``finished`` tasks (none yet on the rest of ``tasks``), their
     EDE-TD3 runs made with the embedding of checksum ``embedding``, whose metrics are the reacher
-    family's."""
+    family's, and the params.yaml's td3 keys changed as ``td3`` says."""
     import torch
 
     from ede.config import load_params
@@ -230,7 +233,9 @@ def finished_workspace(
     workspace.mkdir(parents=True)
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     params["runs"].update(tasks={task: "reacher" for task in tasks}, algos=algos, seeds=seeds)
+    params["runs"]["budgets"] = {task: params["runs"]["budgets"][task] for task in tasks}
     params["report"]["thresholds"] = {"ede/ReacherVertical-v0": [-15, -10]}
+    params["td3"].update(td3 or {})
     (workspace / "params.yaml").write_text(yaml.safe_dump(params))
     loaded = load_params(workspace / "params.yaml")
     metrics = workspace / layout.embedding("reacher")
@@ -436,3 +441,111 @@ def test_a_working_copy_keeps_its_record_of_finished_runs(
     assert (workspace / "code.py").read_text() == "v = 2\n"
     assert not (workspace / "gone.py").exists()
     assert "lr: 0.0003" in (workspace / "params.yaml").read_text()
+
+
+# What an export must refuse, in one line, writing nothing ---------------------------------------
+
+PUBLISHED_TASK = Path("published") / TASK  # layout.task_runs(TASK, Path("published"))
+
+
+def published() -> dict[Path, bytes]:
+    return {p: p.read_bytes() for p in Path("published").rglob("*") if p.is_file()}
+
+
+def refused(name: str, line: str) -> None:
+    """``experiment export NAME`` exits 2 with ``Error: line`` alone and writes nothing."""
+    before = published()
+    result = export(name)
+    assert (result.exit_code, result.stderr) == (2, f"Error: {line}\n"), result.output
+    assert published() == before
+
+
+def another_number(path: Path) -> None:
+    """The last digit of ``path`` changed: a CSV or JSON file still reads, to another number."""
+    text = path.read_text()
+    last = max(i for i, c in enumerate(text) if c.isdigit())
+    path.write_text(text[:last] + ("2" if text[last] == "1" else "1") + text[last + 1 :])
+
+
+@pytest.fixture
+def first_published(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Seed 0 of TD3 exported from experiment ``first`` to ``published/``, and experiment
+    ``more``'s seed 1 finished, to export beside it; in ``tmp_path``, the working directory."""
+    monkeypatch.chdir(tmp_path)
+    finished_workspace(tmp_path, "first", [0], ["td3"])
+    finished_workspace(tmp_path, "more", [1], ["td3"])
+    assert export("first").exit_code == 0
+    return tmp_path
+
+
+@pytest.mark.parametrize("name", ["seed00", "seed-1", "seedx", "seed 1"])
+def test_an_export_beside_a_seed_folder_not_named_seed_n_is_refused(
+    first_published: Path, name: str
+) -> None:
+    shutil.copytree(PUBLISHED_TASK / "td3" / "seed0", PUBLISHED_TASK / "td3" / name)
+    refused(
+        "more",
+        f"{PUBLISHED_TASK / 'td3' / name}: not a run's folder name; expected seed<N>, N a whole "
+        "number >= 0 without leading zeros (seed0, seed12)",
+    )
+
+
+def test_an_export_beside_a_seed_published_twice_is_refused(first_published: Path) -> None:
+    """A copy of seed 0 as seed 2: its run.json names seed 0."""
+    shutil.copytree(PUBLISHED_TASK / "td3" / "seed0", PUBLISHED_TASK / "td3" / "seed2")
+    refused("more", f"{PUBLISHED_TASK / 'td3' / 'seed2' / 'run.json'}: seed is 0, expected 2")
+
+
+def test_an_export_of_seeds_published_by_no_part_of_source_json_is_refused(
+    first_published: Path,
+) -> None:
+    """A task's source.json from before parts named their seeds: the runs of seed 0 there are
+    not the experiment's own to replace."""
+    (PUBLISHED_TASK / "source.json").write_text(
+        json.dumps({"commit": "0" * 40, "command": "experiment.py --seeds 0"})
+    )
+    refused(
+        "first",
+        f"{PUBLISHED_TASK}: seeds [0] have runs there that no earlier export of "
+        "experiments/first.yaml made; an experiment adds seeds the task has not",
+    )
+
+
+def test_an_export_of_runs_made_with_other_params_than_the_published_is_refused(
+    first_published: Path,
+) -> None:
+    """td3.lr set apart; td3.threads, which leaves results alone, does not."""
+    finished_workspace(first_published, "faster", [1], ["td3"], td3={"lr": 0.002})
+    finished_workspace(first_published, "threads", [2], ["td3"], td3={"threads": 2})
+    lr = yaml.safe_load((REPO / "params.yaml").read_text())["td3"]["lr"]
+    run = Path(".dvc/tmp/experiments/faster/data/runs") / TASK / "td3" / "seed1"
+    refused(
+        "faster",
+        f"{run / 'run.json'}: made with td3.lr = 0.002, but {PUBLISHED_TASK / 'td3' / 'seed0'} "
+        f"was made with {json.dumps(lr)}; a task's runs share every param that changes a result",
+    )
+    assert export("threads").exit_code == 0
+
+
+def test_an_export_beside_a_published_file_its_run_did_not_write_is_refused(
+    first_published: Path,
+) -> None:
+    path = PUBLISHED_TASK / "td3" / "seed0" / "eval.csv"
+    recorded = json.loads((path.parent / "run.json").read_text())["sha256"]["eval.csv"]
+    another_number(path)
+    refused(
+        "more",
+        f"{path}: not the file its run wrote (SHA-256 {sha256(path)[:12]}…, run.json records "
+        f"{recorded[:12]}…)",
+    )
+
+
+def test_an_export_of_a_file_its_run_did_not_write_is_refused(first_published: Path) -> None:
+    path = Path(".dvc/tmp/experiments/more/data/runs") / TASK / "td3" / "seed1" / "metrics.json"
+    recorded = json.loads((path.parent / "run.json").read_text())["sha256"]["metrics.json"]
+    another_number(path)
+    refused(
+        "more",
+        f"{path}: not the file its run wrote (SHA-256 {sha256(path)[:12]}…, run.json records "
+        f"{recorded[:12]}…)",
+    )

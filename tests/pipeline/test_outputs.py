@@ -417,3 +417,153 @@ def test_a_write_that_fails_midway_is_one_line_and_leaves_nothing(
     )
     left = sorted(set(listing(workdir)) - set(before))
     assert left == [], left  # no temporary, no lock, no half an output
+
+
+# ---------------------------------------------------------------------------------------------
+# One rule for every place a command writes, whatever option names it and however it is named.
+
+# Every option of a command that names a path, by the command's words: what it writes, or that it
+# only reads. A new path option must be added to one of them, and every writing one is then held
+# to the rule below (the command's other required arguments beside it).
+WRITES = {
+    ("collect", "--out"): ["collect", "--family", "point"],
+    ("pretrain encoder", "--out"): ["pretrain", "encoder", "--family", "point"],
+    ("pretrain encoder", "--metrics"): ["pretrain", "encoder", "--family", "point"],
+    ("pretrain encoder", "--plots"): ["pretrain", "encoder", "--family", "point"],
+    ("pretrain decoder", "--out"): ["pretrain", "decoder", "--family", "point"],
+    ("pretrain decoder", "--metrics"): ["pretrain", "decoder", "--family", "point"],
+    ("pretrain decoder", "--plots"): ["pretrain", "decoder", "--family", "point"],
+    ("report", "--out"): ["report"],
+    ("report", "--metrics"): ["report"],
+    ("report", "--curves"): ["report"],
+    ("results", "--figures"): ["results"],
+    ("experiment export", "--to"): ["experiment", "export", "two"],
+    ("sweep", "--logs"): ["sweep"],
+    ("task-code", "--out"): ["task-code", "--family", "point"],
+    ("task-inputs", "--out"): ["task-inputs", "--task", "ede/Point-v0"],
+    ("train", "--out"): ["train", "--task", "ede/Point-v0", "--algo", "td3", "--seed", "0"],
+}
+READS = {
+    ("inspect", "--rollouts"),
+    ("pretrain encoder", "--rollouts"),
+    ("pretrain decoder", "--rollouts"),
+    ("pretrain decoder", "--encoder"),
+    ("report", "--runs"),
+    ("report", "--families"),
+    ("results", "--runs"),
+    ("results", "--ablations"),
+    ("set-params", "overrides"),
+    ("task-inputs", "--embedding"),
+    ("task-inputs", "--code"),
+    ("train", "--encoder"),
+    ("train", "--decoder"),
+    *((command, "--params") for command in (
+        "collect", "envs", "inspect", "pretrain decoder", "pretrain encoder", "report",
+        "results", "set-params", "task-code", "task-inputs", "train", "validate",
+    )),
+}  # fmt: skip
+
+
+def path_options() -> set[tuple[str, str]]:
+    """Every (command, option) of ``ede-pipeline`` whose value is a path."""
+    import click
+
+    found = set()
+
+    def walk(command: click.Command, words: tuple[str, ...], context: click.Context) -> None:
+        if isinstance(command, click.Group):
+            for name in command.list_commands(context):
+                sub = command.get_command(context, name)
+                assert sub is not None
+                walk(sub, (*words, name), context)
+            return
+        for param in command.params:
+            if isinstance(param.type, click.Path):
+                found.add((" ".join(words), param.opts[0] if param.opts else str(param.name)))
+
+    walk(main, (), click.Context(main))
+    return found
+
+
+def test_every_path_option_is_known_as_one_that_writes_or_one_that_reads() -> None:
+    assert path_options() == set(WRITES) | READS
+
+
+@pytest.mark.parametrize("link", [False, True], ids=["named", "through a link"])
+@pytest.mark.parametrize("option", WRITES, ids=" ".join)
+def test_no_option_writes_over_the_params_file(
+    workdir: Path, option: tuple[str, str], link: bool
+) -> None:
+    """The issue's example, ``report --metrics params.yaml``, for every writing option: the
+    params file (or a link to it) is refused in one line before any work, and kept."""
+    target = "params.yaml"
+    (workdir / "dvc.yaml").write_text("stages: {}\n")  # the sweep runs in a DVC project only
+    if link:
+        (workdir / "link.yaml").symlink_to("params.yaml")
+        target = "link.yaml"
+    before = contents(workdir)
+    result = CliRunner().invoke(main, [*WRITES[option], option[1], target])
+    assert result.exit_code == 2, result.output
+    assert "Traceback" not in result.output and target in result.stderr, result.stderr
+    assert contents(workdir) == before
+
+
+FILE_OUTPUTS = {
+    "encoder metrics": ["pretrain", "encoder", "--family", "point", "--out", "e", "--metrics"],
+    "decoder history": ["pretrain", "decoder", "--family", "point", "--out", "d", "--plots"],
+    "report metrics": ["report", "--runs", "empty", "--out", "r", "--metrics"],
+}
+
+
+@pytest.mark.parametrize("output", FILE_OUTPUTS)
+def test_a_file_output_replaces_only_the_file_it_wrote(workdir: Path, output: str) -> None:
+    """A file option may name a new path or the file the same kind of writer wrote there; a
+    user's file, or the stage's own file edited since, is kept and refused in one line."""
+    (workdir / "empty").mkdir()
+    args = [*FILE_OUTPUTS[output], "out.file"]
+    (workdir / "out.file").write_text("a user's numbers\n")
+    refused(args, workdir, "out.file: a file", "did not write there")
+    (workdir / "out.file").unlink()
+    assert CliRunner().invoke(main, args).exit_code == 0
+    again = CliRunner().invoke(main, args)  # its own file: replaced
+    assert again.exit_code == 0, again.output
+    with (workdir / "out.file").open("a") as file:
+        file.write("edited by hand\n")
+    refused(args, workdir, "out.file: a file", "or one changed since")
+
+
+def test_a_link_to_a_folder_is_written_through_and_stays_a_link(workdir: Path) -> None:
+    """``--out L`` with L a link to an empty folder: the output is written where L leads, L is
+    still the link; a link to a folder of a user's files is refused as that folder is."""
+    (workdir / "target").mkdir()
+    (workdir / "L").symlink_to("target")
+    done = CliRunner().invoke(main, run("task-code", "L"))
+    assert done.exit_code == 0, done.output
+    assert (workdir / "L").is_symlink() and (workdir / "target" / "ede" / "Point-v0.json").is_file()
+    assert not [p for p in workdir.iterdir() if ".tmp-" in p.name]
+    again = CliRunner().invoke(main, run("task-code", "L"))  # its own, through the link
+    assert again.exit_code == 0, again.output
+    (workdir / "mine").mkdir()
+    (workdir / "mine" / "NOTES.txt").write_text("mine\n")
+    (workdir / "M").symlink_to("mine")
+    refused(run("task-code", "M"), workdir, "M: holds NOTES.txt, which no ede stage wrote")
+
+
+def test_two_names_of_one_output_share_its_lock(workdir: Path) -> None:
+    from ede.locks import exclusive
+
+    (workdir / "out").mkdir()
+    (workdir / "L").symlink_to("out")
+    with exclusive(workdir / "out"):
+        refused(run("task-code", "L"), workdir, "being written by process")
+
+
+@pytest.mark.parametrize("length", [250, 247, 244])
+def test_a_name_too_long_for_the_filesystem_is_refused_before_work(
+    workdir: Path, length: int
+) -> None:
+    """Names near the filesystem's 255 bytes: the output's temporary (``.tmp-<pid>``) and lock
+    (``.<name>.lock``) beside it must fit too, so longer ones are refused before any work."""
+    refused(run("task-code", "x" * length), workdir, "bytes; at most 238 fit here")
+    fits = CliRunner().invoke(main, run("task-code", "y" * 238))
+    assert fits.exit_code == 0, fits.output

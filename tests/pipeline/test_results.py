@@ -11,9 +11,13 @@ from typing import NamedTuple
 
 import numpy as np
 import pytest
+import torch
 import yaml
 from click.testing import CliRunner
 
+from ede.atomic import sha256
+from ede.config import Algo, EdeTD3Config, TD3Config
+from ede.runs import RunSpec, write_curves, write_finished
 from ede_pipeline import layout
 from ede_pipeline.cli import main
 from tests.support import REPO
@@ -600,3 +604,199 @@ def test_one_transfer_task_has_no_transfer_aggregate(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     assert "### Across tasks: the reacher family" in done.stdout
     assert "the transfer tasks" not in done.stdout
+
+
+# Runs that are not the task's: each refused in one line naming it, exit 2, nothing drawn -------
+
+
+def finished_run(
+    runs: Path,
+    algo: Algo,
+    seed: int,
+    td3: TD3Config | None = None,
+    ede_td3: EdeTD3Config | None = None,
+) -> Path:
+    """A run of :data:`TASK` as ``train`` finishes it (:func:`ede.runs.write_finished`: its
+    run.json records its params and the SHA-256 of its files), with a published copy's files
+    (no policy), and its task's ``source.json`` where it has none yet."""
+    folder = layout.run(TASK, algo, seed, runs)
+    if not (folder.parents[1] / "source.json").exists():
+        folder.parents[1].mkdir(parents=True, exist_ok=True)
+        write_source(runs)
+    history = [
+        {
+            "step": step,
+            "episode": i,
+            "mean_return": -200.0 + 5 * i + seed,
+            "std_return": 1.0,
+            "wall_seconds": float(i),
+        }
+        for i, step in enumerate(range(0, BUDGET + 1, BUDGET // 20))
+    ]
+    diagnostics = [
+        {"step": 1_000, "updates": 1_000, "critic_loss": 0.5, "actor_loss": 1.0, "mean_q": -1.0}
+    ]
+    write_curves(folder, history, diagnostics)
+    spec = RunSpec(
+        TASK,
+        algo,
+        seed,
+        BUDGET,
+        td3 or TD3Config(),
+        ede_td3 or EdeTD3Config(),
+        EMBEDDING if algo == "ede-td3" else "",
+    )
+    write_finished(folder, spec, {"final_return": history[-1]["mean_return"]}, torch.device("cpu"))
+    return folder
+
+
+def four_runs(
+    runs: Path, td3: TD3Config | None = None, ede_td3: EdeTD3Config | None = None
+) -> None:
+    """Seeds 0 and 1 of each algorithm, each seed 1 made with ``td3`` and ``ede_td3``."""
+    algos: tuple[Algo, ...] = ("td3", "ede-td3")
+    for algo in algos:
+        finished_run(runs, algo, 0)
+        finished_run(runs, algo, 1, td3, ede_td3)
+
+
+def refused(tmp_path: Path, runs: Path, line: str) -> None:
+    """``results`` on ``runs`` exits 2 with ``Error: line`` alone, and prints and draws nothing."""
+    done = results(runs, tmp_path / "figures")
+    assert (done.returncode, done.stderr) == (2, f"Error: {line}\n")
+    assert done.stdout == "" and not (tmp_path / "figures").exists()
+
+
+def test_runs_as_train_finishes_them_are_read_with_their_checksums(tmp_path: Path) -> None:
+    """The control of the refusals below: the same runs, whole, are drawn; a key that leaves a
+    result alone (as an older run.json records td3.device) and EDE-TD3's params on a TD3 run
+    do not set runs apart."""
+    runs = tmp_path / "runs"
+    four_runs(runs)
+    td3 = layout.run(TASK, "td3", 1, runs) / "run.json"
+    made = json.loads(td3.read_text())
+    made["params"]["td3"]["device"] = "cuda"
+    made["params"]["ede_td3"]["bound_scale"] = 2.0  # TD3 runs train without it
+    td3.write_text(json.dumps(made))
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 0, done.stderr
+    assert "| TD3 | 0, 1 |" in done.stdout and "| EDE-TD3 | 0, 1 |" in done.stdout
+    assert (tmp_path / "figures" / "reacher.png").is_file()
+
+
+@pytest.mark.parametrize("name", ["seed00", "seed01", "seed-1", "seedx", "seed 1", "Seed2", "2"])
+def test_a_seed_folder_not_named_seed_n_is_refused(tmp_path: Path, name: str) -> None:
+    """A copy of td3/seed0 named seed00 once counted seed 0 twice ("3 of TD3"), exit 0."""
+    runs = tmp_path / "runs"
+    four_runs(runs)
+    copy = layout.run(TASK, "td3", 0, runs).parent / name
+    shutil.copytree(layout.run(TASK, "td3", 0, runs), copy)
+    refused(
+        tmp_path,
+        runs,
+        f"{copy}: not a run's folder name; expected seed<N>, N a whole number >= 0 without "
+        "leading zeros (seed0, seed12)",
+    )
+
+
+def test_the_same_seed_twice_is_refused(tmp_path: Path) -> None:
+    """A copy of td3/seed0 as td3/seed2: its run.json names seed 0 (ede.runs.read_run)."""
+    runs = tmp_path / "runs"
+    four_runs(runs)
+    copy = layout.run(TASK, "td3", 2, runs)
+    shutil.copytree(layout.run(TASK, "td3", 0, runs), copy)
+    refused(tmp_path, runs, f"{copy / 'run.json'}: seed is 0, expected 2")
+
+
+@pytest.mark.parametrize(
+    ("params", "algo", "difference"),
+    [
+        ({"td3": TD3Config(lr=0.002)}, "td3", "td3.lr = 0.002, but {seed0} was made with 0.001"),
+        (
+            {"td3": TD3Config(update_schedule="step")},
+            "td3",
+            'td3.update_schedule = "step", but {seed0} was made with "episode"',
+        ),
+        (
+            {"ede_td3": EdeTD3Config(bound_scale=2.0)},
+            "ede-td3",
+            "ede_td3.bound_scale = 2.0, but {seed0} was made with 1.0",
+        ),
+    ],
+)
+def test_a_run_made_with_other_params_than_its_tasks_others_is_refused(
+    tmp_path: Path, params: dict, algo: Algo, difference: str
+) -> None:
+    """Each seed 1 made with ``params``: the first found, ``algo``'s, is refused against its
+    algorithm's seed 0 (td3's params are both algorithms', ede_td3's EDE-TD3's)."""
+    runs = tmp_path / "runs"
+    four_runs(runs, **params)
+    refused(
+        tmp_path,
+        runs,
+        f"{layout.run(TASK, algo, 1, runs) / 'run.json'}: made with "
+        f"{difference.format(seed0=layout.run(TASK, algo, 0, runs))}; a task's runs share every "
+        "param that changes a result",
+    )
+
+
+def test_a_td3_run_against_an_ede_td3_run_of_other_td3_params_is_refused(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    finished_run(runs, "td3", 0)
+    finished_run(runs, "ede-td3", 0, td3=TD3Config(tau=0.01))
+    refused(
+        tmp_path,
+        runs,
+        f"{layout.run(TASK, 'ede-td3', 0, runs) / 'run.json'}: made with td3.tau = 0.01, but "
+        f"{layout.run(TASK, 'td3', 0, runs)} was made with 0.005; a task's runs share every "
+        "param that changes a result",
+    )
+
+
+@pytest.mark.parametrize("name", ["eval.csv", "diagnostics.csv", "metrics.json"])
+def test_a_file_other_than_its_run_wrote_is_refused_by_name(tmp_path: Path, name: str) -> None:
+    runs = tmp_path / "runs"
+    four_runs(runs)
+    path = layout.run(TASK, "ede-td3", 1, runs) / name
+    recorded = json.loads((path.parent / "run.json").read_text())["sha256"][name]
+    text = path.read_text()
+    last = max(i for i, c in enumerate(text) if c.isdigit())  # its last number's last digit
+    path.write_text(text[:last] + ("2" if text[last] == "1" else "1") + text[last + 1 :])
+    refused(
+        tmp_path,
+        runs,
+        f"{path}: not the file its run wrote (SHA-256 {sha256(path)[:12]}…, run.json records "
+        f"{recorded[:12]}…)",
+    )
+
+
+def test_a_file_whose_checksum_its_run_records_is_refused_where_missing(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    four_runs(runs)
+    path = layout.run(TASK, "td3", 1, runs) / "diagnostics.csv"
+    path.unlink()
+    refused(tmp_path, runs, f"{path}: missing, though run.json records its SHA-256")
+
+
+def test_a_figure_is_drawn_only_over_a_figure_results_drew(tmp_path: Path) -> None:
+    """The figures folder may hold other files: a figure is drawn where nothing is or over the
+    figure this command drew there (its mark), never over a user's file of the same name."""
+    runs = tmp_path / "runs"
+    for seed in range(2):
+        for algo in ("td3", "ede-td3"):
+            write_run(runs, algo, seed, np.linspace(-200, -100, 41))
+    figures = tmp_path / "figures"
+    first = results(runs, figures)
+    assert first.returncode == 0, first.stderr
+    again = results(runs, figures)  # its own figures: drawn over
+    assert again.returncode == 0, again.stderr
+    drawn = sorted(p.name for p in figures.glob("*.png"))
+    mine = figures / drawn[0]
+    mine.write_bytes(b"a user's picture")
+    refused = results(runs, figures)
+    assert refused.returncode == 2
+    assert refused.stderr.splitlines() == [
+        f"Error: {mine}: a file a results figure writer did not write there, or one changed "
+        "since; expected a new path or that writer's own file: move it, or choose another place"
+    ]
+    assert mine.read_bytes() == b"a user's picture" and refused.stdout == ""

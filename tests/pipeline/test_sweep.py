@@ -32,7 +32,7 @@ from ede_pipeline.sweep import (
     train_command,
     train_runs,
 )
-from tests.support import BIN, dvc, run, scratch_copy
+from tests.support import BIN, WALL_TIMES, dvc, run, scratch_copy, untimed_run_json
 
 pytestmark = pytest.mark.slow
 
@@ -41,7 +41,7 @@ STAGES = [f"train@{TASK}-{algo}-{seed}" for algo in ("td3", "ede-td3") for seed 
 BROKEN = "train@ede/ReacherVertical-v0-td3-1"
 BROKEN_RUN = f"data/runs/{TASK}/td3/seed1"
 HELD = "being written by process"  # what the held run's command says
-UNTIMED = {"metrics.json", "eval.csv"}  # the run's files that hold wall times
+UNTIMED = WALL_TIMES  # the run's files that hold wall times, and run.json their checksums
 
 
 def ok(result: subprocess.CompletedProcess[str]) -> str:
@@ -100,7 +100,12 @@ def record_of(copy: Path, stages: list[str] = STAGES) -> dict[str, Any]:
         with (run / "eval.csv").open() as file:
             returns = [(row["step"], row["mean_return"]) for row in csv.DictReader(file)]
         metrics = json.loads((run / "metrics.json").read_text())
-        record[stage] = {"lock": entry, "returns": returns, "final": metrics["final_return"]}
+        record[stage] = {
+            "lock": entry,
+            "returns": returns,
+            "final": metrics["final_return"],
+            "run": untimed_run_json(run / "run.json"),
+        }
     return record
 
 

@@ -192,6 +192,19 @@ def test_an_address_where_nothing_listens_is_one_line_before_anything_runs(proje
     assert sorted(p.name for p in project.iterdir()) == before
 
 
+def test_an_empty_address_is_one_line_before_anything_runs(project: Path) -> None:
+    """``--address ""`` is an address given, not none: refused before the upstream stages run
+    (it once reached Ray and its ``ValueError: Invalid address format`` after them)."""
+    before = sorted(p.name for p in project.iterdir())
+    result = CliRunner().invoke(main, ["sweep", "--executor", "ray", "--address", ""])
+    assert result.exit_code == 2
+    assert result.stderr == (
+        "Error: --address '': expected HOST:PORT, ray://HOST:PORT or auto, as "
+        "`ray start --head` prints it\n"
+    )
+    assert sorted(p.name for p in project.iterdir()) == before
+
+
 def test_ray_address_from_the_environment_is_checked_too(
     project: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
