@@ -27,6 +27,7 @@ __all__ = [
     "place",
     "remove_stale_temporaries",
     "save_tensors",
+    "settle_file",
     "sha256",
     "write_atomically",
     "write_json",
@@ -116,7 +117,11 @@ def file_problem(path: str | Path, kind: str) -> str | None:
         return None
     try:
         mark = json.loads(_file_mark(place(path)).read_text())
-        ours = mark["kind"] == kind and mark["sha256"] == sha256(path)
+        ours = mark["kind"] == kind and (
+            mark["sha256"] == sha256(path)
+            # a writer of this kind stopped midway: what it left is its own or its forerunner's
+            or (mark["sha256"] is None and not _alive(int(mark["writer"])))
+        )
     except (OSError, ValueError, KeyError, TypeError):
         ours = False
     if ours:
@@ -127,11 +132,23 @@ def file_problem(path: str | Path, kind: str) -> str | None:
     )
 
 
-def mark_file(path: str | Path, kind: str) -> None:
+def mark_file(path: str | Path, kind: str, writing: bool = False) -> None:
     """Record that a writer of ``kind`` wrote the file ``path`` as it is now
-    (:func:`file_problem`)."""
+    (:func:`file_problem`); with ``writing``, that this process is about to write it (before it
+    does, so that a writer killed between its write and its mark leaves a file still its own)."""
     path = place(path)
-    write_text(_file_mark(path), json.dumps({"kind": kind, "sha256": sha256(path)}) + "\n")
+    digest = None if writing else sha256(path)
+    mark = {"kind": kind, "sha256": digest, "writer": os.getpid()}
+    write_text(_file_mark(path), json.dumps(mark) + "\n")
+
+
+def settle_file(path: str | Path, kind: str) -> None:
+    """After a writer of ``kind`` is done with ``path`` (finished or failed): the file marked as
+    it is now, or, where there is no file, no mark left behind."""
+    if Path(path).is_file():
+        mark_file(path, kind)
+    else:
+        _file_mark(place(path)).unlink(missing_ok=True)
 
 
 def _read_mark(folder: Path) -> dict[str, Any] | None:

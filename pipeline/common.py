@@ -19,6 +19,7 @@ from ede.atomic import (
     file_problem,
     mark_file,
     ownership_problem,
+    settle_file,
     unwritable,
 )
 from ede.config import Params, ParamsError, load_params
@@ -178,11 +179,15 @@ def holding(
     except OutputBusy as error:
         raise BadInput(str(error)) from None
     with lock:
+        written = [(file, kind) for file, kind in files if file is not None]
         try:
-            yield
-            for file, kind in files:
-                if file is not None and file.is_file():
-                    mark_file(file, kind)
+            for file, kind in written:  # marked first: a kill midway leaves them the stage's
+                mark_file(file, kind, writing=True)
+            try:
+                yield
+            finally:
+                for file, kind in written:
+                    settle_file(file, kind)
         except NotOurs as error:  # what the checks above could not see (a nested folder)
             raise BadInput(str(error)) from None
         except NotWritten as error:

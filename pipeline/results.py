@@ -815,6 +815,7 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
 
     def save(figure: Any, name: str) -> None:
         figures.mkdir(parents=True, exist_ok=True)
+        mark_file(figures / f"{name}.png", FIGURE_KIND, writing=True)
         figure.savefig(figures / f"{name}.png", dpi=120)
         mark_file(figures / f"{name}.png", FIGURE_KIND)
 

@@ -4,6 +4,7 @@ progress file: a place it cannot write is one line naming it, exit 2, and nothin
 from __future__ import annotations
 
 import errno
+import json
 import os
 import shutil
 from pathlib import Path
@@ -567,3 +568,28 @@ def test_a_name_too_long_for_the_filesystem_is_refused_before_work(
     refused(run("task-code", "x" * length), workdir, "bytes; at most 238 fit here")
     fits = CliRunner().invoke(main, run("task-code", "y" * 238))
     assert fits.exit_code == 0, fits.output
+
+
+def test_a_file_output_whose_writer_was_killed_before_marking_it_is_still_its_own(
+    workdir: Path,
+) -> None:
+    """A stage marks each file output before it writes it: killed between the write and the
+    final mark, the file it left is its own, and the rerun replaces it."""
+    import subprocess
+    import sys
+
+    from ede.atomic import file_problem
+
+    (workdir / "empty").mkdir()
+    args = [*FILE_OUTPUTS["report metrics"], "out.file"]
+    assert CliRunner().invoke(main, args).exit_code == 0
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], text=True,
+                          capture_output=True, check=True)  # fmt: skip
+    mark = json.loads((workdir / ".out.file.ede-output.json").read_text())
+    mark.update(sha256=None, writer=int(gone.stdout))  # a writer that died before its mark
+    (workdir / ".out.file.ede-output.json").write_text(json.dumps(mark))
+    (workdir / "out.file").write_text("half of what it meant to write")
+    assert file_problem(workdir / "out.file", "report metrics") is None
+    again = CliRunner().invoke(main, args)
+    assert again.exit_code == 0, again.output
+    assert json.loads((workdir / ".out.file.ede-output.json").read_text())["sha256"] is not None
