@@ -98,4 +98,5 @@ def test_the_closure_follows_imports_inside_functions() -> None:
         REPO / "envs/reacher_push.py",
         REPO / "envs/reacher.py",
         REPO / "envs/_numerics.py",
+        REPO / "envs/_actions.py",
     }
