@@ -8,7 +8,8 @@ import os
 import re
 import shutil
 import tempfile
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from fnmatch import fnmatchcase
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -27,11 +28,11 @@ __all__ = [
     "place",
     "remove_stale_temporaries",
     "save_tensors",
-    "settle_file",
     "sha256",
     "write_atomically",
     "write_json",
     "write_text",
+    "writing_files",
 ]
 
 # Every folder a stage writes holds this file: what wrote it (its ``kind``) and the names of the
@@ -142,13 +143,23 @@ def mark_file(path: str | Path, kind: str, writing: bool = False) -> None:
     write_text(_file_mark(path), json.dumps(mark) + "\n")
 
 
-def settle_file(path: str | Path, kind: str) -> None:
-    """After a writer of ``kind`` is done with ``path`` (finished or failed): the file marked as
-    it is now, or, where there is no file, no mark left behind."""
-    if Path(path).is_file():
-        mark_file(path, kind)
-    else:
-        _file_mark(place(path)).unlink(missing_ok=True)
+@contextmanager
+def writing_files(files: Iterable[tuple[Path, str]]) -> Iterator[None]:
+    """The block writes ``files`` (each a path and its writer's kind): each is marked as being
+    written before (a writer killed between its write and its final mark leaves a file still its
+    own, :func:`file_problem`), then, however the block ends, marked as it is, or left with no
+    mark where there is no file."""
+    files = list(files)
+    for path, kind in files:
+        mark_file(path, kind, writing=True)
+    try:
+        yield
+    finally:
+        for path, kind in files:
+            if path.is_file():
+                mark_file(path, kind)
+            else:
+                _file_mark(place(path)).unlink(missing_ok=True)
 
 
 def _read_mark(folder: Path) -> dict[str, Any] | None:

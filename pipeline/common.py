@@ -17,10 +17,9 @@ from ede.atomic import (
     NotOurs,
     NotWritten,
     file_problem,
-    mark_file,
     ownership_problem,
-    settle_file,
     unwritable,
+    writing_files,
 )
 from ede.config import Params, ParamsError, load_params
 from ede.locks import OutputBusy, exclusive
@@ -179,15 +178,9 @@ def holding(
     except OutputBusy as error:
         raise BadInput(str(error)) from None
     with lock:
-        written = [(file, kind) for file, kind in files if file is not None]
         try:
-            for file, kind in written:  # marked first: a kill midway leaves them the stage's
-                mark_file(file, kind, writing=True)
-            try:
+            with writing_files((file, kind) for file, kind in files if file is not None):
                 yield
-            finally:
-                for file, kind in written:
-                    settle_file(file, kind)
         except NotOurs as error:  # what the checks above could not see (a nested folder)
             raise BadInput(str(error)) from None
         except NotWritten as error:

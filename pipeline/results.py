@@ -87,7 +87,7 @@ import gymnasium
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ede.atomic import mark_file
+from ede.atomic import writing_files
 from ede.config import Params, ReportConfig
 from ede.provenance import INSTRUCTION_SETS
 from ede.report import (
@@ -108,7 +108,7 @@ from ede.stats import Interval, bootstrap_mean, divergence, separation, steps_to
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, check_outputs, params_option
 
-FIGURE_KIND = "results figure"  # what a figure's mark says drew it (ede.atomic.mark_file)
+FIGURE_KIND = "results figure"  # what a figure's mark says drew it (ede.atomic.writing_files)
 ZERO_EPISODES = (
     100  # episodes behind a task's zero-action return (its standard error ~10 on Reacher's)
 )
@@ -815,9 +815,8 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
 
     def save(figure: Any, name: str) -> None:
         figures.mkdir(parents=True, exist_ok=True)
-        mark_file(figures / f"{name}.png", FIGURE_KIND, writing=True)
-        figure.savefig(figures / f"{name}.png", dpi=120)
-        mark_file(figures / f"{name}.png", FIGURE_KIND)
+        with writing_files([(figures / f"{name}.png", FIGURE_KIND)]):
+            figure.savefig(figures / f"{name}.png", dpi=120)
 
     # Every input is read and checked: from here on, print and draw.
     for family, found in families.items():

@@ -231,7 +231,7 @@ def check_group_memory(
     critic = Critic(obs_size, code_size, k, td3.hidden, plan_step, td3.critic_action_repeat).sizes
     capacity = min(td3.buffer_size, params.runs.budgets[task])  # as ede.training sizes it
     one = group_memory(1, capacity, obs_size, code_size, [actor, critic, critic])
-    need = group_memory(members, capacity, obs_size, code_size, [actor, critic, critic])
+    need = members * one
     free, where = free_memory(device)
     usable = int(USABLE_SHARE * free)
     if need <= usable:
