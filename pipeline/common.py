@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import functools
 import os
+import signal
 import subprocess
 import sys
+import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
@@ -190,26 +193,53 @@ def holding(
 # A command that starts ede-pipeline commands of its own (the sweep its runs, an experiment its
 # sweep) names itself here, and each such child ends when it does (follow_parent).
 PARENT_ENV = "EDE_PARENT"
+FOLLOW_SECONDS = 1.0  # how often a follower looks for the process it follows
 
 
 def follow_parent() -> None:
-    """End with the process ``EDE_PARENT`` names, however it ends (SIGKILL included): Linux
-    sends this process SIGTERM when its parent dies (``PR_SET_PDEATHSIG``), so that killing an
-    experiment stops its sweep, and killing a sweep stops its runs (they resume from their
-    checkpoints), instead of leaving them running on, holding their outputs' locks. A parent
-    that died before this call is seen at once. Elsewhere than Linux, nothing. The variable
-    names this process's parent only: it is removed here, so that what this process starts
-    (DVC's stages, say) does not take it for its own."""
-    parent = os.environ.pop(PARENT_ENV, "")
-    if not parent.isdigit() or not sys.platform.startswith("linux"):
-        return
-    import ctypes
-    import signal
+    """End with the process ``EDE_PARENT`` names, however it ends (SIGKILL included), so that
+    killing an experiment stops its sweep, and killing a sweep stops its runs (they resume from
+    their checkpoints), instead of leaving them running on, holding their outputs' locks.
 
-    pr_set_pdeathsig = 1  # <linux/prctl.h>
-    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
-    if os.getppid() != int(parent):
-        os.kill(os.getpid(), signal.SIGTERM)
+    The named process need not be this one's parent: DVC starts a stage's command through a
+    shell, and ``/bin/sh`` (dash) waits for the command instead of becoming it. So a thread
+    looks, once a :data:`FOLLOW_SECONDS`, whether the process is still among this one's
+    ancestors; once it is not (it ended, and what it started was handed to init, or its PID
+    was taken since), this process gets SIGTERM, as from ``kill``. A process that ended before
+    this call is seen at once. Without ``/proc``, only the parent itself is followed.
+
+    The variable names this process's follower only: it is removed here, so that what this
+    process starts (DVC's stages, say) does not take it for its own."""
+    parent = os.environ.pop(PARENT_ENV, "")
+    if not parent.isdigit():
+        return
+    followed = int(parent)
+    if followed not in _ancestors():
+        _end()
+        return
+    threading.Thread(target=_follow, args=(followed,), name="follow-parent", daemon=True).start()
+
+
+def _follow(followed: int) -> None:
+    while followed in _ancestors():
+        time.sleep(FOLLOW_SECONDS)
+    _end()
+
+
+def _end() -> None:
+    os.kill(os.getpid(), signal.SIGTERM)
+
+
+def _ancestors() -> Iterator[int]:
+    """This process's parent, its parent's parent, and so on up to (not including) init."""
+    pid = os.getppid()
+    while pid > 1:
+        yield pid
+        try:
+            stat = Path(f"/proc/{pid}/stat").read_text()
+        except OSError:  # no /proc here, or the process has just ended
+            return
+        pid = int(stat.rsplit(")", 1)[1].split()[1])  # after the name: state, then the PPID
 
 
 # The values of MUJOCO_GL that MuJoCo accepts on Linux, and "disable", which needs no OpenGL.

@@ -20,6 +20,9 @@ from tests.support import REPO
 
 # Render headless (Mesa's EGL needs no GPU or display); `MUJOCO_GL=osmesa pytest` overrides.
 os.environ.setdefault("MUJOCO_GL", "egl")
+# DVC runs a stage's command with $SHELL, /bin/sh where it is unset: in CI, in containers, under
+# cron. Run it so here too: dash does not become the command it runs, and a stage must work so.
+os.environ.pop("SHELL", None)
 
 
 @pytest.fixture(scope="session")

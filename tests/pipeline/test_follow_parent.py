@@ -6,12 +6,14 @@ of the outputs a rerun must write."""
 from __future__ import annotations
 
 import os
+import shlex
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import pytest
 import yaml
 
 from tests.support import BIN, REPO
@@ -33,15 +35,25 @@ def alive(pid: int) -> bool:
     return state != "Z"  # a zombie has ended; its parent (here: none) has not reaped it
 
 
-def test_a_command_whose_parent_is_killed_ends_too(tmp_path: Path) -> None:
+def children(pid: int) -> list[int]:
+    return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+
+
+# DVC runs a stage's command as `$SHELL -c CMD`, `/bin/sh` where SHELL is unset (as under CI):
+# bash becomes the command, dash waits for it, so the run's parent is then the shell.
+@pytest.mark.parametrize("shell", ["", "/bin/sh"])
+def test_a_command_whose_parent_is_killed_ends_too(tmp_path: Path, shell: str) -> None:
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     params["runs"].update(
         tasks={"ede/Point-v0": "point"}, seeds=[0], budgets={"ede/Point-v0": 1_000_000}
     )
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     train = [str(BIN / "ede-pipeline"), "train", "--task", "ede/Point-v0", "--algo", "td3"]
+    train += ["--seed", "0", "--out", "run"]
+    if shell:
+        train = [shell, "-c", shlex.join(train)]
     parent = subprocess.Popen(
-        [sys.executable, "-c", PARENT, *train, "--seed", "0", "--out", "run"],
+        [sys.executable, "-c", PARENT, *train],
         cwd=tmp_path,
         stdout=subprocess.PIPE,
         text=True,
@@ -52,10 +64,12 @@ def test_a_command_whose_parent_is_killed_ends_too(tmp_path: Path) -> None:
     while not (tmp_path / "run" / "eval.csv").exists():  # training: past the start
         assert time.monotonic() < deadline and alive(child), "the run did not start"
         time.sleep(0.5)
+    if shell:  # the shell is still there, waiting for the run it started
+        assert len(children(child)) == 1, f"{shell} became the command it ran"
     parent.send_signal(signal.SIGKILL)
     parent.wait()
     deadline = time.monotonic() + 30
-    while alive(child):
+    while alive(child):  # the shell ends once the run has
         assert time.monotonic() < deadline, "the run went on after its parent was killed"
         time.sleep(0.2)
 
