@@ -29,7 +29,7 @@ STAGES = {
     "train": "ede_pipeline.train:train",
     "report": "ede_pipeline.report:report",
     "results": "ede_pipeline.results:results",
-    "sweep": "ede_pipeline.sweep:sweep",
+    "sweep": "ede_pipeline.sweep.command:sweep",
     "experiment": "ede_pipeline.experiments:experiment",
 }
 

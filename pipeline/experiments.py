@@ -476,7 +476,7 @@ def run_experiment(
     checkpoints. The copy's code is brought up to this checkout's each time, unless that would
     run finished runs again (see --keep-code).
     """
-    from ede_pipeline.sweep import sweep
+    from ede_pipeline.sweep.command import sweep
 
     if not Path("dvc.yaml").is_file() or not (Path(".dvc")).is_dir():
         raise BadInput(f"run from the repository root (no dvc.yaml and .dvc/ in {Path.cwd()})")

@@ -8,7 +8,7 @@ from pathlib import Path
 import yaml
 
 from ede_pipeline import layout
-from ede_pipeline.sweep import train_command
+from ede_pipeline.sweep.plan import train_command
 from tests.support import REPO
 
 

@@ -24,7 +24,7 @@ import yaml
 
 from ede.config import load_params
 from ede.locks import exclusive
-from ede_pipeline.sweep import (
+from ede_pipeline.sweep.plan import (
     Job,
     RunId,
     group_jobs,

@@ -24,7 +24,7 @@ from click.testing import CliRunner
 
 from ede_pipeline.cli import main
 from ede_pipeline.common import BadInput
-from ede_pipeline.sweep import RAY_CONNECT_TIMEOUT, check_ray_address
+from ede_pipeline.sweep.on_ray import RAY_CONNECT_TIMEOUT, check_ray_address
 from tests.support import REPO
 
 

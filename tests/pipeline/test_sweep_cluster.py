@@ -42,7 +42,8 @@ import psutil
 import pytest
 
 from ede_pipeline import layout
-from ede_pipeline.sweep import Job, RayExecutor, check_ray_address
+from ede_pipeline.sweep.on_ray import RayExecutor, check_ray_address
+from ede_pipeline.sweep.plan import Job
 from tests.support import BIN, dvc, ok, one_task_upstream, run, tool_env, train_record
 
 pytestmark = pytest.mark.slow

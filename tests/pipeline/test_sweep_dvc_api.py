@@ -1,7 +1,7 @@
 """The DVC internals that ``ede-pipeline sweep`` drives, checked by name, signature and behaviour.
 
-``pipeline/sweep.py`` does the steps of ``dvc repro`` itself, through DVC's Python API, private
-functions included (``dvc.stage.run._make_cmd``, ...), which any DVC release may move. So
+``pipeline/sweep/`` does the steps of ``dvc repro`` itself, through DVC's Python API, two of them
+with no public form (the repository's lock, the run cache), which any DVC release may move. So
 ``pyproject.toml`` bounds dvc below the next minor release, and this file is what moving that bound
 takes: install the new DVC, run it, and each failure names the internal that moved — here, in
 seconds, rather than in a sweep hours in.
@@ -29,7 +29,7 @@ from click.testing import CliRunner, Result
 from ede_pipeline.cli import main
 from tests.support import REPO, dvc
 
-# Everything of DVC's that pipeline/sweep.py imports or calls ("module:attribute"), with the
+# Everything of DVC's that pipeline/sweep/ imports or calls ("module:attribute"), with the
 # parameters it passes by name (None: not called, or called with no arguments).
 INTERNALS: dict[str, list[str] | None] = {
     "dvc.repo:Repo": ["root_dir"],
@@ -41,15 +41,9 @@ INTERNALS: dict[str, list[str] | None] = {
     "dvc.stage:Stage.changed": None,
     "dvc.stage:Stage.remove_outs": ["ignore_remove", "force"],
     "dvc.stage:Stage.save_deps": None,
-    "dvc.stage:Stage.save": ["run_cache"],
-    "dvc.stage:Stage.commit": None,
-    "dvc.stage:Stage.dump": None,  # passes its keywords on to ProjectFile.dump
-    "dvc.dvcfile:ProjectFile.dump": ["stage", "update_pipeline"],
+    "dvc.repo:Repo.commit": ["target", "force"],
     "dvc.stage.cache:StageCache.restore": ["stage"],
     "dvc.stage.cache:RunCacheNotFoundError": None,
-    "dvc.stage.run:_enforce_cmd_list": ["cmd"],
-    "dvc.stage.run:_make_cmd": ["executable", "cmd"],
-    "dvc.stage.run:get_executable": None,
     "dvc.env:DVC_ROOT": None,
     "dvc.env:DVC_STAGE": None,
     "dvc.lock:LockError": None,
@@ -76,15 +70,16 @@ def _resolve(name: str) -> Any:
 
 
 def test_every_dvc_import_of_the_sweep_is_checked_here() -> None:
-    tree = ast.parse((REPO / "pipeline/sweep.py").read_text())
     imported = {
         f"{node.module}:{alias.name}"
-        for node in ast.walk(tree)
+        for module in sorted((REPO / "pipeline/sweep").glob("*.py"))
+        for node in ast.walk(ast.parse(module.read_text()))
         if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("dvc")
         for alias in node.names
     }
+    assert imported, "no import of DVC found: the search looks in the wrong place"
     missing = sorted(imported - INTERNALS.keys())
-    assert not missing, f"pipeline/sweep.py imports {missing}: add them to INTERNALS"
+    assert not missing, f"pipeline/sweep/ imports {missing}: add them to INTERNALS"
 
 
 @pytest.mark.parametrize("name", list(INTERNALS))
@@ -93,7 +88,7 @@ def test_the_internals_the_sweep_calls_are_there_with_the_arguments_it_passes(na
         found = _resolve(name)
     except (ImportError, AttributeError) as error:
         pytest.fail(
-            f"pipeline/sweep.py uses {name}, which DVC {_dvc_version()} does not have "
+            f"pipeline/sweep/ uses {name}, which DVC {_dvc_version()} does not have "
             f"({error}); see the docstring of this file"
         )
     passed = INTERNALS[name]
@@ -103,7 +98,7 @@ def test_the_internals_the_sweep_calls_are_there_with_the_arguments_it_passes(na
     parameters = inspect.signature(function).parameters
     absent = [p for p in passed if p not in parameters]
     assert not absent, (
-        f"pipeline/sweep.py passes {', '.join(absent)} to {name}, whose signature "
+        f"pipeline/sweep/ passes {', '.join(absent)} to {name}, whose signature "
         f"in DVC {_dvc_version()} is {inspect.signature(function)}"
     )
 

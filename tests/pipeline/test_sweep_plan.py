@@ -15,16 +15,9 @@ import pytest
 from ede.config import Params
 from ede_pipeline.common import read_params
 from ede_pipeline.progress import PROGRESS_ENV, progress, read_progress
-from ede_pipeline.sweep import (
-    Job,
-    RunId,
-    Tally,
-    default_group_size,
-    group_jobs,
-    job_steps,
-    progress_file,
-    train_command,
-)
+from ede_pipeline.sweep.execute import progress_file
+from ede_pipeline.sweep.plan import Job, RunId, default_group_size, group_jobs, train_command
+from ede_pipeline.sweep.tally import Tally, job_steps
 
 TASK = "ede/ReacherVertical-v0"
 
@@ -99,7 +92,9 @@ def test_the_overall_line_lives_on_a_terminal_and_ends_in_a_log(tmp_path: Path) 
     script = f"""
 import time
 from pathlib import Path
-from ede_pipeline.sweep import Job, Tally, progress_file
+from ede_pipeline.sweep.execute import progress_file
+from ede_pipeline.sweep.plan import Job
+from ede_pipeline.sweep.tally import Tally
 Tally.POLL = 0.05
 job = Job("t", [["ede-pipeline", "train", "--task", "{TASK}"]], ".", {{}}, r"{tmp_path}/t.log")
 tally = Tally(1)

@@ -1,0 +1,37 @@
+"""``ede-pipeline sweep``: the out-of-date train stages of ``dvc.yaml``, run in parallel, recorded by DVC.
+
+``dvc repro`` runs one stage at a time, and two ``dvc repro`` processes in one checkout race on the
+repository's lock. A sweep takes that lock once, as ``dvc repro`` does, and inside it:
+
+1. brings the train stages' upstream stages (collect, pretrain) up to date with ``dvc repro``,
+   one at a time: they are few and cheap;
+2. asks DVC which train stage instances are out of date (``Stage.changed``, what ``dvc status``
+   reports); for each, it does what ``dvc repro`` does before the command — removes the stage's
+   outputs (never the run's ``checkpoint/``, which is not one) and restores the run from DVC's run
+   cache if this very run (command, dependencies, params) was recorded before;
+3. with ``--group-size N`` (by default every seed on CUDA; on CPU as many as leave every job a
+   process: ``default_group_size``), gathers the runs of
+   one task and algorithm into processes of up to N (``ede-pipeline train --seeds``: their
+   updates batched, each run's outputs those it gets alone), then
+   runs the commands of the others in parallel — threads each waiting on one child process
+   (``--executor local``), or one Ray task each (``--executor ray``);
+4. records each run as it finishes, exactly as ``dvc repro`` would: the stage's dependencies and
+   outputs hashed, the outputs committed to DVC's cache and the run cache, its ``dvc.lock`` entry
+   written. A following ``dvc repro`` or ``dvc status`` sees it as up to date.
+
+A run that fails (non-zero exit, a killed process) is reported with the path of its log and
+recorded nowhere; the others are recorded all the same, and the sweep exits 1. Its checkpoint
+stays, so the next ``sweep`` (or ``dvc repro``) runs only what is still out of date and resumes
+that run where it stopped. On Ray, a run lost with its worker or node is not a failure: Ray
+starts it again (``--retries`` times at most) on the nodes there are, and it resumes from its
+checkpoint within this sweep.
+
+On Ray, every node runs the command in this very checkout, which must be at the same path on every
+node (a shared filesystem); only this process touches DVC. A cluster without a shared filesystem
+runs each stage as a batch job instead (``scripts/batch-job.sh``: pull, run, push; README.md).
+
+The package, one job a module: :mod:`.plan` (what to run: the runs, their commands, groups),
+:mod:`.stages` (DVC: which stages are out of date, upstream stages, recording),
+:mod:`.execute` (running a job's commands; the local executor), :mod:`.on_ray` (the Ray
+executor and its address check), :mod:`.tally` (progress) and :mod:`.command` (the CLI).
+"""

@@ -1,0 +1,280 @@
+"""``ede-pipeline sweep``: the command, and what it reports of each run (the package's
+docstring says what a sweep does)."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import click
+from click.core import ParameterSource
+
+from ede.atomic import claim, unwritable
+from ede_pipeline.common import DEFAULT_PARAMS, BadInput, check_outputs, read_params
+from ede_pipeline.sweep.execute import (
+    Executor,
+    LocalExecutor,
+    Outcome,
+    attempts_file,
+    problem,
+)
+from ede_pipeline.sweep.on_ray import RETRIES, RayExecutor, check_ray_address
+from ede_pipeline.sweep.plan import (
+    Job,
+    default_group_size,
+    group_jobs,
+    seed_by_seed,
+    train_runs,
+)
+from ede_pipeline.sweep.stages import (
+    bring_upstream_up_to_date,
+    collect_stages,
+    record,
+    repo_lock,
+    restore_from_run_cache,
+    stage_argvs,
+    stage_env,
+)
+from ede_pipeline.sweep.tally import Tally
+
+if TYPE_CHECKING:
+    from dvc.stage import Stage
+
+LOGS = Path(".dvc") / "tmp" / "sweep"  # DVC's own git-ignored scratch folder
+LOGS_KIND = "folder of sweep logs"
+TAIL = 20  # lines of a failed run's log shown in the report
+
+
+def _finite(param: click.Parameter, value: float) -> float:
+    """Refuse ``inf`` and ``nan``, which click's ranges let through."""
+    if not math.isfinite(value):
+        raise click.BadParameter(f"{value} is not a finite number", param=param)
+    return value
+
+
+@click.command()
+@click.argument("targets", nargs=-1)
+@click.option(
+    "-j",
+    "--jobs",
+    type=click.IntRange(min=1),
+    help="Runs at once  [default: local: the number of cores; ray: as the cluster fits]",
+)
+@click.option(
+    "--executor",
+    type=click.Choice(["local", "ray"]),
+    default="local",
+    show_default=True,
+    help="Child processes on this machine, or Ray tasks on a cluster.",
+)
+@click.option(
+    "--address",
+    help="Ray: the cluster to join (`ray start --head` prints it; "
+    "default: $RAY_ADDRESS, else a new local Ray instance). One where no Ray cluster "
+    "answers within 10 s is refused before anything runs.",
+)
+@click.option(
+    "--retries",
+    type=click.IntRange(min=0),
+    default=RETRIES,
+    show_default=True,
+    help="Ray: times a run lost with its Ray worker or node is started again on the "
+    "nodes there are (it resumes from its checkpoint). A run whose command fails "
+    "is not.",
+)
+@click.option(
+    "--cpus-per-run",
+    type=click.FloatRange(min=0, min_open=True),
+    default=1.0,
+    callback=lambda ctx, param, value: _finite(param, value),
+    show_default=True,
+    help="Ray: the num_cpus of each run's task.",
+)
+@click.option(
+    "--group-size",
+    type=click.IntRange(min=1),
+    help="Runs of one task and algorithm trained by one process (`train --seeds`)  "
+    "[default: on CUDA (td3.device cuda, or auto with a GPU) every seed; on CPU as "
+    "many as leave every job a process]",
+)
+@click.option(
+    "--logs",
+    type=click.Path(path_type=Path),
+    default=LOGS,
+    show_default=True,
+    help="Where each run's output goes, one file per stage.",
+)
+@click.pass_context
+def sweep(
+    ctx: click.Context,
+    targets: tuple[str, ...],
+    jobs: int | None,
+    executor: str,
+    address: str | None,
+    retries: int,
+    cpus_per_run: float,
+    group_size: int | None,
+    logs: Path,
+) -> None:
+    """Run the out-of-date train stages in parallel and record each with DVC.
+
+    TARGETS are stages as `dvc repro` takes them, `*` a wildcard (default: every run of
+    dvc.yaml's `train` stage, e.g. `'train@ede/Reacher*'` only those).
+    Their upstream stages are brought up to date first with `dvc repro`. Exits 1 if any run failed;
+    what succeeded is recorded all the same, and running the sweep again runs only the rest.
+    """
+    from dvc.exceptions import DvcException, NotDvcRepoError
+    from dvc.repo import Repo
+
+    if not Path("dvc.yaml").is_file():
+        raise BadInput(f"run from the repository root (no dvc.yaml in {Path.cwd()})")
+    if executor == "local" and address:
+        raise BadInput("--address is for --executor ray")
+    if executor == "local" and ctx.get_parameter_source("retries") != ParameterSource.DEFAULT:
+        raise BadInput(
+            "--retries is for --executor ray (a local run that fails is reported, "
+            "and the next sweep resumes it)"
+        )
+    if executor == "ray":
+        given = address is not None
+        check_ray_address(
+            address if given else os.environ.get("RAY_ADDRESS"),
+            name="--address" if given else "RAY_ADDRESS",
+        )
+    params = read_params(DEFAULT_PARAMS)  # bad params end here, before anything runs
+    runs = train_runs(params)
+    # A folder given for the logs is checked as every output is (new, empty or an earlier
+    # sweep's), and marked; the default is inside DVC's own scratch folder, where no user's file is.
+    chosen = ctx.get_parameter_source("logs") != ParameterSource.DEFAULT
+    try:
+        if chosen:
+            check_outputs((logs, LOGS_KIND))
+        elif problem := unwritable(logs, directory=True):
+            raise BadInput(problem)
+    except BadInput as error:
+        raise BadInput(f"--logs {error.format_message()}") from None
+    try:
+        Repo(".").close()
+    except NotDvcRepoError:
+        raise BadInput(
+            f"{Path.cwd()}: dvc.yaml but no DVC repository; run `dvc init` (in a git "
+            "repository) first"
+        ) from None
+
+    with Repo(".") as repo:
+        stages = collect_stages(repo, targets)
+        bring_upstream_up_to_date(repo, stages)
+
+    with Repo(".") as repo, repo_lock(repo):
+        stages = collect_stages(repo, targets)  # the index as it is after the upstream stages ran
+        stale = [stage for stage in stages if stage.changed()]
+        click.echo(f"sweep: {len(stale)} of {len(stages)} stages out of date", err=True)
+        if not stale:
+            return
+        if chosen:
+            claim(logs, LOGS_KIND, ("*.log", "*.attempts"))
+        tally = Tally(len(stale))
+        failed: list[str] = []
+        pending: list[Job] = []
+        for stage in stale:
+            try:
+                stage.remove_outs(ignore_remove=False, force=False)
+                if restore_from_run_cache(stage):
+                    record(stage)
+                    click.echo(
+                        tally.line("cached", stage.addressing, "restored from the run cache")
+                    )
+                    continue
+                stage.save_deps()
+            except (DvcException, OSError) as error:  # this stage only; the others go on
+                failed.append(stage.addressing)
+                click.echo(
+                    tally.line(
+                        "FAILED", stage.addressing, f"not started: {type(error).__name__}: {error}"
+                    )
+                )
+                continue
+            log = (Path(repo.root_dir) / logs / f"{_safe(stage.addressing)}.log").resolve()
+            run = runs.get(stage.addressing)
+            pending.append(
+                Job(
+                    stage.addressing,
+                    stage_argvs(stage),
+                    repo.root_dir,
+                    stage_env(stage),
+                    str(log),
+                    runs=(run,) if run else (),
+                )
+            )
+        workers = jobs or (os.cpu_count() if executor == "local" else None)
+        pending = seed_by_seed(
+            group_jobs(pending, group_size or default_group_size(params, len(pending), workers))
+        )
+        logs_of = {job.stage: Path(job.log) for job in pending}
+        for job in pending:
+            attempts_file(job).unlink(missing_ok=True)  # an earlier sweep's
+        runner = _executor(executor, jobs, address, cpus_per_run, retries)
+        by_name = {stage.addressing: stage for stage in stale}
+        tally.track(pending, params.runs.budgets)
+        with tally.watch():
+            for outcome in runner.map_unordered(pending):
+                _report(outcome, by_name, logs_of[outcome.stage], tally, failed)
+
+    recorded = len(stale) - len(failed)
+    click.echo(f"sweep: {recorded} recorded, {len(failed)} failed", err=True)
+    if failed:
+        click.echo(
+            "failed (run `ede-pipeline sweep` again to resume them): " + " ".join(failed), err=True
+        )
+        ctx.exit(1)
+
+
+def _report(
+    outcome: Outcome, by_name: dict[str, Stage], log: Path, tally: Tally, failed: list[str]
+) -> None:
+    """Record each run of a finished job, or say why not; a line per run."""
+    from dvc.exceptions import DvcException
+
+    members = outcome.stage.split(" + ")
+    for name in members:
+        why = problem(outcome)
+        if not why:
+            try:
+                record(by_name[name])
+            except (DvcException, OSError) as error:  # reported with the run
+                why = f"not recorded: {type(error).__name__}: {error}"
+        if why:
+            failed.append(name)
+            tally.echo(tally.line("FAILED", name, f"{why}; log: {log}", outcome.stage))
+        else:
+            shared = f" (one process for {len(members)})" if len(members) > 1 else ""
+            lost = outcome.attempts - 1
+            again = (
+                f" (attempt {outcome.attempts}: {lost} lost with a Ray worker or node)"
+                if lost
+                else ""
+            )
+            tally.echo(
+                tally.line("ok", name, f"{outcome.seconds:.1f}s{shared}{again}", outcome.stage)
+            )
+    if problem(outcome) and log.is_file():
+        tally.echo(_tail(log.read_text()))
+
+
+def _executor(
+    kind: str, jobs: int | None, address: str | None, cpus_per_run: float, retries: int
+) -> Executor:
+    if kind == "local":
+        return LocalExecutor(jobs or os.cpu_count() or 1)
+    return RayExecutor(address, cpus_per_run, jobs, retries)
+
+
+def _tail(text: str) -> str:
+    lines = text.rstrip().splitlines()[-TAIL:]
+    return "\n".join(f"    | {line}" for line in lines)
+
+
+def _safe(name: str) -> str:
+    return name.replace("/", "_").replace("@", "__")

@@ -1,0 +1,169 @@
+"""The sweep's progress: a line per finished run and one overall line (runs, retries, steps,
+rate, ETA), from the step counts the runs publish (``EDE_PROGRESS``)."""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import click
+from tqdm import tqdm
+
+from ede_pipeline.progress import read_progress
+from ede_pipeline.sweep.execute import attempts, progress_file
+from ede_pipeline.sweep.plan import Job
+
+
+def _duration(seconds: float) -> str:
+    seconds = round(seconds)
+    hours, rest = divmod(seconds, 3600)
+    return (
+        f"{hours}h{rest // 60:02d}m{rest % 60:02d}s" if hours else f"{rest // 60}m{rest % 60:02d}s"
+    )
+
+
+def job_steps(job: Job, budgets: dict[str, int]) -> int:
+    """The environment steps a train job runs: its runs' budgets (0: not a train job)."""
+    return sum(budgets.get(run.task, 0) for run in job.runs)
+
+
+class Tally:
+    """The sweep's progress: a line per finished run, and one overall line — runs finished,
+    retries (runs started again after a lost Ray worker or node), environment steps done of all,
+    the aggregate rate and an ETA — live at the bottom of a terminal (``watch``), or printed at
+    every tenth of the steps in a log.
+
+    Steps come from the runs' progress files (``EDE_PROGRESS``); the steps a resumed run had
+    already done count as done but not towards the rate. Without step counts (stages other
+    than train) the ETA is from the pace of finished runs.
+    """
+
+    POLL = 2.0  # seconds between two reads of the progress files
+
+    def __init__(self, total: int) -> None:
+        self.total, self.done, self.start = total, 0, time.perf_counter()
+        self.jobs: dict[str, Job] = {}
+        self.steps: dict[str, int] = {}
+        self.finished: set[str] = set()
+        self.resumed: dict[str, int] = {}  # per job: the steps done when first seen
+        self.lock = threading.Lock()
+        self.bar: tqdm | None = None
+        self.next_line = 0.1
+
+    def track(self, jobs: list[Job], budgets: dict[str, int]) -> None:
+        """Count the steps of these jobs (``budgets``: the environment steps of a run per task)."""
+        self.jobs = {job.stage: job for job in jobs}
+        self.steps = {job.stage: job_steps(job, budgets) for job in jobs}
+
+    # The counts --------------------------------------------------------------------------
+
+    def _counts(self) -> tuple[int, int, int]:
+        """(steps done, steps in all, steps done before this sweep) over the jobs."""
+        done = total = before = 0
+        for name, job in self.jobs.items():
+            read = None if name in self.finished else read_progress(progress_file(job))
+            steps = read[1] if read else self.steps[name]
+            if read and name not in self.resumed:
+                self.resumed[name] = read[0]
+            total += steps
+            done += steps if name in self.finished else (read[0] if read else 0)
+            before += self.resumed.get(name, 0)
+        return done, total, before
+
+    def _eta(self, elapsed: float, counts: tuple[int, int, int]) -> str:
+        done, total, before = counts
+        if total and done > before:
+            rate = (done - before) / elapsed
+            return f"ETA {_duration((total - done) / rate)}" if total > done else "done"
+        left = self.total - self.done
+        if not left:
+            return "done"
+        return f"ETA {_duration(elapsed / self.done * left)}" if self.done else "ETA unknown"
+
+    def retries(self) -> int:
+        """The jobs' starts after their first: each a job lost with its Ray worker or node."""
+        return sum(max(attempts(job) - 1, 0) for job in self.jobs.values())
+
+    def overall(self) -> str:
+        """The one line: runs, retries (if any), steps, rate, ETA."""
+        elapsed = max(time.perf_counter() - self.start, 1e-9)
+        counts = done, total, before = self._counts()
+        retries = self.retries()
+        again = f", {retries} {'retry' if retries == 1 else 'retries'}" if retries else ""
+        steps = ""
+        if total:
+            rate = (done - before) / elapsed
+            steps = (
+                f", {_count(done)}/{_count(total)} steps ({done / total:.0%}), {rate:,.0f} steps/s"
+            )
+        return (
+            f"sweep: {self.done}/{self.total} runs{again}{steps}, elapsed {_duration(elapsed)}, "
+            f"{self._eta(elapsed, counts)}"
+        )
+
+    # Output ------------------------------------------------------------------------------
+
+    def line(self, status: str, stage: str, detail: str, job: str | None = None) -> str:
+        """A finished run's line (``job``: the job it was part of, when all of it is over)."""
+        with self.lock:
+            self.done += 1
+            if job is not None:
+                self.finished.add(job)
+            elapsed = time.perf_counter() - self.start
+            return (
+                f"[{self.done}/{self.total}] {status:<6} {stage}  {detail}  "
+                f"(elapsed {_duration(elapsed)}, {self._eta(elapsed, self._counts())})"
+            )
+
+    def echo(self, text: str) -> None:
+        with self.lock:
+            if self.bar is not None:
+                self.bar.write(text)
+            else:
+                click.echo(text)
+
+    def tick(self) -> None:
+        """Refresh the overall line (terminal), or print it at each further tenth (log)."""
+        with self.lock:
+            text = self.overall()
+            if self.bar is not None:
+                self.bar.set_description_str(text, refresh=True)
+                return
+            done, total, _ = self._counts()
+            if total and done >= self.next_line * total:
+                click.echo(text, err=True)
+                while self.next_line * total <= done:
+                    self.next_line += 0.1
+
+    @contextmanager
+    def watch(self) -> Iterator[None]:
+        """Keep the overall line up to date while the runs run."""
+        stop = threading.Event()
+        if sys.stderr.isatty():
+            self.bar = tqdm(total=0, bar_format="{desc}", file=sys.stderr, dynamic_ncols=True)
+
+        def loop() -> None:
+            while not stop.wait(self.POLL):
+                self.tick()
+
+        thread = threading.Thread(target=loop, name="sweep-progress", daemon=True)
+        thread.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            thread.join()
+            if self.bar is not None:
+                self.bar.close()
+                self.bar = None
+            click.echo(self.overall(), err=True)
+
+
+def _count(steps: int) -> str:
+    for size, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
+        if steps >= size:
+            return f"{steps / size:.3g}{suffix}"
+    return str(steps)
