@@ -57,7 +57,7 @@ __all__ = [
 
 Algo = Literal["td3", "ede-td3"]
 ALGOS: tuple[Algo, ...] = typing.get_args(Algo)
-ALGO_LABELS: dict[Algo, str] = {"td3": "TD3", "ede-td3": "EDE-TD3"}  # as the paper writes them
+ALGO_LABELS: dict[str, str] = {"td3": "TD3", "ede-td3": "EDE-TD3"}  # as the paper writes them
 
 # The mark of a setting that decides where or how fast a stage runs, never what it computes (a
 # field's ``json_schema_extra``). :func:`result_neutral` reads it: run identities and the embedding
@@ -429,7 +429,8 @@ class ReportConfig(_Section):
     bin_steps: PositiveInt | None = Field(
         2_500,
         description="average each run's evaluations in bins of this many steps before the "
-        "mean over seeds, as the authors' figures (2,500 for ReacherVertical); null: no binning. "
+        "mean over seeds, as the authors' figures (2,500 for ReacherVertical); null: a twentieth "
+        "of each task's budget (the bins of its divergence check too). "
         "The report's curve CSVs (DVC plots) keep every evaluation",
     )
     effect_space_family: str | None = Field(

@@ -319,6 +319,18 @@ def read_run(run_dir: Path, expected: dict[str, Any]) -> Run | None:
     return Run(Curve(int(made["seed"]), steps, returns), diagnostics, made)
 
 
+def recorded_task(run_dir: Path) -> str:
+    """The task a run's ``run.json`` names: where its folder must be kept.
+
+    Raises:
+        RunRejected: ``run.json`` is missing, not a JSON object, or names no task.
+    """
+    made = _run_json(run_dir / "run.json")
+    if not isinstance(made.get("task"), str):
+        raise RunRejected(f"{run_dir / 'run.json'}: names no 'task'; a run records its task")
+    return made["task"]
+
+
 def _run_json(path: Path) -> dict[str, Any]:
     try:
         made = json.loads(path.read_text())

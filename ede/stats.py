@@ -5,8 +5,12 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ede.runs import Curve
 
 __all__ = [
     "Divergence",
@@ -165,6 +169,46 @@ def separation(
         np.asarray(x, dtype=float) for x in (low_a, high_a, low_b, high_b)
     )
     return (low_a > high_b).astype(int) - (high_a < low_b).astype(int)
+
+
+class Band(NamedTuple):
+    """A mean curve over seeds with its bootstrap band, each (T,): at ``steps``, the ``mean``,
+    the interval's ``low`` and ``high`` ends, and ``n``, the seeds with data there."""
+
+    steps: np.ndarray
+    mean: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    n: np.ndarray
+
+
+def curve_band(
+    curves: list[Curve],
+    confidence: float,
+    samples: int,
+    rng: np.random.Generator,
+    bin_steps: float | None = None,
+) -> Band:
+    """Mean over seeds with a bootstrap band at every evaluated step, or every bin.
+
+    With ``bin_steps``, each run's evaluations are first averaged per bin (:func:`bin_curve`), so
+    the points are the bins' right edges, as in the paper's figures. Runs of unequal length count
+    where they have data; ``n`` says how many seeds each point has.
+
+    """
+    pairs = [(c.steps, c.returns) for c in curves]
+    if bin_steps is not None:
+        pairs = [bin_curve(s, r, bin_steps) for s, r in pairs]
+    steps, table = align_curves(pairs)
+    mean, low, high, n = (np.full(len(steps), np.nan) for _ in range(4))
+    # One bootstrap per set of seeds that have data: all of them, unless runs are unequal.
+    present = ~np.isnan(table)  # (N, T)
+    for seeds in np.unique(present, axis=1).T:
+        points = np.flatnonzero((present == seeds[:, None]).all(axis=0))
+        intervals = bootstrap_means(table[np.ix_(seeds, points)], confidence, samples, rng)
+        for t, interval in zip(points, intervals, strict=True):
+            mean[t], low[t], high[t], n[t] = interval.mean, interval.low, interval.high, interval.n
+    return Band(steps, mean, low, high, n)
 
 
 @dataclass(frozen=True)

@@ -17,32 +17,20 @@ from pathlib import Path
 from typing import Any
 
 import click
-import matplotlib.pyplot as plt
 import numpy as np
 import torch
 from matplotlib.figure import Figure
 
+from ede import figures
 from ede.artifacts import ArtifactError, load_action_embedding
 from ede.atomic import write_atomically, write_json
-from ede.config import Algo, Params
+from ede.config import ALGO_LABELS, Algo, Params
 from ede.embedding import ActionEmbedding
+from ede.probes import RANDOM_EPISODES, effect_space, exploration, random_policy_return
 from ede.provenance import describe_software, software_versions
-from ede.report import (
-    ALGO_STYLE,
-    RANDOM_EPISODES,
-    SCORES,
-    TaskRow,
-    across_tasks_section,
-    curve_band,
-    diagnostics_figure,
-    effect_space,
-    exploration,
-    learning_curve_figure,
-    random_policy_return,
-    summarise_task,
-)
+from ede.results import SCORES, Arm, across_tasks, arm, fresh
 from ede.runs import Curve, RunRejected, RunSpec, read_run
-from ede.stats import divergence
+from ede.stats import Band, curve_band
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, holding, params_option
 
@@ -58,10 +46,9 @@ code { font-size: 0.85em; }
 
 
 def _png(figure: Figure) -> bytes:
-    """The figure's PNG; the figure is closed, so that a report of many families holds none."""
+    """The figure's PNG."""
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png", dpi=110)
-    plt.close(figure)
     return buffer.getvalue()
 
 
@@ -100,24 +87,25 @@ class Page:
         )
 
 
-def _table(rows: list[TaskRow], thresholds: list[float]) -> str:
+def _table(rows: list[tuple[str, Arm, list[int]]], thresholds: list[float]) -> str:
+    """Per algorithm (its statistics, its missing seeds): final return, area and steps to each
+    threshold with their intervals, and its seeds."""
     reach = "".join(f"<th>steps to {t:g}</th>" for t in thresholds)
     head = (
         f"<tr><th>algorithm</th><th>final return</th><th>area under curve</th>{reach}"
         "<th>seeds</th></tr>"
     )
     body = []
-    for row in rows:
-        label = ALGO_STYLE[row.algo][0]
+    for algo, row, absent in rows:
         missing = (
-            f' <span class="missing">(missing: {", ".join(map(str, row.missing))})</span>'
-            if row.missing
+            f' <span class="missing">(missing: {", ".join(map(str, absent))})</span>'
+            if absent
             else ""
         )
         steps = "".join(f"<td>{_steps(row.to_thresholds[t])}</td>" for t in thresholds)
         body.append(
-            f"<tr><td>{label}</td><td>{_interval(row.final)}</td><td>{_interval(row.auc)}</td>"
-            f"{steps}<td>{len(row.seeds)}{missing}</td></tr>"
+            f"<tr><td>{ALGO_LABELS[algo]}</td><td>{_interval(row.final)}</td>"
+            f"<td>{_interval(row.area)}</td>{steps}<td>{len(row.seeds)}{missing}</td></tr>"
         )
     return f"<table>{head}{''.join(body)}</table>"
 
@@ -263,12 +251,6 @@ def build(
     """The page, the DVC metrics, the curve CSVs of the report, and one line per finished run
     left out of it (and why)."""
     config = params.report
-
-    def fresh() -> np.random.Generator:
-        """Each statistic bootstraps (or samples) afresh from the report's seed, so a number
-        depends on its own runs alone, not on which other tasks or runs came before it."""
-        return np.random.default_rng(config.seed)
-
     page = Page()
     page.add("<h1>Effect-Dependent Embeddings: EDE-TD3 against TD3</h1>")
     page.add(
@@ -288,7 +270,8 @@ def build(
     for family, tasks in params.runs.by_family().items():
         curves: dict[tuple[str, str], list[Curve]] = {}
         diagnostics: dict[tuple[str, str], list[dict[str, np.ndarray]]] = {}
-        rows: dict[str, list[TaskRow]] = {}
+        rows: dict[str, list[tuple[str, Arm, list[int]]]] = {}
+        bands: dict[tuple[str, str], Band] = {}
         for task in tasks:
             for algo in params.runs.algos:
                 found, missing = [], []
@@ -311,56 +294,41 @@ def build(
                         diagnostics.setdefault((task, algo), []).append(record.diagnostics)
                 curves[(task, algo)] = found
                 all_curves[(task, algo)] = found
-                row = summarise_task(
-                    task,
-                    algo,
-                    found,
-                    missing,
-                    config.thresholds.get(task, []),
-                    config.confidence,
-                    config.bootstrap_samples,
-                    fresh(),
-                )
-                rows.setdefault(task, []).append(row)
+                row = arm(found, config.thresholds.get(task, []), _width(params, task), config)
+                rows.setdefault(task, []).append((algo, row, missing))
+                if row.band is not None:
+                    bands[(task, algo)] = row.band
                 metrics.setdefault(task, {})[algo] = {
                     "final_return": None if row.final.n == 0 else row.final.mean,
-                    "auc": None if row.auc.n == 0 else row.auc.mean,
+                    "auc": None if row.area.n == 0 else row.area.mean,
                     "seeds": row.final.n,
                 }
-            curve_files[task] = _curve_csv(task, params.runs.algos, curves, config, fresh)
+            curve_files[task] = _curve_csv(task, params.runs.algos, curves, params)
         source = params.families[family].source
         page.add(f"<h3>{family} family (embedding learned on {source})</h3>")
         page.figure(
             f"curves-{family}",
-            learning_curve_figure(
+            figures.learning_curves(
                 family,
                 tasks,
-                curves,
+                bands,
+                {key: len(runs) for key, runs in curves.items()},
                 config.confidence,
-                config.bootstrap_samples,
-                None,
-                config.bin_steps,
-                {
-                    key: curve_band(
-                        runs, config.confidence, config.bootstrap_samples, fresh(), config.bin_steps
-                    )
-                    for key, runs in curves.items()
-                    if runs
-                },
+                config.bin_steps or {task: _width(params, task) for task in tasks},
             ),
             f"learning curves of the {family} family",
         )
         if diagnostics:
             page.figure(
                 f"diagnostics-{family}",
-                diagnostics_figure(family, tasks, diagnostics),
+                figures.diagnostics(family, tasks, diagnostics),
                 f"training diagnostics of the {family} family",
             )
         for task in tasks:
             thresholds = config.thresholds.get(task, [])
             note = f" (thresholds {', '.join(f'{t:g}' for t in thresholds)})" if thresholds else ""
             page.add(f"<h4>{task}{note}</h4>" + _table(rows[task], thresholds))
-            page.add(_fell_back(task, curves, params))
+            page.add(_fell_back(rows[task]))
 
     _across_tasks(page, metrics, all_curves, params)
 
@@ -370,7 +338,7 @@ def build(
         page.add("<p>Not drawn: <code>report.effect_space_family</code> is null.</p>")
     else:
         embedding, task = inputs.loaded[pictured], params.families[pictured].source
-        space = effect_space(embedding, fresh(), env_id=task)
+        space = effect_space(embedding, fresh(config), env_id=task)
         metrics["effect_space_affine_r2"] = space.r_squared
         page.add(
             f"<p>Effects s[t+{embedding.k}] − s[t] of {len(space.effects)} random "
@@ -378,7 +346,7 @@ def build(
             f"{pictured} family's embedding (right), coloured by effect. Best affine map "
             f"effect → code: <b>R² = {space.r_squared:.4f}</b>.</p>"
         )
-        page.figure("effect-space", space.figure, "effect space beside EDE space")
+        page.figure("effect-space", figures.effect_space(space), "effect space beside EDE space")
 
     page.add("<h2>Exploration (Figure 7)</h2>")
     drawn = config.exploration_family
@@ -386,7 +354,7 @@ def build(
         page.add("<p>Not drawn: <code>report.exploration_family</code> is null.</p>")
     else:
         embedding, task = inputs.loaded[drawn], params.families[drawn].source
-        explored = exploration(embedding, fresh(), env_id=task)
+        explored = exploration(embedding, fresh(config), env_id=task)
         metrics["coverage"] = {"raw": explored.raw_coverage, "ede": explored.ede_coverage}
         page.add(
             f"<p>Positions over ten episodes on {task}: uniform random actions "
@@ -394,7 +362,9 @@ def build(
             f"grid); uniform random EDE actions of the {drawn} family's embedding, chosen "
             f"every {embedding.k} steps, cover <b>{100 * explored.ede_coverage:.1f}%</b>.</p>"
         )
-        page.figure("exploration", explored.figure, "exploration with raw and EDE actions")
+        page.figure(
+            "exploration", figures.exploration(explored), "exploration with raw and EDE actions"
+        )
 
     page.add("<h2>Missing and excluded runs</h2>")
     if missing_runs:
@@ -444,9 +414,7 @@ def _across_tasks(
         for task in params.runs.all_tasks
         if curves.get((task, "td3")) and curves.get((task, "ede-td3"))
     }
-    found = across_tasks_section(
-        curves, lows, config.confidence, config.bootstrap_samples, config.seed
-    )
+    found = across_tasks(curves, lows, config.confidence, config.bootstrap_samples, config.seed)
     if found is None:
         page.add(
             "<p>No task has finished runs of both algorithms yet, or none has one whose best "
@@ -475,29 +443,33 @@ def _across_tasks(
         "<table><tr><th>score</th><th>P(EDE-TD3 &gt; TD3)</th><th>IQM, EDE-TD3</th>"
         "<th>IQM, TD3</th></tr>" + "".join(rows) + "</table>"
     )
-    page.figure("performance-profile", found.figure, "performance profile across tasks")
+    page.figure(
+        "performance-profile",
+        figures.performance_profile(found.profile, len(found.tasks), found.runs),
+        "performance profile across tasks",
+    )
 
 
 def _as_json(interval: Any) -> dict[str, float]:
     return {"value": interval.mean, "low": interval.low, "high": interval.high}
 
 
-def _fell_back(task: str, curves: dict[tuple[str, str], list[Curve]], params: Params) -> str:
+def _width(params: Params, task: str) -> float:
+    """The bins of a task's bands and divergence: ``report.bin_steps``, else a twentieth of its
+    budget."""
+    return params.report.bin_steps or params.runs.budgets[task] / 20
+
+
+def _fell_back(rows: list[tuple[str, Arm, list[int]]]) -> str:
     """The seeds whose returns fell and stayed below their best (:func:`ede.stats.divergence`,
-    on the figure's bins, or 20 of the budget's): flagged, not hidden."""
-    width = params.report.bin_steps or params.runs.budgets[task] / 20
-    flagged = []
-    for algo in params.runs.algos:
-        for curve in curves.get((task, algo), []):
-            try:
-                verdict = divergence(curve.steps, curve.returns, width)
-            except ValueError:  # too few bins to tell
-                continue
-            if verdict.diverged:
-                flagged.append(
-                    f"{ALGO_STYLE[algo][0]} seed {curve.seed} (best {verdict.best:.4g} "
-                    f"at step {verdict.best_step:,.0f}, last quarter {verdict.tail:.4g})"
-                )
+    on the figure's bins): flagged, not hidden."""
+    flagged = [
+        f"{ALGO_LABELS[algo]} seed {seed} (best {verdict.best:.4g} "
+        f"at step {verdict.best_step:,.0f}, last quarter {verdict.tail:.4g})"
+        for algo, row, _ in rows
+        for seed, verdict in zip(row.seeds, row.divergence, strict=True)
+        if verdict is not None and verdict.diverged
+    ]
     if not flagged:
         return ""
     return (
@@ -507,15 +479,14 @@ def _fell_back(task: str, curves: dict[tuple[str, str], list[Curve]], params: Pa
 
 
 def _curve_csv(
-    task: str,
-    algos: Sequence[str],
-    curves: dict,
-    config: Any,
-    fresh: Callable[[], np.random.Generator],
+    task: str, algos: Sequence[str], curves: dict[tuple[str, str], list[Curve]], params: Params
 ) -> str:
     """Mean curve per algorithm on the union of steps, for ``dvc plots``."""
+    config = params.report
     series = {
-        algo: curve_band(curves[(task, algo)], config.confidence, config.bootstrap_samples, fresh())
+        algo: curve_band(
+            curves[(task, algo)], config.confidence, config.bootstrap_samples, fresh(config)
+        )
         for algo in algos
         if curves[(task, algo)]
     }

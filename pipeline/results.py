@@ -80,38 +80,24 @@ import re
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import click
 import gymnasium
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from ede.atomic import writing_files
-from ede.config import Params, ReportConfig
+from ede.config import ALGO_LABELS, ALGOS, Params
+from ede.figures import learning_curves, performance_profile
+from ede.probes import RANDOM_EPISODES, ZERO_EPISODES, random_policy_return, zero_action_return
 from ede.provenance import INSTRUCTION_SETS
-from ede.report import (
-    ALGO_STYLE,
-    RANDOM_EPISODES,
-    SCORES,
-    AcrossTasks,
-    across_tasks_section,
-    curve_band,
-    improvement_on_task,
-    learning_curve_figure,
-    random_policy_return,
-    summarise_task,
-    zero_action_return,
-)
-from ede.runs import Curve, Run, RunRejected, read_run, unshared_params
-from ede.stats import Interval, bootstrap_mean, divergence, separation, steps_to_threshold
+from ede.results import SCORES, AcrossTasks, Arm, across_tasks, arm, disjoint, improvement_on_task
+from ede.runs import Curve, Run, RunRejected, read_run, recorded_task, unshared_params
+from ede.stats import Band
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, check_outputs, params_option
 
 FIGURE_KIND = "results figure"  # what a figure's mark says drew it (ede.atomic.writing_files)
-ZERO_EPISODES = (
-    100  # episodes behind a task's zero-action return (its standard error ~10 on Reacher's)
-)
 
 
 @dataclass(frozen=True)
@@ -192,7 +178,7 @@ def published_runs(root: Path, task: str) -> list[tuple[Path, Run]]:
     ``seed<N>`` as ``layout.run`` names it, so that no seed is read twice (``seed00`` beside
     ``seed0``); each run's ``run.json`` names its folder's seed."""
     found = []
-    for algo in ALGO_STYLE:
+    for algo in ALGOS:
         seeds = []
         for path in sorted(layout.run(task, algo, 0, root).parent.glob("*")):
             if not path.is_dir():
@@ -375,9 +361,9 @@ def run_task(folder: Path) -> str | None:
     """The task a folder's runs trained on, as their ``run.json`` names it; None with no runs."""
     for made in sorted(folder.glob("*/seed*/run.json")):
         try:
-            return str(json.loads(made.read_text())["task"])
-        except (ValueError, KeyError, TypeError):
-            raise BadInput(f"{made}: not a run record; expected JSON naming its 'task'") from None
+            return recorded_task(made.parent)
+        except RunRejected as error:
+            raise BadInput(str(error)) from None
     return None
 
 
@@ -447,60 +433,34 @@ def spans(steps: np.ndarray, width: float) -> str:
     )
 
 
-def fresh_rng(report: ReportConfig) -> np.random.Generator:
-    """A generator from the report's seed, afresh for each statistic (the module's docstring)."""
-    return np.random.default_rng(report.seed)
-
-
-def report_interval(values: np.ndarray, report: ReportConfig) -> Interval:
-    """The mean of ``values`` with its bootstrap interval at the report's confidence and
-    resamples."""
-    return bootstrap_mean(values, report.confidence, report.bootstrap_samples, fresh_rng(report))
-
-
 def summary_table(
-    task: str,
     first: str,
     second: str,
-    arms: dict[str, tuple[str, list[Curve], str]],
+    arms: dict[str, tuple[list[Curve], str]],
     thresholds: list[float],
     width: float,
-    params,
-) -> tuple[list[str], dict[str, tuple]]:
-    """A table of one row per arm (its name: its algorithm, runs and second column), with final
-    return, area under the curve and the steps to reach each threshold, with bootstrap intervals
-    over the runs; and each arm's binned band (:func:`ede.report.curve_band`). Every statistic
-    bootstraps from the report's seed afresh."""
-    report = params.report
+    params: Params,
+) -> tuple[list[str], dict[str, Arm]]:
+    """A table of one row per arm (its name: its runs and its second column): final return, area
+    under the curve and the steps to reach each threshold, with bootstrap intervals over the
+    runs; and each arm's statistics (:func:`ede.results.arm`, its band binned per ``width``)."""
     lines = [
         f"| {first} | {second} | final return | area under the curve |"
         + "".join(f" steps to reach {t:g} |" for t in thresholds),
         "|---|---|---|---|" + "---|" * len(thresholds),
     ]
-    bands = {}
-    for name, (algo, runs, column) in arms.items():
-        row = summarise_task(
-            task, algo, runs, [], [], report.confidence, report.bootstrap_samples, fresh_rng(report)
-        )
-        bands[name] = curve_band(
-            runs, report.confidence, report.bootstrap_samples, fresh_rng(report), width
-        )
-        reached = [
-            report_interval(
-                np.array([steps_to_threshold(c.steps, c.returns, t) for c in runs]), report
-            )
-            for t in thresholds
-        ]
+    stats = {}
+    for name, (runs, column) in arms.items():
+        found = stats[name] = arm(runs, thresholds, width, params.report)
         lines.append(
-            f"| {name} | {column} | {row.final} | {row.auc} |"
-            + "".join(f" {r.steps()} |" for r in reached)
+            f"| {name} | {column} | {found.final} | {found.area} |"
+            + "".join(f" {found.to_thresholds[t].steps()} |" for t in thresholds)
         )
-    return lines, bands
+    return lines, stats
 
 
 def disjoint_bins(
-    arms: dict[str, tuple[str, list[Curve], str]],
-    bands: dict[str, tuple],
+    stats: dict[str, Arm],
     names: tuple[str, str],
     width: float,
     confidence: float,
@@ -509,15 +469,15 @@ def disjoint_bins(
     """A line naming the bins (right ends) where two arms' intervals are disjoint, and which lies
     above (the arms as ``wording`` calls them); none where an arm has a single seed, whose
     interval is a point."""
-    if min(len(arms[name][1]) for name in names) < 2:
+    ours = stats[names[0]]
+    sign = disjoint(ours, stats[names[1]])
+    if sign is None or ours.band is None:
         return []
-    (steps, _, low_a, high_a, _), (_, _, low_b, high_b, _) = bands[names[0]], bands[names[1]]
-    sign = separation(low_a, high_a, low_b, high_b)
-    ours, theirs = wording or names
+    above, below = wording or names
     return [
-        f"Bins (right ends) where the {confidence:.0%} intervals are disjoint: {ours} above "
-        f"{theirs} at {spans(steps[sign > 0], width) or 'none'}; below at "
-        f"{spans(steps[sign < 0], width) or 'none'}.",
+        f"Bins (right ends) where the {confidence:.0%} intervals are disjoint: {above} above "
+        f"{below} at {spans(ours.band.steps[sign > 0], width) or 'none'}; below at "
+        f"{spans(ours.band.steps[sign < 0], width) or 'none'}.",
         "",
     ]
 
@@ -530,7 +490,7 @@ def task_section(
     bins: int,
     refs: tuple[float, float, float],
     params,
-) -> tuple[str, dict[str, tuple]]:
+) -> tuple[str, dict[str, Band]]:
     """One task's tables: per algorithm final return, area under the curve and the steps to
     reach each of its ``thresholds``; the disjoint bins; per seed, whether it diverged. And each
     algorithm's band, for the family's figure. ``paper_budget`` is None beyond the paper."""
@@ -544,12 +504,11 @@ def task_section(
             f"run, {budget / paper_budget:.1%} of the paper's {paper_budget:,}"
         )
     arms = {
-        ALGO_STYLE[a][0]: (a, runs, seed_list([c.seed for c in runs]))
+        ALGO_LABELS[a]: (runs, seed_list([c.seed for c in runs]))
         for a, runs in found.curves.items()
     }
-    table, bands = summary_table(
-        found.task, "algorithm", "seeds", arms, found.source.thresholds, width, params
-    )
+    table, stats = summary_table("algorithm", "seeds", arms, found.source.thresholds, width, params)
+    by_algo = {a: stats[ALGO_LABELS[a]] for a in found.curves}
     lines = [
         f"### {found.task}",
         "",
@@ -564,7 +523,8 @@ def task_section(
         "",
     ]
     if len(arms) == 2:
-        lines += disjoint_bins(arms, bands, ("EDE-TD3", "TD3"), width, params.report.confidence)
+        labels = (ALGO_LABELS["ede-td3"], ALGO_LABELS["td3"])
+        lines += disjoint_bins(stats, labels, width, params.report.confidence)
         report = params.report
         improvement = improvement_on_task(
             found.curves["ede-td3"],
@@ -579,17 +539,12 @@ def task_section(
             + ".",
             "",
         ]
-    late = {
-        algo: [divergence(c.steps, c.returns, width) for c in runs]
-        for algo, runs in found.curves.items()
-    }
-    tails = {algo: np.array([d.tail for d in seeds]) for algo, seeds in late.items()}
     lines += [
         "The last quarter's mean over seeds (each seed's in the table below; the asymptote, as "
         "far as this budget shows it): "
         + ", ".join(
-            f"{ALGO_STYLE[algo][0]} {report_interval(tail, params.report)}"
-            for algo, tail in tails.items()
+            f"{ALGO_LABELS[algo]} {arm_stats.last_quarter or 'too few bins to tell'}"
+            for algo, arm_stats in by_algo.items()
         )
         + ".",
         "",
@@ -597,13 +552,17 @@ def task_section(
         "| diverged |",
         "|---|---|---|---|---|---|",
     ]
-    for algo, runs in found.curves.items():
-        for curve, d in zip(runs, late[algo], strict=True):
+    for algo, arm_stats in by_algo.items():
+        for seed, d in zip(arm_stats.seeds, arm_stats.divergence, strict=True):
             lines.append(
-                f"| {ALGO_STYLE[algo][0]} | {curve.seed} | {d.first:.1f} | {d.best:.1f} at "
+                f"| {ALGO_LABELS[algo]} | {seed} | too few bins to tell | | | |"
+                if d is None
+                else f"| {ALGO_LABELS[algo]} | {seed} | {d.first:.1f} | {d.best:.1f} at "
                 f"{d.best_step / 1000:g}K | {d.tail:.1f} | {'**yes**' if d.diverged else 'no'} |"
             )
-    return "\n".join(lines) + "\n", {a: bands[ALGO_STYLE[a][0]] for a in found.curves}
+    return "\n".join(lines) + "\n", {
+        algo: arm_stats.band for algo, arm_stats in by_algo.items() if arm_stats.band is not None
+    }
 
 
 def complete_tasks(
@@ -614,7 +573,7 @@ def complete_tasks(
     naming those that wait, so that no task's seeds are cut to fit one still running."""
     tasks = list(dict.fromkeys(t for t, _ in curves if t in both))
     finished = {
-        t: min(len({c.seed for c in curves[(t, a)]} & set(planned.get(t, ()))) for a in ALGO_STYLE)
+        t: min(len({c.seed for c in curves[(t, a)]} & set(planned.get(t, ()))) for a in ALGOS)
         for t in tasks
     }
     waiting = [t for t in tasks if finished[t] < len(planned.get(t, ()))]
@@ -685,25 +644,22 @@ def read_ablations(ablations: Path, runs: Path) -> list[tuple[str, TaskRuns, Tas
 
 
 def ablation_sections(
-    variant: str, ours: TaskRuns, theirs: TaskRuns, bins: int, params
-) -> tuple[str, dict[str, tuple]]:
+    variant: str, ours: TaskRuns, theirs: TaskRuns, bins: int, params: Params
+) -> tuple[str, dict[str, Band]]:
     """Per algorithm, the default and the variant: final return, area and steps to each of the
     variant's thresholds with bootstrap intervals, and the bins where their intervals are
     disjoint. And the variant's band per algorithm, for its figure."""
     width = ours.budget / bins
-    sections, variant_bands = [], {}
+    sections: list[str] = []
+    variant_bands: dict[str, Band] = {}
     for algo, runs in ours.curves.items():
 
         def column(kept: TaskRuns, algo: str = algo) -> str:  # TD3 runs use no embedding
             figures = kept.embedding if algo == "ede-td3" else None
             return f"{', '.join(kept.source.short_commits())}; {figures or '—'}"
 
-        arms = {
-            "default": (algo, theirs.curves[algo], column(theirs)),
-            variant: (algo, runs, column(ours)),
-        }
-        table, bands = summary_table(
-            ours.task,
+        arms = {"default": (theirs.curves[algo], column(theirs)), variant: (runs, column(ours))}
+        table, stats = summary_table(
             "runs",
             "commit; embedding (held out)",
             arms,
@@ -712,7 +668,7 @@ def ablation_sections(
             params,
         )
         lines = [
-            f"### {variant}: {ours.task}, {ALGO_STYLE[algo][0]}",
+            f"### {variant}: {ours.task}, {ALGO_LABELS[algo]}",
             "",
             f"{ours.budget:,} steps a run, seeds {seed_list([c.seed for c in runs])} of each; the variant's "
             f"{ours.source.maker()}; curves binned per {width:,.0f} steps.",
@@ -720,8 +676,7 @@ def ablation_sections(
             *table,
             "",
             *disjoint_bins(
-                arms,
-                bands,
+                stats,
                 (variant, "default"),
                 width,
                 params.report.confidence,
@@ -729,7 +684,8 @@ def ablation_sections(
             ),
         ]
         sections.append("\n".join(lines).rstrip("\n") + "\n")
-        variant_bands[algo] = bands[variant]
+        if (band := stats[variant].band) is not None:
+            variant_bands[algo] = band
     return "\n".join(sections), variant_bands
 
 
@@ -801,7 +757,7 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
         task
         for curves in curves_of.values()
         for (task, _) in curves
-        if all((task, a) in curves for a in ALGO_STYLE)
+        if all((task, a) in curves for a in ALGOS)
     }
     refs = references([f.task for found in families.values() for f in found], params)
     lows = {task: refs[task][0] for task in both}
@@ -813,7 +769,7 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
         inputs=(runs, ablations),
     )
 
-    def save(figure: Any, name: str) -> None:
+    def save(figure: Figure, name: str) -> None:
         figures.mkdir(parents=True, exist_ok=True)
         with writing_files([(figures / f"{name}.png", FIGURE_KIND)]):
             figure.savefig(figures / f"{name}.png", dpi=120)
@@ -821,7 +777,7 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
     # Every input is read and checked: from here on, print and draw.
     for family, found in families.items():
         source = params.families[family].source if family in params.families else found[0].task
-        bands = {}
+        bands: dict[tuple[str, str], Band] = {}
         for task_runs in found:
             text, task_bands = task_section(
                 task_runs,
@@ -834,18 +790,15 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
             )
             click.echo(text)
             bands.update({(task_runs.task, a): band for a, band in task_bands.items()})
-        figure = learning_curve_figure(
+        figure = learning_curves(
             family,
             [f.task for f in found],
-            curves_of[family],
-            report.confidence,
-            report.bootstrap_samples,
-            None,
-            {f.task: f.budget / bins for f in found},
             bands,
+            {key: len(runs) for key, runs in curves_of[family].items()},
+            report.confidence,
+            {f.task: f.budget / bins for f in found},
         )
         save(figure, family)
-        plt.close(figure)
         click.echo(f"Figure: {figures / f'{family}.png'}\n")
     everything = {key: c for curves in curves_of.values() for key, c in curves.items()}
     sets = [(f"the {family} family", curves) for family, curves in curves_of.items()]
@@ -859,7 +812,7 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
         sets.append(("the transfer tasks", transfer))
     for title, curves in sets + [("every task", everything)] * (len(curves_of) > 1):
         tasks, waiting = complete_tasks(curves, both, planned)
-        aggregates = across_tasks_section(
+        aggregates = across_tasks(
             curves,
             {t: lows[t] for t in tasks},
             report.confidence,
@@ -869,26 +822,26 @@ def results(params: Params, runs: Path, figures: Path, bins: int, ablations: Pat
         if aggregates is not None:
             click.echo(across_section(title, aggregates, params) + waiting)
             if title == "every task" or len(curves_of) == 1:
-                save(aggregates.figure, "performance-profile")
-            plt.close(aggregates.figure)
-    drawn: dict[str, list[tuple[TaskRuns, dict[str, tuple]]]] = {}
+                profile = aggregates.profile
+                save(
+                    performance_profile(profile, len(aggregates.tasks), aggregates.runs),
+                    "performance-profile",
+                )
+    drawn: dict[str, list[tuple[TaskRuns, dict[str, Band]]]] = {}
     for variant, ours, theirs in found_ablations:
         text, variant_bands = ablation_sections(variant, ours, theirs, bins, params)
         click.echo(text)
-        if set(ours.curves) == set(ALGO_STYLE):  # both algorithms: drawn as a family is
+        if set(ours.curves) == set(ALGOS):  # both algorithms: drawn as a family is
             drawn.setdefault(variant, []).append((ours, variant_bands))
     for variant, kept in drawn.items():
-        figure = learning_curve_figure(
+        figure = learning_curves(
             variant,
             [k.task for k, _ in kept],
-            {(k.task, a): c for k, _ in kept for a, c in k.curves.items()},
-            report.confidence,
-            report.bootstrap_samples,
-            None,
-            {k.task: k.budget / bins for k, _ in kept},
             {(k.task, a): band for k, bands in kept for a, band in bands.items()},
+            {(k.task, a): len(c) for k, _ in kept for a, c in k.curves.items()},
+            report.confidence,
+            {k.task: k.budget / bins for k, _ in kept},
             title=f"the {variant} variant (a fidelity ablation)",
         )
         save(figure, f"ablation-{variant}")
-        plt.close(figure)
         click.echo(f"Figure: {figures / f'ablation-{variant}.png'}\n")

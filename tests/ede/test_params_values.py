@@ -21,7 +21,7 @@ from ede.config import (
     load_params,
 )
 from ede.embedding import train_decoder, train_encoder
-from ede.report import random_policy_return
+from ede.probes import random_policy_return
 from ede.rollouts import Rollouts, collect
 from ede.runs import RunSpec
 from ede.stats import across_tasks, global_numpy_seed

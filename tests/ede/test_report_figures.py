@@ -1,4 +1,5 @@
-"""The report's per-family figures keep their titles inside the picture, whatever the family's size."""
+"""The figures (ede.figures) keep their titles inside the picture, whatever the family's size, and
+draw what they are given; the aggregates across tasks (ede.results) on runs whose answer is known."""
 
 from __future__ import annotations
 
@@ -10,20 +11,21 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.text import Text
 
-from ede.report import (
-    AcrossTasks,
-    across_tasks_section,
-    diagnostics_figure,
-    learning_curve_figure,
-)
+from ede import figures
+from ede.results import AcrossTasks, across_tasks, improvement_on_task
 from ede.runs import Curve
+from ede.stats import Band, curve_band
 
 
 def aggregate(*args: Any, **kwargs: Any) -> AcrossTasks:
-    """:func:`ede.report.across_tasks_section` where the test expects a section."""
-    found = across_tasks_section(*args, **kwargs)
-    assert found is not None, "no section across tasks"
+    """:func:`ede.results.across_tasks` where the test expects aggregates."""
+    found = across_tasks(*args, **kwargs)
+    assert found is not None, "no aggregates across tasks"
     return found
+
+
+def profile_figure(found: AcrossTasks) -> Figure:
+    return figures.performance_profile(found.profile, len(found.tasks), found.runs)
 
 
 STEPS = np.arange(1_000, 11_000, 1_000, dtype=float)
@@ -69,9 +71,12 @@ def test_the_learning_curves_titles_fit_one_task_or_many(tasks: list[str]) -> No
         for task in tasks
         for algo in ("td3", "ede-td3")
     }
-    figure = learning_curve_figure(
-        "halfcheetah", tasks, curves, 0.95, 200, np.random.default_rng(0), bin_steps=2_500
-    )
+    bands = {
+        key: curve_band(runs, 0.95, 200, np.random.default_rng(0), 2_500)
+        for key, runs in curves.items()
+    }
+    seeds = {key: len(runs) for key, runs in curves.items()}
+    figure = figures.learning_curves("halfcheetah", tasks, bands, seeds, 0.95, bin_steps=2_500)
     assert cut_off(figure) == []
 
 
@@ -82,14 +87,11 @@ def test_the_diagnostics_titles_fit_one_task_or_many(tasks: list[str]) -> None:
         "mean_q": np.linspace(0.0, 30.0, len(STEPS)),
         "critic_loss": np.linspace(0.1, 2.0, len(STEPS)),
     }
-    figure = diagnostics_figure("hopper", tasks, {(task, "td3"): [run] for task in tasks})
+    figure = figures.diagnostics("hopper", tasks, {(task, "td3"): [run] for task in tasks})
     assert cut_off(figure) == []
 
 
 def test_across_tasks_on_hand_built_runs_whose_aggregates_are_known() -> None:
-    from ede.report import across_tasks_section
-    from ede.runs import Curve
-
     steps = np.array([0.0, 500.0, 1000.0])
 
     def runs(offset: float, seeds: range) -> list[Curve]:
@@ -112,16 +114,14 @@ def test_across_tasks_on_hand_built_runs_whose_aggregates_are_known() -> None:
         p = found.aggregates[score]["probability_of_improvement"]
         assert (p.mean, p.low, p.high) == (1.0, 1.0, 1.0)
         assert found.aggregates[score]["iqm_ours"].low > found.aggregates[score]["iqm_theirs"].high
-    assert found.figure.axes[0].get_xlabel().startswith("normalised final return")
+    assert profile_figure(found).axes[0].get_xlabel().startswith("normalised final return")
     same = {key: runs(0, range(3)) for key in better}
     p = aggregate(same, lows, 0.95, 300, seed=0).aggregates["auc"]["probability_of_improvement"]
     assert p.mean == 0.5 and p.low < 0.5 < p.high
-    assert across_tasks_section({("a", "td3"): runs(0, range(2))}, lows, 0.95, 300, 0) is None
+    assert across_tasks({("a", "td3"): runs(0, range(2))}, lows, 0.95, 300, 0) is None
 
 
 def test_unequal_run_counts_of_the_two_algorithms_are_all_used() -> None:
-    from ede.runs import Curve
-
     steps = np.array([0.0, 1000.0])
     # TD3's 2 seeds end at 0 and 2, EDE-TD3's 4 at 1, 3, 3, 3: of the 8 pairs EDE-TD3 wins 7.
     curves = {
@@ -134,9 +134,6 @@ def test_unequal_run_counts_of_the_two_algorithms_are_all_used() -> None:
 
 
 def test_the_probability_of_improvement_on_one_task_uses_all_its_runs() -> None:
-    from ede.report import improvement_on_task
-    from ede.runs import Curve
-
     steps = np.array([0.0, 1000.0])
     # As above: of the 8 pairs EDE-TD3 wins 7, by its final return and so by its area too.
     td3 = [Curve(s, steps, np.array([0.0, 2.0 * s])) for s in range(2)]
@@ -149,9 +146,6 @@ def test_the_probability_of_improvement_on_one_task_uses_all_its_runs() -> None:
 
 
 def test_a_task_no_run_lifted_above_a_random_policy_is_left_out_by_name() -> None:
-    from ede.report import across_tasks_section
-    from ede.runs import Curve
-
     steps = np.array([0.0, 1000.0])
     good = {
         (t, a): [Curve(s, steps, np.array([-9.0, -1.0 - s - (a == "td3")])) for s in range(3)]
@@ -161,12 +155,10 @@ def test_a_task_no_run_lifted_above_a_random_policy_is_left_out_by_name() -> Non
     found = aggregate(good, {"a": -10.0, "b": -1.0}, 0.9, 300, seed=0)
     assert found.tasks == ["a"]
     assert found.left_out == ["b (its best evaluation, -1, is not above the random policy's -1)"]
-    assert across_tasks_section(good, {"b": -1.0}, 0.9, 300, seed=0) is None
+    assert across_tasks(good, {"b": -1.0}, 0.9, 300, seed=0) is None
 
 
 def test_the_performance_profile_band_has_the_reports_confidence() -> None:
-    from ede.runs import Curve
-
     steps = np.array([0.0, 1000.0])
     rng = np.random.default_rng(5)
     curves = {
@@ -177,7 +169,7 @@ def test_the_performance_profile_band_has_the_reports_confidence() -> None:
     def band_area(confidence: float) -> float:  # of both algorithms' bands, by the shoelace
         found = aggregate(curves, {"a": -10.0}, confidence, 500, seed=0)
         area = 0.0
-        for band in found.figure.axes[0].collections:
+        for band in profile_figure(found).axes[0].collections:
             x, y = np.asarray(band.get_paths()[0].vertices).T
             area += 0.5 * abs(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1)))
         return area
@@ -185,33 +177,26 @@ def test_the_performance_profile_band_has_the_reports_confidence() -> None:
     assert 0 < band_area(0.5) < 0.8 * band_area(0.99)
 
 
-def test_a_band_given_is_drawn_as_it_is_and_the_others_computed() -> None:
-    curves = {
-        ("HalfCheetah-v5", algo): [
-            Curve(seed, STEPS, np.linspace(0.0, 100.0, len(STEPS)) + seed) for seed in range(3)
-        ]
-        for algo in ("td3", "ede-td3")
-    }
-    given = (
+def test_a_band_is_drawn_as_it_is_given_and_a_pair_without_one_not_at_all() -> None:
+    given = Band(
         STEPS,
         np.full(len(STEPS), 7.0),
         np.full(len(STEPS), 6.0),
         np.full(len(STEPS), 8.0),
         np.full(len(STEPS), 3.0),
     )
-    figure = learning_curve_figure(
+    figure = figures.learning_curves(
         "halfcheetah",
         ["HalfCheetah-v5"],
-        curves,
+        {("HalfCheetah-v5", "ede-td3"): given},
+        {("HalfCheetah-v5", "ede-td3"): 3, ("HalfCheetah-v5", "td3"): 3},
         0.95,
-        200,
-        np.random.default_rng(0),
-        bands={("HalfCheetah-v5", "ede-td3"): given},
     )
     drawn = {
         str(line.get_label()).split(" (")[0]: line.get_ydata() for line in figure.axes[0].lines
     }
-    assert np.array_equal(drawn["EDE-TD3"], given[1])  # not the curves' mean, 1 to 101
-    assert np.allclose(
-        drawn["TD3"], np.linspace(0.0, 100.0, len(STEPS)) + 1.0
-    )  # computed: the mean
+    assert set(drawn) == {"EDE-TD3"}
+    assert np.array_equal(drawn["EDE-TD3"], given.mean)
+    (fill,) = figure.axes[0].collections
+    _, y = np.asarray(fill.get_paths()[0].vertices).T
+    assert y.min() == 6.0 and y.max() == 8.0  # the band between the given low and high
