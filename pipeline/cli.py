@@ -30,7 +30,7 @@ STAGES = {
     "report": "ede_pipeline.report:report",
     "results": "ede_pipeline.results:results",
     "sweep": "ede_pipeline.sweep.command:sweep",
-    "experiment": "ede_pipeline.experiments:experiment",
+    "experiment": "ede_pipeline.experiments.command:experiment",
 }
 
 

@@ -15,7 +15,7 @@ from click.testing import CliRunner
 from ede.atomic import sha256
 from ede.config import Algo
 from ede_pipeline.cli import main
-from ede_pipeline.experiments import WIDTH, experiment_blocks
+from ede_pipeline.experiments.show import WIDTH, experiment_blocks
 from tests.support import REPO, tool_env
 
 TASK = "ede/ReacherVertical-v0"
@@ -137,7 +137,7 @@ def test_an_experiment_without_a_report_says_so() -> None:
 def test_every_committed_experiment_is_valid_params_and_learns_only_what_it_uses(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    from ede_pipeline.experiments import EXPERIMENTS, experiment_params
+    from ede_pipeline.experiments.workspace import EXPERIMENTS, experiment_params
     from tests.support import REPO
 
     monkeypatch.chdir(REPO)
@@ -160,7 +160,7 @@ def test_every_published_run_was_made_with_its_experiments_params(
     exactly that file's params (its runs' run.json identities), so the file reproduces them;
     where its seeds came from several experiments, each part's seeds of that part's file."""
     from ede.config import Params
-    from ede_pipeline.experiments import experiment_params
+    from ede_pipeline.experiments.workspace import experiment_params
     from tests.support import REPO
 
     monkeypatch.chdir(REPO)
@@ -376,7 +376,7 @@ def test_an_experiments_tools_run_the_code_of_its_working_copy(
     changed by the experiment, does not count as modified code."""
     import shutil
 
-    from ede_pipeline.experiments import _tool
+    from ede_pipeline.experiments.workspace import run_tool
     from tests.support import REPO
 
     workspace = tmp_path / "copy"
@@ -401,14 +401,14 @@ def test_an_experiments_tools_run_the_code_of_its_working_copy(
         "print(json.dumps([[m.__file__ for m in (ede, ede_envs, ede_pipeline)], code_version()]))"
     )
     capfd.readouterr()
-    assert _tool(workspace, "python", "-c", show) == 0
+    assert run_tool(workspace, "python", "-c", show) == 0
     files, code = json.loads(capfd.readouterr().out.strip().splitlines()[-1])
     assert [Path(f).resolve().parent for f in files] == [
         (workspace / folder).resolve() for folder in ("ede", "envs", "pipeline")
     ]
     assert code == {"commit": head, "modified": False}
     (workspace / "ede" / "nets.py").write_text("# edited\n", encoding="utf-8")
-    assert _tool(workspace, "python", "-c", show) == 0
+    assert run_tool(workspace, "python", "-c", show) == 0
     assert json.loads(capfd.readouterr().out.strip().splitlines()[-1])[1]["modified"] is True
 
 
@@ -418,7 +418,7 @@ def test_a_working_copy_keeps_its_record_of_finished_runs(
     """Bringing a working copy up to this checkout keeps its ``dvc.lock`` (which DVC's autostage
     has added to the copy's git index) and its outputs, and takes this checkout's files, a file
     deleted here included."""
-    from ede_pipeline.experiments import prepare_workspace
+    from ede_pipeline.experiments.workspace import prepare_workspace
 
     git(tmp_path, "init", "-q")
     subprocess.run(["dvc", "init", "-q"], cwd=tmp_path, check=True, env=tool_env())

@@ -1,0 +1,137 @@
+"""``ede-pipeline experiment``: the group, ``experiment list`` and ``experiment run``."""
+
+from __future__ import annotations
+
+import os
+import textwrap
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+import click
+
+from ede.locks import OutputBusy, exclusive
+from ede_pipeline.common import BadInput, Failed
+from ede_pipeline.experiments.export import export
+from ede_pipeline.experiments.show import WIDTH, show
+from ede_pipeline.experiments.workspace import (
+    EXPERIMENTS,
+    WORKSPACES,
+    check_code_keeps_runs,
+    copy_params,
+    experiment_params,
+    git_identity,
+    prepare_workspace,
+    run_tool,
+)
+
+
+@click.group()
+def experiment() -> None:
+    """The committed experiments (experiments/NAME.yaml): run, export, show."""
+
+
+@experiment.command("list")
+def list_experiments() -> None:
+    """The experiment files, each with the first sentence of its description (its opening
+    comment)."""
+    for path in sorted(EXPERIMENTS.glob("*.yaml")):
+        lines = path.read_text().splitlines()
+        comment = " ".join(
+            line.lstrip("#").strip()
+            for line in lines[
+                : next((i for i, line in enumerate(lines) if not line.startswith("#")), len(lines))
+            ]
+        )
+        first = comment.split(". ")[0].rstrip(".")
+        click.echo(f"{path.stem:22s}{textwrap.shorten(first, WIDTH - 22, placeholder=' …')}")
+
+
+@experiment.command("run", context_settings={"ignore_unknown_options": True})
+@click.argument("name")
+@click.option(
+    "--push",
+    is_flag=True,
+    help="Then send its outputs to the artifact store (`dvc "
+    "push`: the DVC remote, `store` by default).",
+)
+@click.option(
+    "--keep-code/--update-code",
+    default=None,
+    help="Run again after the code changed: finish the experiment with the code its working "
+    "copy holds (its finished runs' code, with the params.yaml of its commit), or bring the copy up to this checkout, which runs "
+    "its finished runs again. Without either, a change to the code the runs depend on is "
+    "refused while the experiment has finished runs.",
+)
+@click.argument("sweep_args", nargs=-1, type=click.UNPROCESSED)
+def run_experiment(
+    name: str, push: bool, keep_code: bool | None, sweep_args: tuple[str, ...]
+) -> None:
+    """Run experiments/NAME.yaml in its working copy and record it as the DVC experiment NAME.
+
+    SWEEP_ARGS go to `ede-pipeline sweep` as they are (e.g. `--jobs 2`, `--executor ray`).
+    Run it again after a kill or a failure: finished runs are kept, the others resume from their
+    checkpoints. The copy's code is brought up to this checkout's each time, unless that would
+    run finished runs again (see --keep-code).
+    """
+    from ede_pipeline.sweep.command import sweep
+
+    if not Path("dvc.yaml").is_file() or not (Path(".dvc")).is_dir():
+        raise BadInput(f"run from the repository root (no dvc.yaml and .dvc/ in {Path.cwd()})")
+    try:  # bad sweep options end here, before anything is made
+        targets = sweep.make_context("sweep", list(sweep_args)).params["targets"]
+    except click.UsageError as error:
+        raise BadInput(f"sweep options: {error.format_message()}") from None
+    if targets:  # `dvc repro` would run the other runs after the sweep all the same
+        raise BadInput(
+            f"experiment {name}: stages ({', '.join(targets)}) are not taken: an experiment runs "
+            f"all of experiments/{name}.yaml's runs (its runs.seeds and runs.algos choose them)"
+        )
+    workspace = WORKSPACES / name
+    if keep_code and (workspace / ".git").exists():  # the copy's code reads the copy's params
+        params = experiment_params(name, copy_params(workspace))
+    else:  # an unknown name, one git refuses, and bad params end here, before the lock
+        params = experiment_params(name)
+    with ExitStack() as held:
+        try:  # one writer per experiment: a second run of it is refused before it changes anything
+            held.enter_context(exclusive(workspace))
+        except OutputBusy as error:
+            raise BadInput(f"experiment {name}: {error}") from None
+        _run_held(name, workspace, params, push, keep_code, sweep_args)
+
+
+def _run_held(
+    name: str,
+    workspace: Path,
+    params: dict[str, Any],
+    push: bool,
+    keep_code: bool | None,
+    sweep_args: tuple[str, ...],
+) -> None:
+    """:func:`run_experiment`'s work, its working copy's lock held."""
+    if keep_code is None:
+        check_code_keeps_runs(name, workspace)
+    prepare_workspace(name, params, update_code=not keep_code)
+    kept = " with the code it started with" if keep_code else ""
+    click.echo(f"experiment {name}: in {workspace}{kept}", err=True)
+    if code := run_tool(workspace, "ede-pipeline", "sweep", *sweep_args):
+        raise Failed(f"experiment {name}: the sweep failed (exit {code}); run it again to resume")
+    if code := run_tool(workspace, "dvc", "repro"):
+        raise Failed(f"experiment {name}: dvc repro failed (exit {code}); run it again to resume")
+    os.environ.update(git_identity())
+    if code := run_tool(workspace, "dvc", "exp", "save", "--name", name, "--force"):
+        raise Failed(f"experiment {name}: dvc exp save failed (exit {code})")
+    if push and (code := run_tool(workspace, "dvc", "push")):
+        raise Failed(
+            f"experiment {name}: dvc push failed (exit {code}); it is recorded here, "
+            "run it again to push"
+        )
+    click.echo(
+        f"experiment {name}: recorded (`dvc exp show`, `ede-pipeline experiment show`); "
+        f"export its runs with `ede-pipeline experiment export {name}`",
+        err=True,
+    )
+
+
+experiment.add_command(export)
+experiment.add_command(show)
