@@ -115,11 +115,11 @@ def _earlier_commits(task: str, params: Params, runs: list[tuple], to: Path) -> 
 def _published_beside(task: str, runs: list[tuple], to: Path) -> set[int]:
     """The seeds of ``task`` with finished runs in ``to``, beside which this export puts its
     ``runs``: those there read and checked as ``results`` reads them
-    (:func:`ede_pipeline.results.published_runs`: folders named seed<N>, files those their
+    (:func:`ede_pipeline.published.published_runs`: folders named seed<N>, files those their
     run.json records), and the ones that stay made with the same params as ``runs``
     (:func:`ede.runs.unshared_params`). Raises :class:`BadInput` where not."""
     from ede.runs import unshared_params
-    from ede_pipeline.results import published_runs
+    from ede_pipeline.published import published_runs
 
     published = published_runs(to, task)
     replaced = {(algo, seed) for algo, seed, *_ in runs}
@@ -139,7 +139,7 @@ def _merged_source(folder: Path, part: dict, published: set[int]) -> dict | list
     beside the parts of other experiments already there, replacing an earlier export of the same
     experiment file. A seed another part already names is refused (:class:`BadInput`), and so is
     one of ``published`` (the seeds with runs there) that no earlier export of it named."""
-    from ede_pipeline.results import read_source
+    from ede_pipeline.published import read_source
 
     there = (folder / "source.json").is_file()
     checked = read_source(folder).parts if there else []

@@ -309,7 +309,7 @@ def test_an_experiment_adding_seeds_exports_beside_the_published_ones(
     second exported again replaces its own part; an experiment of seeds already published is
     refused with one line, and nothing is written."""
     from ede_pipeline import layout
-    from ede_pipeline.results import read_source
+    from ede_pipeline.published import read_source
 
     monkeypatch.chdir(tmp_path)
     task, first, second = "ede/ReacherVertical-v0", "a0" * 32, "b1" * 32
