@@ -176,7 +176,8 @@ class CollectConfig(_Section):
         le=1,
         description="share of episodes whose actions are bang-bang (each "
         "component at its low or high bound, equally likely) instead of uniform; 0 is the "
-        "paper's uniform random data (beyond the paper: docs/results.md, HalfCheetah-v5)",
+        "paper's uniform random data (beyond the paper: docs/results/beyond-the-paper.md, "
+        "HalfCheetah-v5)",
     )
 
 

@@ -28,7 +28,7 @@ STAGES = {
     "pretrain": "ede_pipeline.pretrain:pretrain",
     "train": "ede_pipeline.train:train",
     "report": "ede_pipeline.report:report",
-    "results": "ede_pipeline.results:results",
+    "results": "ede_pipeline.results.command:results",
     "sweep": "ede_pipeline.sweep.command:sweep",
     "experiment": "ede_pipeline.experiments.command:experiment",
 }

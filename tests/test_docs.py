@@ -14,7 +14,11 @@ import pytest
 from ede_pipeline.cli import main
 from tests.support import REPO
 
-PAGES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+PAGES = [
+    REPO / "README.md",
+    *sorted((REPO / "docs").glob("*.md")),
+    *sorted((REPO / "docs" / "results").glob("*.md")),  # the results pages
+]
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)\)")
 FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
 SHELLS = {"bash", "sh", "shell", "console"}

@@ -81,17 +81,18 @@ def write_source(runs: Path, task: str = TASK, **made: object) -> None:
 BOOTSTRAP_SAMPLES = 200  # of params.yaml's 2,000: these tests check what the page says, and where
 
 
-def results(runs: Path, figures: Path) -> Done:
+def results(runs: Path, figures: Path, *pages: Path) -> Done:
     """``ede-pipeline results`` on ``runs`` with the committed params at fewer bootstrap samples
-    (written beside ``figures``); an exception other than click's exit is raised, not reported."""
+    (written beside ``figures``), or, given ``pages``, filling them (their blocks name their runs);
+    an exception other than click's exit is raised, not reported."""
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     params["report"]["bootstrap_samples"] = BOOTSTRAP_SAMPLES
     params_file = figures.parent / "params-results.yaml"
     params_file.write_text(yaml.safe_dump(params, sort_keys=False))
-    done = CliRunner().invoke(
-        main,
-        ["results", "--runs", str(runs), "--figures", str(figures), "--params", str(params_file)],
-    )
+    where = [arg for page in pages for arg in ("--pages", str(page))] or [
+        *("--runs", str(runs), "--figures", str(figures))
+    ]
+    done = CliRunner().invoke(main, ["results", *where, "--params", str(params_file)])
     if done.exception is not None and not isinstance(done.exception, SystemExit):
         raise done.exception
     return Done(done.exit_code, done.stdout, done.stderr)
@@ -164,25 +165,53 @@ def test_runs_of_different_budgets_are_refused_by_name(tmp_path: Path) -> None:
     assert "Traceback" not in done.stderr and not (tmp_path / "figures").exists()
 
 
+def blocks(page: str) -> list[tuple[str, str, str]]:
+    """A page's blocks: each one's runs folder, section heading and content."""
+    return re.findall(r"<!-- results (\S+): (.*?) -->\n(.*?)<!-- /results -->\n", page, re.S)
+
+
+def resampled(block: str) -> str:
+    """A block with what its bootstrap's resamples decide blanked: each interval's ends, the bins
+    where two intervals are disjoint and how many there are, and how many resamples."""
+    block = re.sub(r"\[[^\]]*\]", "[…]", block)
+    block = re.sub(r"\d+ resamples", "… resamples", block)
+    block = re.sub(r"^Bins \(right ends\) where .*$", "Bins …", block, flags=re.M)
+    return re.sub(r"\| \d+, \d+ \(of \d+\) \|", "| … |", block)
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    ("runs", "some_tasks"),
-    [
-        # Each task as its runs name it, in the pipeline's layout: ede/ReacherVertical-v0 lives in
-        # ede/ReacherVertical-v0/, and a task beyond the paper keeps its own name (HalfCheetah-v5).
-        ("runs", {"HalfCheetah-v5", "ede/ReacherVertical-v0"}),
-        # A task's runs at another budget than its published one, kept beside them.
-        ("1e6/runs", {"ede/ReacherTurn-v0"}),
-    ],
-)
-def test_the_committed_runs_redraw(tmp_path: Path, runs: str, some_tasks: set[str]) -> None:
-    folder = REPO / "docs" / "results" / runs
-    done = results(folder, tmp_path / "figures")
+def test_the_committed_pages_redraw(tmp_path: Path) -> None:
+    # The pages, copied, beside the committed runs folders, linked where they lie in docs/.
+    docs = tmp_path / "docs"
+    (docs / "results" / "1e6").mkdir(parents=True)
+    shutil.copy(REPO / "docs" / "results.md", docs)
+    for page in (REPO / "docs" / "results").glob("*.md"):
+        shutil.copy(page, docs / "results")
+    for folder in ("runs", "ablations", "1e6/runs"):
+        (docs / "results" / folder).symlink_to(REPO / "docs" / "results" / folder)
+    done = results(tmp_path, tmp_path / "figures", docs / "results.md", docs / "results")
     assert done.returncode == 0, done.stderr
-    committed = {json.loads(made.read_text())["task"] for made in folder.rglob("seed*/run.json")}
-    assert some_tasks <= committed
-    for task in committed:
-        assert f"### {task}\n" in done.stdout
+    for page in [docs / "results.md", *sorted((docs / "results").glob("*.md"))]:
+        committed = (REPO / page.relative_to(tmp_path)).read_text()
+        redrawn = page.read_text()
+        # The words around the blocks are the author's, and each block is the command's: the same
+        # but for its resamples (drawn here at fewer than the committed params' 2,000).
+        assert re.split(r"<!-- results .*?<!-- /results -->\n", redrawn, flags=re.S) == re.split(
+            r"<!-- results .*?<!-- /results -->\n", committed, flags=re.S
+        )
+        assert [(r, h, resampled(b)) for r, h, b in blocks(redrawn)] == [
+            (r, h, resampled(b)) for r, h, b in blocks(committed)
+        ], page.name
+    # Every task with published runs has its section on a page, its runs folder's as it lies.
+    placed = {
+        (runs, heading)
+        for page in [docs / "results.md", *(docs / "results").glob("*.md")]
+        for runs, heading, _ in blocks(page.read_text())
+    }
+    for folder in ("runs", "1e6/runs"):
+        made = REPO / "docs" / "results" / folder
+        for task in {json.loads(r.read_text())["task"] for r in made.rglob("seed*/run.json")}:
+            assert (folder, task) in placed or (f"results/{folder}", task) in placed, task
 
 
 def task_table(out: str, task: str) -> str:
@@ -800,3 +829,95 @@ def test_a_figure_is_drawn_only_over_a_figure_results_drew(tmp_path: Path) -> No
         "since; expected a new path or that writer's own file: move it, or choose another place"
     ]
     assert mine.read_bytes() == b"a user's picture" and refused.stdout == ""
+
+
+def section(out: str, heading: str) -> str:
+    """The Markdown under a section's heading in the printed results, as a page's block holds it."""
+    found = out.split(f"### {heading}\n\n")[1].split("\n### ")[0].split("\nFigure: ")[0]
+    return found.rstrip("\n") + "\n"
+
+
+PAGE = """# ReacherTurn, as an author writes it
+
+Words of the author, kept.
+<!-- results runs: ede/ReacherTurn-v0 -->
+a stale table
+<!-- /results -->
+More words.
+
+<!-- results runs: The tasks at a glance -->
+<!-- /results -->
+"""
+
+
+def test_pages_fill_their_blocks_and_keep_the_authors_words(tmp_path: Path) -> None:
+    runs = tmp_path / "pages" / "runs"
+    for seed in range(4):
+        # TD3 climbs halfway, then falls below where it started: its seeds diverge.
+        write_run(runs, "td3", seed, np.r_[np.linspace(-180, -80, 11), np.full(10, -190)] - seed)
+        # EDE-TD3 is above TD3 in the last bins only (its start is below TD3's).
+        write_run(runs, "ede-td3", seed, np.linspace(-200, -60, 21) - seed)
+    printed = results(runs, tmp_path / "printed")
+    assert printed.returncode == 0, printed.stderr
+    page = tmp_path / "pages" / "turn.md"
+    page.write_text(PAGE)
+
+    filled = results(runs, tmp_path / "figures", tmp_path / "pages")
+    assert filled.returncode == 0, filled.stderr
+    assert filled.stdout == f"Filled: {page}\n"
+    text = page.read_text()
+    words = re.split(r"<!-- results .*? -->\n.*?<!-- /results -->\n", text, flags=re.S)
+    assert words == re.split(r"<!-- results .*? -->\n.*?<!-- /results -->\n", PAGE, flags=re.S)
+    blocks = re.findall(r"<!-- results runs: (.*?) -->\n(.*?)\n<!-- /results -->", text, re.S)
+    assert blocks == [(heading, section(printed.stdout, heading)) for heading, _ in blocks]
+    # The runs' figure goes to the folder above them, as `--figures` defaults to for docs/results.
+    assert (tmp_path / "pages" / "reacher.png").stat().st_size > 10_000
+    # The glance row: the task's own final returns, its bins and TD3's seeds that diverged.
+    row = blocks[1][1].splitlines()[-1].split(" | ")
+    task = section(printed.stdout, TASK)
+    assert row[:3] == ["| ede/ReacherTurn-v0", "20,000 (2.0% of the paper's)", "0–3"]
+    assert row[3] == task.split("| TD3 | 0–3 | ")[1].split(" |")[0]
+    assert row[4] == task.split("| EDE-TD3 | 0–3 | ")[1].split(" |")[0]
+    assert f"{row[5]} on the final return and {row[6]} on the area under the curve" in task
+    above, below = (int(n) for n in row[7].removesuffix(" (of 20)").split(", "))
+    assert above > 0 and below > 0  # EDE-TD3 starts below TD3 and ends above
+    diverged = re.findall(r"\| TD3 \| \d \|.*\| \*\*yes\*\* \|", task)
+    assert row[8] == f"{len(diverged)} of 4 |" and diverged
+
+    again = results(runs, tmp_path / "figures", page)
+    assert again.returncode == 0 and again.stdout == "" and page.read_text() == text
+
+
+@pytest.mark.parametrize(
+    ("page", "said"),
+    [
+        (
+            PAGE.replace("ReacherTurn-v0 -->", "Reacher-v9 -->"),
+            "runs has no section 'ede/Reacher-v9' (its sections: 'ede/ReacherTurn-v0'",
+        ),
+        (PAGE.replace("a stale table\n<!-- /results -->\n", ""), "line 4: its block has no"),
+        (PAGE + "<!-- /results -->\n", "line 11: <!-- /results --> closes no block"),
+        (PAGE.replace("results runs:", "results elsewhere:"), "no runs folder"),
+    ],
+)
+def test_a_page_whose_blocks_cannot_be_filled_is_one_line_and_left_alone(
+    tmp_path: Path, page: str, said: str
+) -> None:
+    runs = tmp_path / "pages" / "runs"
+    for seed in range(2):
+        for algo in ("td3", "ede-td3"):
+            write_run(runs, algo, seed, np.linspace(-200, -100 - seed, 21))
+    (tmp_path / "pages" / "turn.md").write_text(page)
+    done = results(runs, tmp_path / "figures", tmp_path / "pages" / "turn.md")
+    assert done.returncode == 2 and said in done.stderr, done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and "Traceback" not in done.stderr
+    assert (tmp_path / "pages" / "turn.md").read_text() == page
+    assert not (tmp_path / "pages" / "reacher.png").exists()
+
+
+def test_pages_take_their_runs_from_their_blocks_alone(tmp_path: Path) -> None:
+    page = tmp_path / "turn.md"
+    page.write_text(PAGE)
+    done = CliRunner().invoke(main, ["results", "--pages", str(page), "--runs", str(tmp_path)])
+    assert done.exit_code == 2 and "leave out --runs, --figures and --ablations" in done.stderr
+    assert page.read_text() == PAGE

@@ -1,0 +1,258 @@
+"""``ede-pipeline results``: the command (what it prints and draws: :mod:`ede_pipeline.results`)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from pathlib import Path
+from typing import NamedTuple
+
+import click
+import gymnasium
+from matplotlib.figure import Figure
+
+from ede.atomic import write_text, writing_files
+from ede.config import ALGOS, Params
+from ede.figures import learning_curves, performance_profile
+from ede.probes import RANDOM_EPISODES, ZERO_EPISODES, random_policy_return, zero_action_return
+from ede.results import across_tasks
+from ede.stats import Band
+from ede_pipeline import layout
+from ede_pipeline.common import BadInput, check_outputs, params_option
+from ede_pipeline.published import TaskRuns, read_ablations, read_runs
+from ede_pipeline.results.pages import fill_pages, read_pages
+from ede_pipeline.results.sections import (
+    Section,
+    ablation_sections,
+    across_section,
+    at_a_glance,
+    complete_tasks,
+    task_section,
+)
+
+FIGURE_KIND = "results figure"  # what a figure's mark says drew it (ede.atomic.writing_files)
+
+
+def references(tasks: list[str], params) -> dict[str, tuple[float, float, float]]:
+    """Each task's reference returns: uniform random actions' (the low end of its normalised
+    scores) and zero actions' with its standard error (ZERO_EPISODES episodes)."""
+    found = {}
+    for task in tasks:
+        try:
+            found[task] = (
+                random_policy_return(task, RANDOM_EPISODES, params.report.seed),
+                *zero_action_return(task, ZERO_EPISODES, params.report.seed),
+            )
+        except (gymnasium.error.Error, ValueError) as error:
+            raise BadInput(
+                f"{task}: cannot be made to measure its reference returns: {error}"
+            ) from None
+    return found
+
+
+class Drawn(NamedTuple):
+    """What the results of one runs folder are: its sections in order, and its figures by name."""
+
+    sections: list[Section]
+    figures: dict[str, Figure]
+
+
+def draw(params: Params, runs: Path, bins: int, ablations: Path, figures: Path) -> Drawn:
+    """Read and check the runs in ``runs`` (and the fidelity ablations in ``ablations``, where
+    there are) and make every section and figure of their results: per family its tasks and its
+    figure; the aggregates across tasks and the performance profile; the tasks at a glance; per
+    ablation its sections and, run with both algorithms, its figure (``figures`` is where the
+    sections say the figures go). Nothing is written."""
+    report = params.report
+    families = read_runs(runs, params)
+    found_ablations = read_ablations(ablations, runs) if ablations.is_dir() else []
+    curves_of = {
+        family: {(f.task, a): c for f in found for a, c in f.curves.items()}
+        for family, found in families.items()
+    }
+    both = {
+        task
+        for curves in curves_of.values()
+        for (task, _) in curves
+        if all((task, a) in curves for a in ALGOS)
+    }
+    refs = references([f.task for found in families.values() for f in found], params)
+    lows = {task: refs[task][0] for task in both}
+    planned = {f.task: f.source.seeds for found in families.values() for f in found}
+    drawn = Drawn([], {})
+
+    def figure(name: str, made: Figure) -> None:
+        drawn.figures[name] = made
+        drawn.sections.append(Section(None, f"Figure: {figures / f'{name}.png'}\n"))
+
+    glance = []
+    for family, found in families.items():
+        source = params.families[family].source if family in params.families else found[0].task
+        bands: dict[tuple[str, str], Band] = {}
+        for task_runs in found:
+            section, task_bands, row = task_section(
+                task_runs,
+                family,
+                source,
+                params.runs.budgets.get(task_runs.task),
+                bins,
+                refs[task_runs.task],
+                params,
+            )
+            drawn.sections.append(section)
+            glance += [row] if row else []
+            bands.update({(task_runs.task, a): band for a, band in task_bands.items()})
+        made = learning_curves(
+            family,
+            [f.task for f in found],
+            bands,
+            {key: len(runs) for key, runs in curves_of[family].items()},
+            report.confidence,
+            {f.task: f.budget / bins for f in found},
+        )
+        figure(family, made)
+    everything = {key: c for curves in curves_of.values() for key, c in curves.items()}
+    sets = [(f"the {family} family", curves) for family, curves in curves_of.items()]
+    paper = [family for family in curves_of if family in params.families]
+    if len(curves_of) > len(paper) > 1:  # and the tasks beyond, in "every task"
+        sets.append(("the paper's tasks", {k: c for f in paper for k, c in curves_of[f].items()}))
+    # The transfer claim's own aggregate: the tasks an embedding learned elsewhere acts in.
+    targets = {t for f in paper for t in params.families[f].targets}
+    transfer = {k: c for f in paper for k, c in curves_of[f].items() if k[0] in targets}
+    if len({task for task, _ in transfer}) > 1:
+        sets.append(("the transfer tasks", transfer))
+    for title, curves in sets + [("every task", everything)] * (len(curves_of) > 1):
+        tasks, waiting = complete_tasks(curves, both, planned)
+        aggregates = across_tasks(
+            curves,
+            {t: lows[t] for t in tasks},
+            report.confidence,
+            report.bootstrap_samples,
+            report.seed,
+        )
+        if aggregates is not None:
+            drawn.sections.append(across_section(title, aggregates, params, waiting))
+            if title == "every task" or len(curves_of) == 1:
+                profile = aggregates.profile
+                drawn.figures["performance-profile"] = performance_profile(
+                    profile, len(aggregates.tasks), aggregates.runs
+                )
+    if glance:
+        drawn.sections.append(at_a_glance(glance, params.report.confidence))
+    kept: dict[str, list[tuple[TaskRuns, dict[str, Band]]]] = {}
+    for variant, ours, theirs in found_ablations:
+        sections, variant_bands = ablation_sections(variant, ours, theirs, bins, params)
+        drawn.sections.extend(sections)
+        if set(ours.curves) == set(ALGOS):  # both algorithms: drawn as a family is
+            kept.setdefault(variant, []).append((ours, variant_bands))
+    for variant, variant_runs in kept.items():
+        made = learning_curves(
+            variant,
+            [k.task for k, _ in variant_runs],
+            {(k.task, a): band for k, bands in variant_runs for a, band in bands.items()},
+            {(k.task, a): len(c) for k, _ in variant_runs for a, c in k.curves.items()},
+            report.confidence,
+            {k.task: k.budget / bins for k, _ in variant_runs},
+            title=f"the {variant} variant (a fidelity ablation)",
+        )
+        figure(f"ablation-{variant}", made)
+    return drawn
+
+
+def save_figures(figures: Path, drawn: dict[str, Figure]) -> None:
+    """Each figure to ``<figures>/<name>.png``, marked as this command's."""
+    for name, made in drawn.items():
+        figures.mkdir(parents=True, exist_ok=True)
+        with writing_files([(figures / f"{name}.png", FIGURE_KIND)]):
+            made.savefig(figures / f"{name}.png", dpi=120)
+
+
+def check_figures(figures: Path, names: Iterable[str], inputs: tuple[Path, ...]) -> None:
+    """Each figure a new file or one this command drew, before any is drawn."""
+    check_outputs(
+        (None, FIGURE_KIND),
+        files=tuple((figures / f"{name}.png", FIGURE_KIND) for name in names),
+        inputs=inputs,
+    )
+
+
+@click.command()
+@click.option(
+    "--runs",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="The published runs: a folder per task, as `ede-pipeline experiment export` writes them  "
+    f"[default: {layout.RESULTS_RUNS}]",
+)
+@click.option(
+    "--figures",
+    type=click.Path(file_okay=False, path_type=Path),
+    help=f"Where the figures go  [default: {layout.RESULTS}]",
+)
+@click.option(
+    "--bins",
+    type=click.IntRange(min=1),
+    default=20,
+    show_default=True,
+    help="Bins per run's budget.",
+)
+@click.option(
+    "--ablations",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="One folder per variant, each compared with the default's runs in --runs  "
+    "[default: 'ablations' beside --runs]",
+)
+@click.option(
+    "--pages",
+    type=click.Path(exists=True, path_type=Path),
+    multiple=True,
+    help="Markdown pages (or folders of them) whose marked blocks to fill with the sections they "
+    "name, from the runs folder each names, instead of printing; each runs folder's figures go "
+    "to the folder above it. Repeatable.",
+)
+@params_option
+def results(
+    params: Params,
+    runs: Path | None,
+    figures: Path | None,
+    bins: int,
+    ablations: Path | None,
+    pages: tuple[Path, ...],
+) -> None:
+    """Print docs/results.md's tables (Markdown) and draw its figures from the published runs, or
+    fill the results pages' generated blocks with them (--pages).
+
+    Per task: budget, seeds, experiment and commits, the CPUs of its runs, reference returns,
+    final return, area and steps to each threshold with bootstrap intervals, the bins where the
+    algorithms' intervals are disjoint, the probability of improvement, and which seeds diverged;
+    per family, its figure and the aggregates across tasks; the tasks at a glance; per fidelity
+    ablation, its runs against the default's. Every statistic is the report's (params' `report`).
+    Bad input is one line, exit 2, before anything is written.
+    """
+    if pages:
+        if runs or figures or ablations:
+            raise BadInput(
+                "--pages: its blocks name their runs folders; leave out --runs, --figures and "
+                "--ablations"
+            )
+        found = read_pages(pages)
+        made = {
+            folder: draw(params, folder, bins, folder.parent / "ablations", folder.parent)
+            for folder in dict.fromkeys(block.runs for block in found.blocks)
+        }
+        for folder, drawn in made.items():
+            check_figures(folder.parent, drawn.figures, (folder,))
+        filled = fill_pages(found, {folder: drawn.sections for folder, drawn in made.items()})
+        for folder, drawn in made.items():  # the figures first: a page filled is one complete
+            save_figures(folder.parent, drawn.figures)
+        for page, text in filled.items():
+            write_text(page, text)
+            click.echo(f"Filled: {page}")
+        return
+    runs = runs or layout.RESULTS_RUNS
+    figures = figures or layout.RESULTS
+    ablations = ablations or runs.parent / "ablations"
+    drawn = draw(params, runs, bins, ablations, figures)
+    check_figures(figures, drawn.figures, (runs, ablations))
+    # Every input is read and checked: from here on, print and draw.
+    for section in drawn.sections:
+        click.echo(section.text)
+    save_figures(figures, drawn.figures)
