@@ -35,6 +35,8 @@ from typing import Any
 
 import numpy as np
 import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file
 
 from ede.atomic import save_tensors, sha256, write_atomically, write_json, write_text
 from ede.config import Algo, EdeTD3Config, TD3Config, result_neutral
@@ -53,6 +55,7 @@ __all__ = [
     "RunRejected",
     "RunSpec",
     "identity_difference",
+    "read_policy",
     "read_run",
     "unshared_params",
     "write_curves",
@@ -219,6 +222,40 @@ def write_policy(path: Path, tensors: Mapping[str, torch.Tensor], meta: dict[str
         write_json(tmp / "policy.json", meta)
 
     write_atomically(path, write, kind="policy")
+
+
+def read_policy(run_dir: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """A finished run's final actor (``policy/``, :func:`write_policy`): its ``policy.json`` and
+    its tensors, each file the one its run wrote where ``run.json`` records their SHA-256.
+
+    Raises:
+        RunRejected: no policy there (a published copy keeps none), or a file damaged or not the
+            run's, naming the file.
+    """
+    policy = run_dir / "policy"
+    missing = [n for n in ("policy.safetensors", "policy.json") if not (policy / n).is_file()]
+    if missing:
+        raise RunRejected(
+            f"{policy}: no final policy ({' and '.join(missing)} missing); a run writes it as it "
+            "finishes, and a published copy of a run keeps none"
+        )
+    if (run_dir / "run.json").is_file():
+        try:
+            made = json.loads((run_dir / "run.json").read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+            raise RunRejected(f"{run_dir / 'run.json'}: not JSON ({first_line(error)})") from None
+        _check_files(run_dir, made.get("sha256") if isinstance(made, dict) else None)
+    try:
+        meta = json.loads((policy / "policy.json").read_text())
+        tensors = load_file(policy / "policy.safetensors")
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, SafetensorError) as error:
+        raise RunRejected(f"{policy}: unreadable ({first_line(error)})") from None
+    wanted = {"task", "algo", "seed", "hidden", "k", "code_size", "code_low", "code_high"}
+    if not isinstance(meta, dict) or not wanted <= meta.keys():
+        raise RunRejected(
+            f"{policy / 'policy.json'}: expected the keys {', '.join(sorted(wanted))}"
+        )
+    return meta, tensors
 
 
 def write_finished(out: Path, spec: RunSpec, metrics: dict[str, Any], device: torch.device) -> None:

@@ -29,6 +29,7 @@ STAGES = {
     "train": "ede_pipeline.train:train",
     "report": "ede_pipeline.report:report",
     "results": "ede_pipeline.results.command:results",
+    "render": "ede_pipeline.render:render",
     "sweep": "ede_pipeline.sweep.command:sweep",
     "experiment": "ede_pipeline.experiments.command:experiment",
 }

@@ -46,6 +46,19 @@ class BadInput(Failed):
     exit_code = 2
 
 
+def embedding_options(command: Callable[..., Any]) -> Callable[..., Any]:
+    """Add ``--encoder DIR`` and ``--decoder DIR``: the family embedding an EDE-TD3 run acts
+    through (by default the pipeline's, ``data/families/<family>/embedding/``)."""
+    for name in ("decoder", "encoder"):  # click lists them in the other order: encoder first
+        command = click.option(
+            f"--{name}",
+            type=click.Path(path_type=Path),
+            help=f"EDE-TD3: the family's {name}  "
+            f"[default: data/families/<family>/embedding/{name}]",
+        )(command)
+    return command
+
+
 def params_option(command: Callable[..., Any]) -> Callable[..., Any]:
     """Add ``--params FILE`` to a command and hand it the validated :class:`Params`."""
 

@@ -21,6 +21,7 @@ __all__ = [
     "RESULTS",
     "RESULTS_RUNS",
     "RUNS",
+    "VIDEOS",
     "code",
     "decoder",
     "embedding",
@@ -32,6 +33,7 @@ __all__ = [
     "task_code",
     "task_inputs",
     "task_runs",
+    "video",
 ]
 
 DATA = Path("data")
@@ -41,6 +43,7 @@ RUNS = DATA / "runs"
 REPORT = DATA / "report"
 REPORT_METRICS = DATA / "report-metrics.json"
 REPORT_CURVES = DATA / "report-curves"
+VIDEOS = DATA / "videos"  # `ede-pipeline render`'s videos, laid out as RUNS
 ENCODER, DECODER = "encoder", "decoder"  # the two artifacts in an embedding's folder
 RESULTS = Path("docs") / "results"  # the results page's figures (`ede-pipeline results`)
 RESULTS_RUNS = RESULTS / "runs"  # the published runs, laid out as RUNS (`experiment export`)
@@ -97,6 +100,11 @@ def task_runs(task: str, runs: Path = RUNS) -> Path:
 def run(task: str, algo: str, seed: int, runs: Path = RUNS) -> Path:
     """One training run's directory in the folder of all runs."""
     return task_runs(task, runs) / algo / f"seed{seed}"
+
+
+def video(task: str, algo: str, seed: int, videos: Path = VIDEOS) -> Path:
+    """A run's video (``ede-pipeline render``), laid out as its run's folder."""
+    return videos / task / algo / f"seed{seed}.mp4"
 
 
 def published_embedding(task: str, checksum: str, runs: Path = RESULTS_RUNS) -> Path:

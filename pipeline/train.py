@@ -21,7 +21,14 @@ from ede.tasks import action_bounds, make
 from ede.td3 import Critic
 from ede.training import Diverged, train_group
 from ede_pipeline import layout
-from ede_pipeline.common import BadInput, Failed, check_outputs, holding, params_option
+from ede_pipeline.common import (
+    BadInput,
+    Failed,
+    check_outputs,
+    embedding_options,
+    holding,
+    params_option,
+)
 from ede_pipeline.progress import progress
 
 
@@ -43,16 +50,7 @@ from ede_pipeline.progress import progress
     help="Run directory; with several seeds, a pattern with {seed}  "
     "[default: data/runs/<task>/<algo>/seed<N>]",
 )
-@click.option(
-    "--encoder",
-    type=click.Path(path_type=Path),
-    help="EDE-TD3: the family's encoder  [default: data/families/<family>/embedding/encoder]",
-)
-@click.option(
-    "--decoder",
-    type=click.Path(path_type=Path),
-    help="EDE-TD3: the family's decoder  [default: data/families/<family>/embedding/decoder]",
-)
+@embedding_options
 @click.option(
     "--keep-checkpoint",
     is_flag=True,

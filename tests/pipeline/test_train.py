@@ -501,3 +501,92 @@ def test_a_groups_memory_is_compared_with_the_memory_where_its_tensors_go(
     free, where = free_memory(torch.device("cpu"))
     assert where == "of memory available"
     assert abs(free - psutil.virtual_memory().available) < 2**30  # read again: it moves a little
+
+
+def trained(workdir: Path, algo: str) -> Path:
+    """The Point run of ``algo``, seed 0, trained here unless an earlier test did."""
+    out = workdir / "data/runs/ede/Point-v0" / algo / "seed0"
+    if not (out / "metrics.json").exists():
+        done = run("train", "--task", "ede/Point-v0", "--algo", algo, "--seed", "0")
+        assert done.exit_code == 0, done.output
+    return out
+
+
+@pytest.mark.parametrize("algo", ["td3", "ede-td3"])
+def test_render_plays_the_final_policy_as_its_last_evaluation(in_workdir: Path, algo: str) -> None:
+    import imageio.v3 as iio
+
+    out = trained(in_workdir, algo)
+    done = run("render", str(out), "--episodes", "5", "--out", f"videos/{algo}.mp4")
+    assert done.exit_code == 0, done.output
+    video = iio.imread(in_workdir / f"videos/{algo}.mp4", plugin="FFMPEG", index=None)
+    assert video.shape == (5 * 100, 480, 480, 3)  # 5 episodes of ede/Point-v0's 100 steps
+    scene = video[:, 16:-24].astype(np.int16)  # between the code mark and the written line
+    assert scene[0].std() > 10  # not blank
+    assert np.abs(scene[0] - scene[50]).max() > 50  # the point has moved
+    # The same starts as the run's final evaluation (5 episodes): the same mean return, from the
+    # actor rebuilt out of policy/ (other kernels than training's stacked one: within 0.01).
+    mean = float(done.output.split("(mean ")[1].split(")")[0])
+    assert abs(mean - returns_of(out)[-1]) < 0.01, (done.output, returns_of(out)[-1])
+    # EDE-TD3's frames carry a bar along the top where each code starts (every 4 steps): the
+    # mark's orange there, the scene's own colours on the steps between (compression: within 40).
+    top = video[:12, :4].reshape(12, -1, 3).mean(axis=1)
+    marked = np.abs(top - np.array([255, 196, 0])).max(axis=1) < 40
+    assert list(marked) == ([True, False, False, False] * 3 if algo == "ede-td3" else [False] * 12)
+    small = run("render", str(out), "--out", f"videos/{algo}.gif")
+    assert small.exit_code == 0, small.output
+    clip = iio.imread(in_workdir / f"videos/{algo}.gif", index=None)
+    assert clip.shape[:3] == (50, 240, 240)  # every other frame at half size
+
+
+def test_render_refuses_what_it_cannot_play_in_one_line_and_writes_nothing(
+    in_workdir: Path, tmp_path: Path
+) -> None:
+    import shutil
+
+    out = trained(in_workdir, "td3")
+    published = tmp_path / "published"  # a run as docs/results/runs keeps it: no policy
+    shutil.copytree(out, published, ignore=shutil.ignore_patterns("policy"))
+    damaged = tmp_path / "damaged"
+    shutil.copytree(out, damaged)
+    (damaged / "policy/policy.safetensors").write_bytes(b"\0" * 64)
+    elsewhere = tmp_path / "elsewhere"  # its policy names a task that cannot be made
+    shutil.copytree(out, elsewhere)
+    (elsewhere / "run.json").unlink()  # (so that no checksum stops it first)
+    policy = json.loads((elsewhere / "policy/policy.json").read_text())
+    (elsewhere / "policy/policy.json").write_text(json.dumps({**policy, "task": "Nowhere-v0"}))
+    ede = trained(in_workdir, "ede-td3")
+    cases = [
+        ([str(published)], "no final policy (policy.safetensors and policy.json missing)"),
+        ([str(damaged)], "policy.safetensors: not the file its run wrote"),
+        ([str(elsewhere)], "Nowhere-v0: cannot be made to render"),
+        ([str(out), "--out", "videos/x.avi"], "expected a file ending in .mp4 or .gif"),
+        ([str(ede), "--decoder", "nowhere"], "nowhere"),
+    ]
+    for args, said in cases:
+        done = run("render", *args, "--out", "videos/bad.mp4") if "--out" not in args else None
+        done = done or run("render", *args)
+        assert done.exit_code == 2, (args, done.output)
+        assert said in done.output and done.output.count("\n") == 1, done.output
+    assert (
+        not (in_workdir / "videos/bad.mp4").exists() and not (in_workdir / "videos/x.avi").exists()
+    )
+    no_gl = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ede_pipeline",
+            "render",
+            str(out),
+            "--out",
+            str(tmp_path / "x.mp4"),
+        ],
+        env={**os.environ, "MUJOCO_GL": "disable"},
+        cwd=in_workdir,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert no_gl.returncode == 1 and no_gl.stderr.count("\n") == 1, no_gl.stderr
+    assert "MUJOCO_GL=disable: videos render offscreen" in no_gl.stderr
+    assert not (tmp_path / "x.mp4").exists()

@@ -1,0 +1,165 @@
+"""``ede-pipeline render``: a trained run's final policy, played and written as a video.
+
+    ede-pipeline render RUN_FOLDER [--episodes 1] [--out FILE.mp4|FILE.gif]
+                        [--encoder DIR --decoder DIR] [--params params.yaml]
+
+The run's ``policy/`` (TD3 or EDE-TD3, any task, a task of the user's own included) acts as in its
+run's final evaluation, from the same starts (:mod:`ede.video`); each step's frame is MuJoCo's
+offscreen rendering (``MUJOCO_GL=egl``, or ``osmesa``), marked with the episode, the step and the
+return so far, and for EDE-TD3 with a bar at each step where a code starts. The format follows
+``--out``'s suffix: ``.mp4`` (H.264 through the ffmpeg that imageio-ffmpeg's wheel carries, at the
+task's frame rate) or ``.gif`` (every other frame at half size, for pages). An EDE-TD3 run needs its
+family's embedding, the one its ``run.json`` names (by default the pipeline's, for the run's task).
+
+Bad input is one line (exit 2): a folder with no policy (a published copy keeps none), a damaged
+policy (its SHA-256 not the one ``run.json`` records, or unreadable), an EDE-TD3 run without its
+embedding, a task that cannot be made or cannot render; a machine where MuJoCo has no offscreen GL
+is one line, exit 1. The video appears whole or not at all.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import click
+import gymnasium
+import imageio.v3 as iio
+import numpy as np
+import torch
+
+from ede.artifacts import ArtifactError, load_action_embedding
+from ede.atomic import writing_files
+from ede.config import Params
+from ede.errors import first_line
+from ede.runs import RunRejected, read_policy
+from ede.tasks import make
+from ede.td3 import ActionAdapter, EmbeddingAdapter, IdentityAdapter
+from ede.training import EVAL_SEED_OFFSET
+from ede.video import actor_of, annotate, play
+from ede_pipeline import layout
+from ede_pipeline.common import BadInput, Failed, check_outputs, embedding_options, params_option
+
+VIDEO_KIND = "video"  # what a video's mark says made it (ede.atomic.writing_files)
+FORMATS = (".mp4", ".gif")
+OFFSCREEN = ("egl", "osmesa")  # MuJoCo's offscreen GL backends; egl where MUJOCO_GL is unset
+
+
+def adapter_for(meta: dict, task: str, params: Params, encoder: Path | None, decoder: Path | None):
+    """How the policy's codes become actions: as they are (TD3), or through the family's
+    embedding, which must be the one the run trained with (EDE-TD3)."""
+    if meta["algo"] == "td3":
+        low, high = np.array(meta["code_low"]), np.array(meta["code_high"])
+        return IdentityAdapter(low, high, torch.device("cpu"))
+    family = params.runs.tasks.get(task) or layout.own_family(task, params.families)
+    folder = layout.embedding(family)
+    try:
+        found, embedding = load_action_embedding(
+            encoder or folder / layout.ENCODER, decoder or folder / layout.DECODER
+        )
+    except ArtifactError as error:
+        raise BadInput(
+            f"{error} (an EDE-TD3 run on {task} acts through its family's embedding)"
+        ) from None
+    if found.identity != meta.get("embedding"):
+        raise BadInput(
+            f"{decoder or folder / layout.DECODER}: not the embedding the run trained with (its "
+            f"checksum {found.identity[:12]}…, the run's policy.json names "
+            f"{str(meta.get('embedding'))[:12]}…); name the run's with --encoder and --decoder"
+        )
+    return EmbeddingAdapter(embedding, meta["params"]["ede_td3"]["bound_scale"])
+
+
+def frames_of(
+    meta: dict, tensors: dict, adapter: ActionAdapter, episodes: int
+) -> tuple[list[np.ndarray], list[float]]:
+    """The policy's episodes, one marked frame per step, and each episode's return."""
+    task = meta["task"]
+    try:
+        env = make(task, render_mode="rgb_array")
+    except (gymnasium.error.Error, ValueError, TypeError) as error:
+        raise BadInput(f"{task}: cannot be made to render ({first_line(error)})") from None
+    obs_size = int(np.prod(env.observation_space.shape or ()))
+    env.close()
+    policy = actor_of(meta, tensors, obs_size)
+    seed = EVAL_SEED_OFFSET * (int(meta["seed"]) + 1)  # the run's final evaluation's starts
+    frames, returns = [], [0.0] * episodes
+    try:
+        for frame in play(task, policy, adapter, episodes, seed):
+            frames.append(annotate(frame, adapter.k))
+            returns[frame.episode] = frame.ret
+    except gymnasium.error.Error as error:
+        raise BadInput(f"{task}: cannot render ({first_line(error)})") from None
+    except Exception as error:  # MuJoCo's renderer without a GL context names only its library
+        if "GL" not in str(error) and "GL" not in type(error).__name__:
+            raise
+        raise Failed(
+            f"MUJOCO_GL={os.environ['MUJOCO_GL']}: MuJoCo cannot render offscreen here "
+            f"({first_line(error)}); install Mesa's EGL or OSMesa libraries (docs/pipeline.md, "
+            "'Videos')"
+        ) from None
+    return frames, returns
+
+
+def write_video(out: Path, frames: list[np.ndarray], fps: float) -> None:
+    """``frames`` as ``out``, in the format of its suffix, whole or not at all."""
+    tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}{out.suffix}")
+    with writing_files([(out, VIDEO_KIND)]):
+        try:
+            if out.suffix == ".mp4":
+                iio.imwrite(tmp, np.stack(frames), plugin="FFMPEG", fps=fps, codec="libx264")
+            else:  # every other frame at half size: a page's clip, small
+                small = [f[::2, ::2] for f in frames[::2]]
+                iio.imwrite(tmp, np.stack(small), plugin="pillow", duration=2000 / fps, loop=0)
+            os.replace(tmp, out)
+        finally:
+            tmp.unlink(missing_ok=True)
+
+
+@click.command()
+@click.argument("run", type=click.Path(file_okay=False, path_type=Path))
+@click.option(
+    "--episodes",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Episodes to play, one after another.",
+)
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="The video, .mp4 or .gif  [default: data/videos/<task>/<algo>/seed<N>.mp4]",
+)
+@embedding_options
+@params_option
+def render(
+    params: Params,
+    run: Path,
+    episodes: int,
+    out: Path | None,
+    encoder: Path | None,
+    decoder: Path | None,
+) -> None:
+    """Play a run's final policy for a few episodes and write them as a video (MP4 or GIF)."""
+    gl = os.environ.setdefault("MUJOCO_GL", "egl")  # read as the first environment renders
+    if gl not in OFFSCREEN:
+        raise Failed(f"MUJOCO_GL={gl}: videos render offscreen, with {' or '.join(OFFSCREEN)}")
+    try:
+        meta, tensors = read_policy(run)
+    except RunRejected as error:
+        raise BadInput(str(error)) from None
+    task, algo, seed = meta["task"], meta["algo"], int(meta["seed"])
+    out = out or layout.video(task, algo, seed)
+    if out.suffix not in FORMATS:
+        raise BadInput(f"--out {out}: expected a file ending in {' or '.join(FORMATS)}")
+    check_outputs((None, VIDEO_KIND), files=((out, VIDEO_KIND),), inputs=(run,))
+    adapter = adapter_for(meta, task, params, encoder, decoder)
+    frames, returns = frames_of(meta, tensors, adapter, episodes)
+    fps = float(make(task).metadata.get("render_fps") or 30)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_video(out, frames, fps)
+    click.echo(
+        f"{out}: {len(frames)} frames, {task} {algo} seed {seed}; returns "
+        + ", ".join(f"{r:.4f}" for r in returns)
+        + f" (mean {np.mean(returns):.4f})"
+    )
