@@ -446,6 +446,12 @@ class ReportConfig(_Section):
         "against uniform random actions (Figure 7; the first two qpos are a position in "
         "[-1, 1]²); null: no Figure 7",
     )
+    videos: bool = Field(
+        True,
+        description="per task, one episode of TD3 beside EDE-TD3 of the same seed (the median "
+        "seed by EDE-TD3's final return), played from their final policies (`ede-pipeline "
+        "render`); needs offscreen GL (MUJOCO_GL=egl or osmesa)",
+    )
 
 
 class Params(_Section):

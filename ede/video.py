@@ -16,7 +16,7 @@ from typing import Any, NamedTuple
 import gymnasium
 import numpy as np
 import torch
-from PIL import Image, ImageDraw
+from PIL import Image, ImageDraw, ImageFont
 
 from ede.tasks import make
 from ede.td3 import ActionAdapter, Actor, CodeExecutor
@@ -77,15 +77,18 @@ def play(
         envs.vector.close()
 
 
-def annotate(frame: Frame, k: int) -> np.ndarray:
-    """The frame's image with its episode, step and return written in its corner, and, for a
-    policy of codes (``k`` > 1), a bar along its top at each step where a code starts."""
+def annotate(frame: Frame, k: int, label: str) -> np.ndarray:
+    """The frame's image with the policy's ``label`` (its algorithm), the episode, step and return
+    written in it, and, for a policy of codes (``k`` > 1), a bar along its top at each step where
+    a code starts."""
     image = Image.fromarray(frame.image)
     draw = ImageDraw.Draw(image)
     if k > 1 and frame.code_start:
         draw.rectangle((0, 0, image.width - 1, max(3, image.height // 60)), fill=CODE_MARK)
     text = f"episode {frame.episode + 1}  step {frame.step}  return {frame.ret:.1f}"
     if k > 1:
-        text += f"  (a code every {k} steps)"
-    draw.text((8, image.height - 18), text, fill=(255, 255, 255))
+        label += f" (a code every {k} steps)"
+    font = ImageFont.load_default(size=max(11, image.height // 32))
+    draw.text((6, image.height - 6), text, fill=(255, 255, 255), font=font, anchor="ld")
+    draw.text((6, image.height // 40 + 6), label, fill=(255, 255, 255), font=font, anchor="la")
     return np.asarray(image)

@@ -30,7 +30,8 @@ import torch
 
 from ede.artifacts import ArtifactError, load_action_embedding
 from ede.atomic import writing_files
-from ede.config import Params
+from ede.config import ALGO_LABELS, Params
+from ede.embedding import ActionEmbedding
 from ede.errors import first_line
 from ede.runs import RunRejected, read_policy
 from ede.tasks import make
@@ -45,12 +46,12 @@ FORMATS = (".mp4", ".gif")
 OFFSCREEN = ("egl", "osmesa")  # MuJoCo's offscreen GL backends; egl where MUJOCO_GL is unset
 
 
-def adapter_for(meta: dict, task: str, params: Params, encoder: Path | None, decoder: Path | None):
-    """How the policy's codes become actions: as they are (TD3), or through the family's
-    embedding, which must be the one the run trained with (EDE-TD3)."""
-    if meta["algo"] == "td3":
-        low, high = np.array(meta["code_low"]), np.array(meta["code_high"])
-        return IdentityAdapter(low, high, torch.device("cpu"))
+def embedding_for(
+    meta: dict, params: Params, encoder: Path | None, decoder: Path | None
+) -> ActionEmbedding:
+    """The embedding an EDE-TD3 run acts through: its family's (or the one ``encoder`` and
+    ``decoder`` name), which must be the one the run trained with."""
+    task = meta["task"]
     family = params.runs.tasks.get(task) or layout.own_family(task, params.families)
     folder = layout.embedding(family)
     try:
@@ -67,13 +68,23 @@ def adapter_for(meta: dict, task: str, params: Params, encoder: Path | None, dec
             f"checksum {found.identity[:12]}…, the run's policy.json names "
             f"{str(meta.get('embedding'))[:12]}…); name the run's with --encoder and --decoder"
         )
+    return embedding
+
+
+def adapter_of(meta: dict, embedding: ActionEmbedding | None) -> ActionAdapter:
+    """How the policy's codes become actions: as they are (TD3), or decoded by the embedding
+    (EDE-TD3), in the code box its run acted in."""
+    if embedding is None:
+        low, high = np.array(meta["code_low"]), np.array(meta["code_high"])
+        return IdentityAdapter(low, high, torch.device("cpu"))
     return EmbeddingAdapter(embedding, meta["params"]["ede_td3"]["bound_scale"])
 
 
 def frames_of(
-    meta: dict, tensors: dict, adapter: ActionAdapter, episodes: int
+    meta: dict, tensors: dict, adapter: ActionAdapter, episodes: int, shrink: int = 1
 ) -> tuple[list[np.ndarray], list[float]]:
-    """The policy's episodes, one marked frame per step, and each episode's return."""
+    """The policy's episodes, one marked frame per step (``shrink`` times smaller than MuJoCo
+    renders it), and each episode's return."""
     task = meta["task"]
     try:
         env = make(task, render_mode="rgb_array")
@@ -83,10 +94,12 @@ def frames_of(
     env.close()
     policy = actor_of(meta, tensors, obs_size)
     seed = EVAL_SEED_OFFSET * (int(meta["seed"]) + 1)  # the run's final evaluation's starts
+    label = ALGO_LABELS[meta["algo"]]
     frames, returns = [], [0.0] * episodes
     try:
         for frame in play(task, policy, adapter, episodes, seed):
-            frames.append(annotate(frame, adapter.k))
+            small = frame._replace(image=frame.image[::shrink, ::shrink])
+            frames.append(annotate(small, adapter.k, label))
             returns[frame.episode] = frame.ret
     except gymnasium.error.Error as error:
         raise BadInput(f"{task}: cannot render ({first_line(error)})") from None
@@ -94,11 +107,57 @@ def frames_of(
         if "GL" not in str(error) and "GL" not in type(error).__name__:
             raise
         raise Failed(
-            f"MUJOCO_GL={os.environ['MUJOCO_GL']}: MuJoCo cannot render offscreen here "
+            f"MUJOCO_GL={os.environ.get('MUJOCO_GL')}: MuJoCo cannot render offscreen here "
             f"({first_line(error)}); install Mesa's EGL or OSMesa libraries (docs/pipeline.md, "
             "'Videos')"
         ) from None
     return frames, returns
+
+
+def side_by_side(
+    runs: list[Path], embedding: tuple[ActionEmbedding, str] | None, episodes: int = 1
+) -> list[np.ndarray]:
+    """The runs' policies (TD3 and EDE-TD3 of one seed, say) played from the same starts, their
+    frames side by side at half size; the shorter episodes hold their last frame. An EDE-TD3
+    run's ``embedding`` (with its decoder's identity) must be the one it trained with."""
+    played = []
+    for run in runs:
+        try:
+            meta, tensors = read_policy(run)
+        except RunRejected as error:
+            raise BadInput(str(error)) from None
+        used = None
+        if meta["algo"] == "ede-td3":
+            if embedding is None or embedding[1] != meta.get("embedding"):
+                raise BadInput(f"{run}: its family's embedding is not the one it trained with")
+            used = embedding[0]
+        played.append(frames_of(meta, tensors, adapter_of(meta, used), episodes, shrink=2)[0])
+    length = max(len(frames) for frames in played)
+    held = [frames + frames[-1:] * (length - len(frames)) for frames in played]
+    return [np.concatenate(row, axis=1) for row in zip(*held, strict=True)]
+
+
+def encode(frames: list[np.ndarray], fps: float, suffix: str, to: Path) -> None:
+    """``frames`` into the file ``to`` as ``suffix`` says: H.264 MP4, or a GIF of every other
+    frame at half size (a page's clip, small)."""
+    if suffix == ".mp4":
+        iio.imwrite(
+            to, np.stack(frames), plugin="FFMPEG", fps=fps, codec="libx264", extension=suffix
+        )
+    else:
+        small = [f[::2, ::2] for f in frames[::2]]
+        iio.imwrite(
+            to, np.stack(small), plugin="pillow", duration=2000 / fps, loop=0, extension=suffix
+        )
+
+
+def fps_of(task: str) -> float:
+    """The task's own frame rate (its simulator's time step), as gymnasium renders it."""
+    env = make(task)
+    try:
+        return float(env.metadata.get("render_fps") or 30)
+    finally:
+        env.close()
 
 
 def write_video(out: Path, frames: list[np.ndarray], fps: float) -> None:
@@ -106,11 +165,7 @@ def write_video(out: Path, frames: list[np.ndarray], fps: float) -> None:
     tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}{out.suffix}")
     with writing_files([(out, VIDEO_KIND)]):
         try:
-            if out.suffix == ".mp4":
-                iio.imwrite(tmp, np.stack(frames), plugin="FFMPEG", fps=fps, codec="libx264")
-            else:  # every other frame at half size: a page's clip, small
-                small = [f[::2, ::2] for f in frames[::2]]
-                iio.imwrite(tmp, np.stack(small), plugin="pillow", duration=2000 / fps, loop=0)
+            encode(frames, fps, out.suffix, tmp)
             os.replace(tmp, out)
         finally:
             tmp.unlink(missing_ok=True)
@@ -153,11 +208,10 @@ def render(
     if out.suffix not in FORMATS:
         raise BadInput(f"--out {out}: expected a file ending in {' or '.join(FORMATS)}")
     check_outputs((None, VIDEO_KIND), files=((out, VIDEO_KIND),), inputs=(run,))
-    adapter = adapter_for(meta, task, params, encoder, decoder)
-    frames, returns = frames_of(meta, tensors, adapter, episodes)
-    fps = float(make(task).metadata.get("render_fps") or 30)
+    embedding = embedding_for(meta, params, encoder, decoder) if algo == "ede-td3" else None
+    frames, returns = frames_of(meta, tensors, adapter_of(meta, embedding), episodes)
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_video(out, frames, fps)
+    write_video(out, frames, fps_of(task))
     click.echo(
         f"{out}: {len(frames)} frames, {task} {algo} seed {seed}; returns "
         + ", ".join(f"{r:.4f}" for r in returns)

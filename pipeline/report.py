@@ -11,6 +11,8 @@ import hashlib
 import html
 import io
 import json
+import os
+import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +35,7 @@ from ede.runs import Curve, RunRejected, RunSpec, read_run
 from ede.stats import Band, curve_band
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, holding, params_option
+from ede_pipeline.render import encode, fps_of, side_by_side
 
 STYLE = """
 body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }
@@ -63,11 +66,12 @@ def _steps(interval: Any) -> str:
 
 
 class Page:
-    """Sections of HTML and the PNG files beside them."""
+    """Sections of HTML and the PNG and MP4 files beside them."""
 
     def __init__(self) -> None:
         self.parts: list[str] = []
         self.images: dict[str, bytes] = {}
+        self.videos: dict[str, bytes] = {}
 
     def add(self, text: str) -> None:
         self.parts.append(text)
@@ -78,6 +82,14 @@ class Page:
         encoded = base64.b64encode(data).decode()
         self.add(
             f'<img src="data:image/png;base64,{encoded}" alt="{html.escape(alt)}" id="{name}">'
+        )
+
+    def video(self, name: str, data: bytes, alt: str) -> None:
+        self.videos[name] = data
+        encoded = base64.b64encode(data).decode()
+        self.add(
+            f'<video controls loop muted autoplay playsinline id="{name}" '
+            f'title="{html.escape(alt)}" src="data:video/mp4;base64,{encoded}"></video>'
         )
 
     def html(self, title: str) -> str:
@@ -366,6 +378,8 @@ def build(
             "exploration", figures.exploration(explored), "exploration with raw and EDE actions"
         )
 
+    _videos(page, params, inputs, all_curves)
+
     page.add("<h2>Missing and excluded runs</h2>")
     if missing_runs:
         page.add(
@@ -388,6 +402,54 @@ def build(
 
     page.add("<h2>Provenance</h2>" + _provenance(params, params_text, inputs, software))
     return page, metrics, curve_files, excluded
+
+
+def median_seed(ours: list[Curve], theirs: list[Curve]) -> int | None:
+    """The seed both algorithms finished whose EDE-TD3 final return is the median (the lower of
+    the two middle ones where their count is even); None where they share no seed."""
+    shared = {c.seed for c in theirs}
+    finals = sorted((float(c.returns[-1]), c.seed) for c in ours if c.seed in shared)
+    return finals[(len(finals) - 1) // 2][1] if finals else None
+
+
+def _videos(
+    page: Page, params: Params, inputs: Inputs, curves: dict[tuple[str, str], list[Curve]]
+) -> None:
+    """Per task, TD3 beside EDE-TD3 of its median seed, one episode each from the same start."""
+    page.add("<h2>The agents: TD3 beside EDE-TD3</h2>")
+    if not params.report.videos:
+        page.add("<p>Not drawn: <code>report.videos</code> is false.</p>")
+        return
+    page.add(
+        "<p>Per task, one evaluation episode of each algorithm's final policy, the seed whose "
+        "EDE-TD3 final return is the median; an orange bar marks each step where EDE-TD3 "
+        "chooses a code (<code>ede-pipeline render</code>, docs/pipeline.md).</p>"
+    )
+    os.environ.setdefault("MUJOCO_GL", "egl")  # read as the first environment renders
+    for task in params.runs.all_tasks:
+        seed = median_seed(curves.get((task, "ede-td3"), []), curves.get((task, "td3"), []))
+        if seed is None:
+            page.add(f"<p>{html.escape(task)}: no clip, no seed finished by both.</p>")
+            continue
+        runs = [layout.run(task, algo, seed, inputs.runs) for algo in ("td3", "ede-td3")]
+        family = params.runs.tasks[task]
+        embedding = (
+            (inputs.loaded[family], inputs.embedding_ids[family])
+            if family in inputs.loaded
+            else None
+        )
+        try:
+            frames = side_by_side(runs, embedding)
+            with tempfile.TemporaryDirectory() as scratch:
+                clip = Path(scratch) / "clip.mp4"
+                encode(frames, fps_of(task), ".mp4", clip)
+                data = clip.read_bytes()
+        except click.ClickException as error:  # no policy, no GL: the page says so
+            page.add(f"<p>{html.escape(task)}: no clip ({html.escape(error.format_message())})</p>")
+            continue
+        name = f"clip-{task.replace('/', '_')}"
+        page.add(f"<h4>{html.escape(task)}, seed {seed}</h4>")
+        page.video(name, data, f"{task}: TD3 beside EDE-TD3, seed {seed}")
 
 
 def _expected(params: Params, inputs: Inputs, task: str, algo: Algo, seed: int) -> dict[str, Any]:
@@ -637,6 +699,8 @@ def _report(params: Params, inputs: Inputs, out: Path, metrics: Path, curves: Pa
         (tmp / "index.html").write_text(page.html("EDE report"))
         for name, data in page.images.items():
             (tmp / f"{name}.png").write_bytes(data)
+        for name, data in page.videos.items():
+            (tmp / f"{name}.mp4").write_bytes(data)
 
     def write_curves(tmp: Path) -> None:
         for task, text in curve_files.items():

@@ -100,6 +100,10 @@ import sys, yaml
 path = sys.argv[1]
 params = yaml.safe_load(open(path))
 params["collect"].update(steps=200, num_envs=1)
+# A TD3 run small enough to train in seconds, for the video step.
+params["td3"].update(hidden=[16, 16], batch_size=32, start_steps=50, eval_every=100,
+                     eval_episodes=1, checkpoint_every=1000, buffer_size=1000)
+params["runs"]["budgets"]["ede/ReacherVertical-v0"] = 200
 open(path, "w").write(yaml.safe_dump(params, sort_keys=False))
 PY
     git -C "$1" init -q && git -C "$1" add -A
@@ -130,6 +134,9 @@ import gymnasium as gym, numpy as np
 env = gym.make("ede_envs:ede/ReacherTurn-v0", render_mode="rgb_array"); env.reset(seed=0)
 frame = env.render(); assert frame.ndim == 3 and frame.std() > 0, frame.shape
 print("headless render (MUJOCO_GL=egl):", frame.shape)'
+pm "${run[@]}" localhost/ede train --task ede/ReacherVertical-v0 --algo td3 --seed 0
+pm "${run[@]}" localhost/ede render data/runs/ede/ReacherVertical-v0/td3/seed0 --out data/clip.mp4
+[[ $(stat -c %s "$work/podman/repo/data/clip.mp4") -gt 10000 ]] || fail "render wrote no video"
 
 step "podman run: a batch job (pull, run, push) into the default store ../ede-store"
 rm -rf "$work/podman/repo/data"

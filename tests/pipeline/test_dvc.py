@@ -98,6 +98,8 @@ def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
     ):
         assert section in page
     assert "None: every run the params name is here." in page
+    # Per task, TD3 beside EDE-TD3 played from the policies the train stages wrote.
+    assert page.count("<video") == len(params["runs"]["tasks"]), page.count("<video")
     # curves and diagnostics per family, the performance profile across tasks, Figures 6 and 7
     assert page.count("data:image/png;base64,") == 7
     assert "diagnostics-reacher" in page and "diagnostics-sevendof" in page

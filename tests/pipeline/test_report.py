@@ -516,3 +516,118 @@ def test_a_tasks_intervals_do_not_depend_on_the_runs_of_tasks_before_it(
     _, beside = report(project)
     assert "<h4>ede/ReacherVertical-v0" in beside and "[" in pusher_table(alone)
     assert pusher_table(beside) == pusher_table(alone)
+
+
+def with_policy(run: Path, algo: Algo, seed: int, embedding: Any, identity: str) -> None:
+    """A final policy in ``run`` as train writes it: an untrained actor of the seed's weights,
+    acting in the action box (TD3) or in the embedding's code box (EDE-TD3)."""
+    from ede.runs import write_policy
+    from ede.tasks import action_bounds, make
+    from ede.td3 import Actor
+
+    env = make("ede/Point-v0")
+    low, high = action_bounds(env)
+    if algo == "ede-td3":
+        low, high = (
+            -embedding.bound * np.ones(embedding.dim),
+            embedding.bound * np.ones(embedding.dim),
+        )
+    obs_size = int(np.prod(env.observation_space.shape or ()))
+    actor = Actor(obs_size, torch.tensor(low), torch.tensor(high), [32, 32])
+    weights = actor.initial(torch.Generator().manual_seed(seed))
+    meta = {
+        "task": "ede/Point-v0",
+        "algo": algo,
+        "seed": seed,
+        "embedding": identity if algo == "ede-td3" else "",
+        "params": {"ede_td3": {"bound_scale": 1.0}},
+        "k": embedding.k if algo == "ede-td3" else 1,
+        "code_size": len(low),
+        "code_low": [float(x) for x in low],
+        "code_high": [float(x) for x in high],
+        "hidden": [32, 32],
+    }
+    write_policy(run / "policy", actor.export(weights), meta)
+
+
+def point_runs(project: Path, embeddings: Path, write_params, **report: Any) -> None:
+    """Params of ede/Point-v0 alone, seeds 0-2, its family's embedding, and each run finished
+    with a final policy; EDE-TD3's final returns make seed 2 the median."""
+    from ede.artifacts import load_action_embedding
+
+    def point(params: dict) -> None:
+        params["runs"].update(tasks={"ede/Point-v0": "point"}, seeds=[0, 1, 2])
+        params["runs"]["budgets"] = {"ede/Point-v0": 2000}
+        params["report"].update(bootstrap_samples=200, **report)
+
+    write_params(point)
+    if (project / "data").exists():
+        return
+    shutil.copytree(embeddings / "data", project / "data")
+    found, embedding = load_action_embedding(
+        project / layout.encoder("point"), project / layout.decoder("point")
+    )
+    finals = {0: -30.0, 1: -10.0, 2: -20.0}
+    for seed, final in finals.items():
+        for algo in ALGOS:
+            run = fake_run(project, "ede/Point-v0", algo, seed, [-50, -40, final])
+            identity = found.identity if algo == "ede-td3" else ""
+            _edit_json(run / "run.json", lambda made, i=identity: made.update(embedding=i))
+            with_policy(run, algo, seed, embedding, found.identity)
+
+
+def test_each_task_shows_td3_beside_ede_td3_of_its_median_seed(
+    project: Path, embeddings: Path, write_params
+) -> None:
+    import imageio.v3 as iio
+
+    point_runs(project, embeddings, write_params)
+    _, page = report(project)
+    assert page.count("<video") == 1 and "<h4>ede/Point-v0, seed 2</h4>" in page
+    video = iio.imread(project / "data/report/clip-ede_Point-v0.mp4", plugin="FFMPEG", index=None)
+    assert video.shape == (100, 240, 480, 3)  # one 100-step episode of each, at half size
+    # TD3 on the left, EDE-TD3 on the right: its bar where each of its codes starts, every k steps.
+    top = video[:, :3].astype(float)
+    mark = np.abs(top - np.array([255, 196, 0])).max(axis=-1) < 40  # (frames, 3 rows, 480)
+    right = mark[:, :, 240:].mean(axis=(1, 2)) > 0.9
+    assert list(right[:8]) == [True, False, False, False] * 2 and not mark[:, :, :240].any()
+
+    point_runs(project, embeddings, write_params, videos=False)
+    _, page = report(project)
+    assert "Not drawn: <code>report.videos</code> is false." in page and "<video" not in page
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="Debian's chromium is not installed")
+def test_a_clip_plays_in_headless_chromium(project: Path, embeddings: Path, write_params) -> None:
+    point_runs(project, embeddings, write_params)
+    _, page = report(project)
+    tag = page[page.index("<video") : page.index("</video>") + len("</video>")]
+    alone = project / "clip.html"  # the page's clip alone, so that the window shows it
+    alone.write_text(
+        f"<!DOCTYPE html><html><body style='margin:0;background:#fff'>{tag}</body></html>"
+    )
+    shot = project / "clip.png"
+    result = subprocess.run(
+        [
+            "chromium",
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--no-first-run",
+            f"--user-data-dir={project / 'chrome-profile'}",
+            "--virtual-time-budget=3000",  # time for the clip to load and show a frame
+            "--window-size=480,240",
+            f"--screenshot={shot}",
+            alone.as_uri(),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "HOME": str(project)},
+    )
+    assert result.returncode == 0, result.stderr
+    import imageio.v3 as iio
+
+    pixels = iio.imread(shot)[..., :3].astype(float)
+    # A decoded frame: the scene's colours; a clip the browser cannot play leaves the page white.
+    assert pixels.std() > 20 and pixels.mean() < 200, (pixels.std(), pixels.mean())
