@@ -199,15 +199,22 @@ def render(
     gl = os.environ.setdefault("MUJOCO_GL", "egl")  # read as the first environment renders
     if gl not in OFFSCREEN:
         raise Failed(f"MUJOCO_GL={gl}: videos render offscreen, with {' or '.join(OFFSCREEN)}")
+
+    def check_out(out: Path) -> None:
+        if out.suffix not in FORMATS:
+            raise BadInput(f"--out {out}: expected a file ending in {' or '.join(FORMATS)}")
+        check_outputs((None, VIDEO_KIND), files=((out, VIDEO_KIND),), inputs=(run,))
+
+    if out is not None:  # checked before anything is read
+        check_out(out)
     try:
         meta, tensors = read_policy(run)
     except RunRejected as error:
         raise BadInput(str(error)) from None
     task, algo, seed = meta["task"], meta["algo"], int(meta["seed"])
-    out = out or layout.video(task, algo, seed)
-    if out.suffix not in FORMATS:
-        raise BadInput(f"--out {out}: expected a file ending in {' or '.join(FORMATS)}")
-    check_outputs((None, VIDEO_KIND), files=((out, VIDEO_KIND),), inputs=(run,))
+    if out is None:
+        out = layout.video(task, algo, seed)
+        check_out(out)
     embedding = embedding_for(meta, params, encoder, decoder) if algo == "ede-td3" else None
     frames, returns = frames_of(meta, tensors, adapter_of(meta, embedding), episodes)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -50,6 +50,9 @@ def read_pages(given: Iterable[Path]) -> Pages:
     """The Markdown pages given (a folder: every ``*.md`` in it, not below) and their blocks,
     each checked: closed before the next opens, and its runs folder there."""
     files = [p for path in given for p in (sorted(path.glob("*.md")) if path.is_dir() else [path])]
+    for page in files:
+        if page.suffix != ".md":
+            raise BadInput(f"--pages {page}: expected a Markdown page (.md) or a folder of them")
     texts, blocks = {}, []
     for page in dict.fromkeys(files):
         texts[page] = text = page.read_text()

@@ -438,6 +438,8 @@ WRITES = {
     ("report", "--metrics"): ["report"],
     ("report", "--curves"): ["report"],
     ("results", "--figures"): ["results"],
+    ("results", "--pages"): ["results"],  # the pages it fills in place
+    ("render", "--out"): ["render", "a-run"],
     ("experiment export", "--to"): ["experiment", "export", "two"],
     ("sweep", "--logs"): ["sweep"],
     ("task-code", "--out"): ["task-code", "--family", "point"],
@@ -458,8 +460,11 @@ READS = {
     ("task-inputs", "--code"),
     ("train", "--encoder"),
     ("train", "--decoder"),
+    ("render", "run"),
+    ("render", "--encoder"),
+    ("render", "--decoder"),
     *((command, "--params") for command in (
-        "collect", "envs", "inspect", "pretrain decoder", "pretrain encoder", "report",
+        "collect", "envs", "inspect", "pretrain decoder", "pretrain encoder", "render", "report",
         "results", "set-params", "task-code", "task-inputs", "train", "validate",
     )),
 }  # fmt: skip
