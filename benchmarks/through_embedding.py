@@ -35,31 +35,23 @@ import gymnasium
 import numpy as np
 import torch
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
-from safetensors.torch import load_file
 
 from ede.artifacts import load_action_embedding
 from ede.embedding import ActionEmbedding
-from ede.nets import mlp
+from ede.runs import read_policy
 from ede.tasks import action_bounds, make, observation_size
 from ede.training import EVAL_SEED_OFFSET
+from ede.video import actor_of
 from ede_pipeline import layout
 
 
-def load_actor(policy: Path, obs_size: int):
-    """μ of a run's ``policy/`` (``ede.training.save_policy``): obs (O,) -> action (A,)."""
-    meta = json.loads((policy / "policy.json").read_text())
-    state = load_file(policy / "policy.safetensors")
-    net = mlp(obs_size, meta["hidden"], meta["code_size"])
-    net.load_state_dict(
-        {k.removeprefix("net."): v for k, v in state.items() if k.startswith("net.")}
-    )
-    centre, half_range = state["centre"], state["half_range"]
+def load_actor(run: Path, obs_size: int):
+    """μ of a run's final policy (:func:`ede.runs.read_policy`): obs (O,) -> action (A,)."""
+    meta, tensors = read_policy(run)
+    batched = actor_of(meta, tensors, obs_size)  # (M, O) -> (M, A)
 
-    @torch.no_grad()
     def mu(obs: np.ndarray) -> np.ndarray:
-        return (
-            centre + half_range * torch.tanh(net(torch.as_tensor(obs, dtype=torch.float32)))
-        ).numpy()
+        return batched(obs[None], np.ones(1, bool))[0].numpy()
 
     return mu
 
@@ -132,7 +124,7 @@ def main() -> None:
         seed = json.loads((run / "run.json").read_text())["seed"]
         with (run / "eval.csv").open() as f:
             last = float(list(csv.DictReader(f))[-1]["mean_return"])
-        mu = load_actor(run / "policy", observation_size(env))
+        mu = load_actor(run, observation_size(env))
         starts = [EVAL_SEED_OFFSET * (seed + 1) + e for e in range(args.episodes)]
         line = []
         for through in (None, embedding):
