@@ -183,8 +183,8 @@ cd "$work/docker/repo"
 # --- as in README.md, "Batch jobs" (the image: built above by podman as `ede`; the README's
 # `docker build -t ede .` cannot run as written here, since a build's HTTPS needs the proxy's CA
 # and podman's Docker API does not reuse the layers of the podman build) ---
-docker run --rm --user "$(id -u):$(id -g)" -v "$PWD":/work ede envs | grep -q 'ede/Point-v0' \
-    || fail "docker run ede envs"
+envs=$(docker run --rm --user "$(id -u):$(id -g)" -v "$PWD":/work ede envs) || fail "docker run ede envs"
+grep -q 'ede/Point-v0' <<<"$envs" || fail "docker run ede envs: no ede/Point-v0 in its list"
 docker run --rm --user "$(id -u):$(id -g)" -v "$PWD":/work ede collect --family point --out data/families/point/rollouts.zarr
 check_store "$PWD"
 rm -rf data
