@@ -69,14 +69,12 @@ repro: install
 	$(BIN)/ede-pipeline sweep
 	$(BIN)/dvc repro
 
-# The quick look (params-quick.yaml) as a DVC experiment named quick-<date>-<time>, run in a
-# temporary copy of the checkout (--temp): the workspace keeps the paper's params.yaml, and
-# `dvc exp apply <name>` brings the experiment's params, dvc.lock and outputs (the report) into it.
-# The arguments go through a file so that bad overrides stop make before DVC runs anything.
+# The quick look (experiments/quick.yaml), run as every committed experiment is (below): the runs
+# side by side on every core, in a working copy of its own, saved as the DVC experiment `quick`;
+# `dvc exp apply quick` brings its params, dvc.lock and outputs (the report) into the workspace.
+# Run again, it resumes, or reruns what your changes to the code touch (--update-code).
 quick: install
-	mkdir -p .dvc/tmp
-	$(BIN)/ede-pipeline set-params params-quick.yaml >.dvc/tmp/quick.args
-	xargs -d '\n' -a .dvc/tmp/quick.args $(BIN)/dvc exp run --temp
+	$(BIN)/ede-pipeline experiment run quick --update-code $(ARGS)
 
 # One committed experiment (experiments/NAME.yaml), e.g. `make experiment NAME=reacher-vertical
 # ARGS="--jobs 2"`: run by the sweep in its own working copy, resumable, saved as a DVC experiment

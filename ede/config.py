@@ -749,7 +749,7 @@ def load_params(path: str | Path) -> Params:
 def overridden(params: dict[str, Any], overrides: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     """``params`` (a params file's content) with the file ``overrides`` applied, and the overrides.
 
-    An overrides file (``params-quick.yaml``, an experiment of ``experiments/``) holds sections
+    An overrides file (an experiment of ``experiments/``, ``quick.yaml`` among them) holds sections
     of the params with only the keys to change; each key given replaces that key's value whole
     (a mapping such as ``runs.budgets`` included), and every other key keeps its value.
 
@@ -770,7 +770,7 @@ def overridden(params: dict[str, Any], overrides: Path) -> tuple[dict[str, Any],
 
 
 def validate_params(raw: Any, path: Path) -> Params:
-    """Validate a params file's content, as plain data (``set-params`` merges overrides into it).
+    """Validate a params file's content, as plain data (``experiment run`` merges an experiment's overrides into it).
 
     Raises:
         ParamsError: naming ``path``, and each bad key, its value and what is expected.

@@ -7,16 +7,11 @@ stderr and exit code 2, before anything is written.
 from __future__ import annotations
 
 import importlib
-import json
-from datetime import datetime
-from pathlib import Path
-from typing import Any
 
 import click
 
-from ede.config import Params, ParamsError, overridden
-from ede.errors import first_line
-from ede_pipeline.common import BadInput, check_mujoco_gl, follow_parent, params_option
+from ede.config import Params
+from ede_pipeline.common import check_mujoco_gl, follow_parent, params_option
 
 # The stages' commands, each imported only when it runs: DVC starts a process per stage, and the
 # stages' own dependencies (torch, matplotlib, rliable, DVC) cost seconds each to import.
@@ -64,47 +59,6 @@ def validate(params: Params) -> None:
     families = ", ".join(params.families)
     runs = params.runs.count
     click.echo(f"ok: {len(params.families)} families ({families}), {runs} runs")
-
-
-@main.command("set-params")
-@click.argument("overrides", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option(
-    "--name",
-    help="The experiment's name  [default: the file's name less `params-` "
-    "and `.yaml`, and the time: quick-20250130-141205]",
-)
-@params_option
-def set_params(params: Params, overrides: Path, name: str | None) -> None:
-    """Print ``dvc exp run``'s arguments for a file of overrides: ``--name``, ``-S key=value``.
-
-    The file holds params sections with only the keys to change; the result is checked against the
-    params file first. One argument per line, for ``xargs -d '\\n'``. The default name is new to the
-    second, so that running a file again makes a new experiment: DVC refuses a name it has, unless
-    ``--force``, which also reruns every stage instead of taking unchanged ones from its run cache.
-    """
-    try:
-        _, changes = overridden(params.model_dump(mode="json"), overrides)
-    except ParamsError as error:
-        raise BadInput(first_line(error)) from None
-    click.echo("--name")
-    click.echo(name or experiment_name(overrides, datetime.now()))
-    for section, values in changes.items():
-        for key, value in values.items():
-            click.echo("-S")
-            click.echo(f"{section}.{key}={_hydra(value)}")
-
-
-def experiment_name(overrides: Path, now: datetime) -> str:
-    """``params-quick.yaml`` at 14:12:05 on 30 January 2025: ``quick-20250130-141205``."""
-    return f"{overrides.stem.removeprefix('params-')}-{now:%Y%m%d-%H%M%S}"
-
-
-def _hydra(value: Any) -> str:
-    """A value in the override grammar of DVC's ``-S`` (Hydra's): mappings with unquoted keys,
-    since task ids such as ``ede/ReacherTurn-v0`` are valid there and quoted keys are not."""
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{k}: {_hydra(v)}" for k, v in value.items()) + "}"
-    return json.dumps(value)
 
 
 @main.command()

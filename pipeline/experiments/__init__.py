@@ -1,7 +1,7 @@
 """``ede-pipeline experiment``: the committed experiments, run by the sweep and recorded by DVC.
 
 An experiment is a committed file, ``experiments/NAME.yaml``: the params sections with only the
-keys it changes against ``params.yaml`` (as ``params-quick.yaml``), each key replacing its value
+keys it changes against ``params.yaml`` (``experiments/quick.yaml``, which ``make quick`` runs, among them), each key replacing its value
 whole. ``experiment run NAME`` runs it in a working copy of its own,
 ``.dvc/tmp/experiments/NAME/`` (a git worktree sharing this checkout's DVC cache): this
 checkout's files (the code that runs, committed or not), the experiment's params, and its

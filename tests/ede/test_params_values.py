@@ -154,7 +154,7 @@ def test_yamls_spellings_of_numbers_are_numbers(tmp_path: Path) -> None:
 
 
 def test_validated_params_validate_again_from_their_json() -> None:
-    """``set-params`` merges overrides into the params as JSON data and validates the result."""
+    """``experiment run`` merges overrides into the params as JSON data and validates the result."""
     params = load_params(REPO / "params.yaml")
     assert Params.model_validate(params.model_dump(mode="json")) == params
 

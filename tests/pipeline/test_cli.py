@@ -3,17 +3,15 @@
 from __future__ import annotations
 
 import os
-import re
 import subprocess
 import sys
-from datetime import datetime
 from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
 
 import ede_envs
-from ede_pipeline.cli import experiment_name, main
+from ede_pipeline.cli import main
 from tests.support import REPO
 
 
@@ -58,36 +56,18 @@ def test_envs_lists_every_task_with_its_family_and_shapes() -> None:
     assert all(row[-1] == "100" for row in rows.values())
 
 
-def test_set_params_turns_an_override_file_into_dvc_set_param_arguments(tmp_path) -> None:
-    overrides = tmp_path / "quick.yaml"
-    overrides.write_text(
-        "td3:\n  start_steps: 5\nruns:\n  seeds: [0, 1]\n"
-        "  budgets: {ede/ReacherVertical-v0: 1000, ede/ReacherTurn-v0: 1000,\n"
-        "            ede/ReacherPush-v0: 1000, ede/Pusher-v0: 1000, ede/Striker-v0: 1000}\n"
-    )
-    result = CliRunner().invoke(
-        main,
-        ["set-params", str(overrides), "--name", "look", "--params", str(REPO / "params.yaml")],
-    )
-    assert result.exit_code == 0, result.output
-    lines = result.stdout.splitlines()
-    assert lines[0::2] == ["--name"] + ["-S"] * 3
-    assert lines[1::2] == [
-        "look",
-        "td3.start_steps=5",
-        "runs.seeds=[0, 1]",
-        "runs.budgets={ede/ReacherVertical-v0: 1000, ede/ReacherTurn-v0: 1000, "
-        "ede/ReacherPush-v0: 1000, ede/Pusher-v0: 1000, ede/Striker-v0: 1000}",
-    ]
-
-
-def test_set_params_refuses_overrides_that_make_bad_params(tmp_path) -> None:
-    overrides = tmp_path / "quick.yaml"
-    overrides.write_text("td3:\n  batch_size: 0\n")
-    result = CliRunner().invoke(
-        main, ["set-params", str(overrides), "--params", str(REPO / "params.yaml")]
-    )
-    assert result.exit_code == 2 and "td3.batch_size" in result.stderr
+def bad_experiment(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, text: str):
+    """``experiment run bad`` in a folder holding the committed params and ``experiments/bad.yaml``
+    with ``text``: refused before anything is made."""
+    (tmp_path / "experiments").mkdir()
+    (tmp_path / "experiments" / "bad.yaml").write_text(text)
+    (tmp_path / "params.yaml").write_bytes((REPO / "params.yaml").read_bytes())
+    (tmp_path / "dvc.yaml").write_text("stages: {}\n")
+    (tmp_path / ".dvc").mkdir()
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(main, ["experiment", "run", "bad"])
+    assert sorted(p.name for p in (tmp_path / ".dvc").iterdir()) == []  # nothing made
+    return result
 
 
 @pytest.mark.parametrize(
@@ -98,29 +78,22 @@ def test_set_params_refuses_overrides_that_make_bad_params(tmp_path) -> None:
         ("- td3\n", "expected a mapping of params sections"),
     ],
 )
-def test_set_params_refuses_an_override_file_that_means_two_things(tmp_path, text, line) -> None:
-    overrides = tmp_path / "quick.yaml"
-    overrides.write_text(text)
-    result = CliRunner().invoke(
-        main, ["set-params", str(overrides), "--params", str(REPO / "params.yaml")]
-    )
+def test_an_experiment_file_that_means_two_things_is_refused(
+    tmp_path, monkeypatch, text, line
+) -> None:
+    result = bad_experiment(tmp_path, monkeypatch, text)
     assert result.exit_code == 2 and line in result.stderr and result.stdout == ""
     assert len(result.stderr.strip().splitlines()) == 1
 
 
-def test_the_quick_configuration_is_valid_and_each_run_of_it_a_new_experiment() -> None:
-    result = CliRunner().invoke(
-        main, ["set-params", str(REPO / "params-quick.yaml"), "--params", str(REPO / "params.yaml")]
+def test_make_quick_runs_the_quick_experiment_as_every_experiment_runs() -> None:
+    """`make quick` is `experiment run quick` (tested end to end in test_experiment_run.py)."""
+    shown = subprocess.run(
+        ["make", "-n", "quick", "STAMP=/dev/null"], cwd=REPO, capture_output=True, text=True
     )
-    assert result.exit_code == 0, result.output
-    flag, name = result.stdout.splitlines()[:2]
-    assert flag == "--name" and re.fullmatch(r"quick-\d{8}-\d{6}", name), name
-
-
-def test_an_experiments_default_name_is_the_files_and_the_time() -> None:
-    when = datetime(2025, 1, 30, 14, 12, 5)
-    assert experiment_name(Path("params-quick.yaml"), when) == "quick-20250130-141205"
-    assert experiment_name(Path("conf/ablation.yaml"), when) == "ablation-20250130-141205"
+    assert shown.returncode == 0, shown.stderr
+    assert "ede-pipeline experiment run quick --update-code" in shown.stdout
+    assert (REPO / "experiments" / "quick.yaml").is_file()
 
 
 def pipeline(*args: str, **env: str) -> subprocess.CompletedProcess:

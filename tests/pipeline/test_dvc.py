@@ -3,17 +3,14 @@
 from __future__ import annotations
 
 import json
-import subprocess
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 import yaml
-from click.testing import CliRunner
 from pydantic import BaseModel
 
 from ede.rollouts import Rollouts
-from ede_pipeline.cli import main
 from tests.support import REPO, dvc
 
 
@@ -26,39 +23,6 @@ def test_dvc_collect_stage_writes_the_store_and_is_then_up_to_date(repo_copy: Pa
     assert "didn't change, skipping" in again.stdout or "up to date" in again.stdout, again.stdout
     lock = yaml.safe_load((repo_copy / "dvc.lock").read_text())
     assert lock["stages"]["collect@point"]["params"]["params.yaml"]["collect"]["steps"] == 200
-
-
-@pytest.mark.slow
-def test_make_quicks_experiments_leave_the_workspace_alone_until_applied(
-    repo_copy: Path, tmp_path: Path
-) -> None:
-    """What ``make quick`` does, at one stage's size: ``dvc exp run --temp`` with the arguments of
-    ``set-params``, twice (a new name each time), then ``dvc exp apply``, as README.md says."""
-    identity = ["-c", "user.name=test", "-c", "user.email=test@example.com"]
-    subprocess.run(["git", *identity, "commit", "-qm", "baseline"], cwd=repo_copy, check=True)
-    overrides = tmp_path / "params-look.yaml"
-    overrides.write_text("collect:\n  steps: 300\n")
-    paper = (repo_copy / "params.yaml").read_text()
-    names = []
-    for _ in range(2):
-        printed = CliRunner().invoke(
-            main, ["set-params", str(overrides), "--params", str(repo_copy / "params.yaml")]
-        )
-        assert printed.exit_code == 0, printed.output
-        arguments = printed.stdout.splitlines()
-        names.append(arguments[1])
-        result = dvc(repo_copy, "exp", "run", "--temp", *arguments, "collect@point")
-        assert result.returncode == 0, result.stdout + result.stderr
-    assert (repo_copy / "params.yaml").read_text() == paper and not (repo_copy / "data").exists()
-    listed = dvc(repo_copy, "exp", "list", "--name-only").stdout.split()
-    assert names[0] != names[1] and set(names) <= set(listed), (names, listed)
-
-    # Its params, dvc.lock and outputs; only the stages it ran have outputs, hence a complaint.
-    applied = dvc(repo_copy, "exp", "apply", names[1])
-    assert applied.returncode == 0 or "Checkout failed" in applied.stderr, applied.stderr
-    rollouts = Rollouts.open(repo_copy / "data/families/point/rollouts.zarr", env_id="ede/Point-v0")
-    assert len(rollouts) == 300
-    assert yaml.safe_load((repo_copy / "params.yaml").read_text())["collect"]["steps"] == 300
 
 
 def stale(copy: Path) -> set[str]:

@@ -259,3 +259,28 @@ def test_a_damaged_dvc_lock_in_the_working_copy_is_removed_and_the_runs_restored
     assert "its working copy's dvc.lock was damaged (empty, or not DVC's YAML)" in again.stderr
     assert "Running stage" not in again.stdout + again.stderr  # restored, not trained again
     assert finished.read_bytes() == made
+
+
+def test_make_quick_runs_the_quick_look_as_an_experiment_with_no_warning(tmp_path: Path) -> None:
+    """A newcomer's first command on a fresh clone: `make quick` runs experiments/quick.yaml (here
+    at the tiny point pipeline's size) through `experiment run`, saved as the DVC experiment
+    `quick` that `experiment show` lists and `dvc exp apply quick` brings into the workspace, and
+    prints no warning a newcomer cannot act on (`dvc exp run --temp` once printed 140, one per
+    output dvc.lock names that a fresh clone's cache lacks)."""
+    repo = scratch_copy(tmp_path / "repo", tiny)
+    (repo / "experiments" / "quick.yaml").write_text("# The quick look, tiny.\ntd3:\n  lr: 0.002\n")
+    commit(repo)
+    installed = BIN.parent  # the suite's environment: `make` finds it installed
+    made = ok(run(repo, "make", "quick", f"VENV={installed}", timeout=900))
+    warned = [line for line in made.splitlines() if "warn" in line.lower()]
+    assert warned == [], warned[:5]
+    assert "experiment run quick --update-code" in made  # one way to run an experiment
+    for algo in ("td3", "ede-td3"):
+        assert (repo / ".dvc/tmp/experiments/quick/data/runs" / TASK / algo / "seed0").is_dir()
+
+    assert "quick  (" in ok(experiment(repo, "show"))
+    assert not (repo / "data" / "report" / "index.html").exists()
+    ok(dvc(repo, "exp", "apply", "quick"))
+    assert (repo / "data" / "report" / "index.html").is_file()
+    assert yaml.safe_load((repo / "params.yaml").read_text())["td3"]["lr"] == 0.002
+

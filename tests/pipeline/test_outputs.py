@@ -455,7 +455,6 @@ READS = {
     ("report", "--families"),
     ("results", "--runs"),
     ("results", "--ablations"),
-    ("set-params", "overrides"),
     ("task-inputs", "--embedding"),
     ("task-inputs", "--code"),
     ("train", "--encoder"),
@@ -465,7 +464,7 @@ READS = {
     ("render", "--decoder"),
     *((command, "--params") for command in (
         "collect", "envs", "inspect", "pretrain decoder", "pretrain encoder", "render", "report",
-        "results", "set-params", "task-code", "task-inputs", "train", "validate",
+        "results", "task-code", "task-inputs", "train", "validate",
     )),
 }  # fmt: skip
 
