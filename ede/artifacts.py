@@ -294,26 +294,29 @@ def save_decoder(
 
 
 def load_action_embedding(
-    encoder_path: str | Path, decoder_path: str | Path, device: torch.device | str = "cpu"
+    encoder_path: str | Path | None, decoder_path: str | Path, device: torch.device | str = "cpu"
 ) -> tuple[DecoderMeta, ActionEmbedding]:
     """The ready :class:`ActionEmbedding` of a family: its encoder and the decoder that inverts it.
+    Without ``encoder_path``, the decoder alone (which names its encoder): an embedding that
+    decodes, for playing a trained policy from a published decoder.
 
     Raises:
         ArtifactError: missing, tampered or mismatched artifacts.
     """
-    encoder_path, decoder_path = Path(encoder_path), Path(decoder_path)
-    encoder_meta, encoded = load_encoder(encoder_path)
+    decoder_path = Path(decoder_path)
+    encoder = None
     meta, tensors = _load_meta(decoder_path, DecoderMeta)
-    if meta.encoder_sha256 != encoder_meta.identity:
-        raise ArtifactError(
-            f"{decoder_path}: was trained against another encoder than {encoder_path}"
-        )
+    if encoder_path is not None:
+        encoder_meta, encoded = load_encoder(encoder_path)
+        if meta.encoder_sha256 != encoder_meta.identity:
+            raise ArtifactError(
+                f"{decoder_path}: was trained against another encoder than {encoder_path}"
+            )
+        encoder = encoded.encoder
     low, high = np.asarray(meta.action_space.low), np.asarray(meta.action_space.high)
     decoder = ActionDecoder(meta.dim, meta.k, low, high, meta.hidden, meta.output_range)
     _fill(decoder_path, "decoder", decoder, tensors)
-    embedding = ActionEmbedding(
-        encoded.encoder, decoder, meta.code_whitening.whitening(), meta.bound
-    )
+    embedding = ActionEmbedding(encoder, decoder, meta.code_whitening.whitening(), meta.bound)
     return meta, embedding.to(device)
 
 

@@ -94,7 +94,7 @@ class ActionDecoder(nn.Module):
         self.half_range: torch.Tensor
         if output_range not in ("bounds", "unit"):
             raise ValueError(f"output_range {output_range!r}: expected 'bounds' or 'unit'")
-        self.k, self.action_size, self.output_range = k, len(low), output_range
+        self.k, self.action_size, self.dim, self.output_range = k, len(low), dim, output_range
         self.net = mlp(dim, hidden, k * len(low), nn.SELU)
         self.register_buffer("centre", torch.as_tensor((high + low) / 2, dtype=torch.float32))
         self.register_buffer("half_range", torch.as_tensor((high - low) / 2, dtype=torch.float32))
@@ -296,17 +296,24 @@ class DecoderResult:
 class ActionEmbedding(nn.Module):
     """E and D behind one face: ``encode(actions) -> z`` and ``decode(z) -> actions``, batched.
 
-    ``z`` is always the whitened code, the EDE actor's action space, bounded by ``bound``.
+    ``z`` is always the whitened code, the EDE actor's action space, bounded by ``bound``. Without
+    its encoder (a published decoder alone, :func:`ede.artifacts.load_action_embedding`) it
+    decodes, which is all a trained policy needs to act, and encodes nothing.
     """
 
     def __init__(
-        self, encoder: Encoder, decoder: ActionDecoder, code_whitening: Whitening, bound: float
+        self,
+        encoder: Encoder | None,
+        decoder: ActionDecoder,
+        code_whitening: Whitening,
+        bound: float,
     ):
         super().__init__()
         self.code_mean: torch.Tensor  # buffers (registered below)
         self.code_std: torch.Tensor
-        self.encoder, self.decoder = encoder.eval(), decoder.eval()
-        self.k, self.action_size, self.dim = encoder.k, encoder.action_size, encoder.dim
+        self.encoder = None if encoder is None else encoder.eval()
+        self.decoder = decoder.eval()
+        self.k, self.action_size, self.dim = decoder.k, decoder.action_size, decoder.dim
         self.bound = float(bound)
         self.register_buffer("code_mean", torch.as_tensor(code_whitening.mean, dtype=torch.float32))
         self.register_buffer("code_std", torch.as_tensor(code_whitening.std, dtype=torch.float32))
@@ -315,6 +322,8 @@ class ActionEmbedding(nn.Module):
 
     def encode(self, actions: torch.Tensor) -> torch.Tensor:
         """Whitened codes of action sequences: (B, K, A) -> (B, D)."""
+        if self.encoder is None:
+            raise ValueError("this embedding was loaded without its encoder: it only decodes")
         mean, _ = self.encoder(actions)
         return (mean - self.code_mean) / self.code_std
 

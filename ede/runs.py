@@ -47,6 +47,7 @@ __all__ = [
     "CHECKSUMMED",
     "DIAGNOSTIC_COLUMNS",
     "EVAL_COLUMNS",
+    "POLICY",
     "PUBLISHED",
     "RUN_KIND",
     "RUN_OWNS",
@@ -67,19 +68,21 @@ EVAL_COLUMNS = ("step", "episode", "mean_return", "std_return", "wall_seconds")
 DIAGNOSTIC_COLUMNS = ("step", "updates", "critic_loss", "actor_loss", "mean_q")
 # What a run's folder may hold while it trains (a stage refuses any other folder as its output).
 RUN_KIND = "training run"
+POLICY = "policy"  # the folder of a finished run's final actor (write_policy)
 RUN_OWNS = (
     "eval.csv",
     "diagnostics.csv",
     "run.json",
     "metrics.json",
-    "policy",
+    POLICY,
     "checkpoint",
     "checkpoint.bad-*",
     "*.tmp-*",
 )
-# A finished run's files that are published (docs/results/runs/): its numbers and what made it.
+# A finished run's files that are published (docs/results/runs/): its numbers and what made it;
+# its policy too where `ede-pipeline experiment export --policies` publishes it (the clips').
 PUBLISHED = ("eval.csv", "diagnostics.csv", "run.json", "metrics.json")
-# A finished run's files whose SHA-256 its run.json records (the policy stays with the run).
+# A finished run's files whose SHA-256 its run.json records.
 CHECKSUMMED = (
     "eval.csv",
     "diagnostics.csv",
@@ -232,12 +235,12 @@ def read_policy(run_dir: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]
         RunRejected: no policy there (a published copy keeps none), or a file damaged or not the
             run's, naming the file.
     """
-    policy = run_dir / "policy"
+    policy = run_dir / POLICY
     missing = [n for n in ("policy.safetensors", "policy.json") if not (policy / n).is_file()]
     if missing:
         raise RunRejected(
             f"{policy}: no final policy ({' and '.join(missing)} missing); a run writes it as it "
-            "finishes, and a published copy of a run keeps none"
+            "finishes, and a published copy of a run keeps one only where exported with --policies"
         )
     if (run_dir / "run.json").is_file():
         try:

@@ -37,7 +37,15 @@ from ede.checkpoint import CheckpointError, Episode, Layout
 from ede.config import ALGOS
 from ede.embedding import ActionEmbedding
 from ede.nets import flush_denormals
-from ede.runs import RUN_KIND, RUN_OWNS, RunSpec, write_curves, write_finished, write_policy
+from ede.runs import (
+    POLICY,
+    RUN_KIND,
+    RUN_OWNS,
+    RunSpec,
+    write_curves,
+    write_finished,
+    write_policy,
+)
 from ede.stats import area_under_curve
 from ede.tasks import make
 from ede.td3 import (
@@ -500,7 +508,7 @@ class _Session:
             "episodes": run.episodes,
             "resumed_from_step": self.steps_at_start if self.resumed else None,
         }
-        save_policy(out / "policy", self.group.agent, self.index, spec, self.group.adapter)
+        save_policy(out / POLICY, self.group.agent, self.index, spec, self.group.adapter)
         write_finished(out, spec, metrics, self.group.device)
         path = out / "checkpoint"
         if not keep_checkpoint:

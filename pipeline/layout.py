@@ -15,6 +15,7 @@ __all__ = [
     "DECODER",
     "ENCODER",
     "FAMILIES",
+    "PUBLISHED_EMBEDDINGS",
     "REPORT",
     "REPORT_CURVES",
     "REPORT_METRICS",
@@ -25,6 +26,7 @@ __all__ = [
     "code",
     "decoder",
     "embedding",
+    "embedding_beside",
     "encoder",
     "own_family",
     "published_embedding",
@@ -45,6 +47,7 @@ REPORT_METRICS = DATA / "report-metrics.json"
 REPORT_CURVES = DATA / "report-curves"
 VIDEOS = DATA / "videos"  # `ede-pipeline render`'s videos, laid out as RUNS
 ENCODER, DECODER = "encoder", "decoder"  # the two artifacts in an embedding's folder
+PUBLISHED_EMBEDDINGS = "embedding"  # a published task folder's embeddings, one folder each
 RESULTS = Path("docs") / "results"  # the results page's figures (`ede-pipeline results`)
 RESULTS_RUNS = RESULTS / "runs"  # the published runs, laid out as RUNS (`experiment export`)
 
@@ -111,4 +114,10 @@ def published_embedding(task: str, checksum: str, runs: Path = RESULTS_RUNS) -> 
     """Published, the held-out metrics of an embedding a task's EDE-TD3 runs used, named by the
     first 12 characters of its decoder's checksum (the ``embedding`` their ``run.json`` names),
     so that each run finds its own where a task's seeds came from several experiments."""
-    return task_runs(task, runs) / "embedding" / checksum[:12]
+    return task_runs(task, runs) / PUBLISHED_EMBEDDINGS / checksum[:12]
+
+
+def embedding_beside(run: Path, checksum: str) -> Path:
+    """A published run's embedding (:func:`published_embedding`), from the run's own folder
+    (``<task folder>/<algo>/seed<N>``)."""
+    return run.parent.parent / PUBLISHED_EMBEDDINGS / checksum[:12]

@@ -9,9 +9,11 @@ offscreen rendering (``MUJOCO_GL=egl``, or ``osmesa``), marked with the episode,
 return so far, and for EDE-TD3 with a bar at each step where a code starts. The format follows
 ``--out``'s suffix: ``.mp4`` (H.264 through the ffmpeg that imageio-ffmpeg's wheel carries, at the
 task's frame rate) or ``.gif`` (every other frame at half size, for pages). An EDE-TD3 run needs its
-family's embedding, the one its ``run.json`` names (by default the pipeline's, for the run's task).
+family's embedding, the one its ``run.json`` names: the decoder published beside it, where
+``ede-pipeline experiment export --policies`` published the run, else the pipeline's for its task.
 
-Bad input is one line (exit 2): a folder with no policy (a published copy keeps none), a damaged
+Bad input is one line (exit 2): a folder with no policy (a published copy keeps one only where
+exported with ``--policies``), a damaged
 policy (its SHA-256 not the one ``run.json`` records, or unreadable), an EDE-TD3 run without its
 embedding, a task that cannot be made or cannot render; a machine where MuJoCo has no offscreen GL
 is one line, exit 1. The video appears whole or not at all.
@@ -47,24 +49,29 @@ OFFSCREEN = ("egl", "osmesa")  # MuJoCo's offscreen GL backends; egl where MUJOC
 
 
 def embedding_for(
-    meta: dict, params: Params, encoder: Path | None, decoder: Path | None
+    run: Path, meta: dict, params: Params, encoder: Path | None, decoder: Path | None
 ) -> ActionEmbedding:
-    """The embedding an EDE-TD3 run acts through: its family's (or the one ``encoder`` and
-    ``decoder`` name), which must be the one the run trained with."""
+    """The embedding an EDE-TD3 run acts through, which must be the one it trained with: the
+    one ``encoder`` and ``decoder`` name; else, for a published run, the decoder published
+    beside it (``experiment export --policies``; a policy acts through the decoder alone); else
+    its family's in the pipeline's data."""
     task = meta["task"]
-    family = params.runs.tasks.get(task) or layout.own_family(task, params.families)
-    folder = layout.embedding(family)
+    beside = layout.embedding_beside(run, str(meta.get("embedding"))) / layout.DECODER
+    if encoder is None and decoder is None and beside.is_dir():
+        paths: tuple[Path | None, Path] = (None, beside)
+    else:
+        family = params.runs.tasks.get(task) or layout.own_family(task, params.families)
+        folder = layout.embedding(family)
+        paths = (encoder or folder / layout.ENCODER, decoder or folder / layout.DECODER)
     try:
-        found, embedding = load_action_embedding(
-            encoder or folder / layout.ENCODER, decoder or folder / layout.DECODER
-        )
+        found, embedding = load_action_embedding(*paths)
     except ArtifactError as error:
         raise BadInput(
             f"{error} (an EDE-TD3 run on {task} acts through its family's embedding)"
         ) from None
     if found.identity != meta.get("embedding"):
         raise BadInput(
-            f"{decoder or folder / layout.DECODER}: not the embedding the run trained with (its "
+            f"{paths[1]}: not the embedding the run trained with (its "
             f"checksum {found.identity[:12]}…, the run's policy.json names "
             f"{str(meta.get('embedding'))[:12]}…); name the run's with --encoder and --decoder"
         )
@@ -116,11 +123,12 @@ def frames_of(
 
 def side_by_side(
     runs: list[Path], embedding: tuple[ActionEmbedding, str] | None, episodes: int = 1
-) -> list[np.ndarray]:
+) -> tuple[list[np.ndarray], list[float]]:
     """The runs' policies (TD3 and EDE-TD3 of one seed, say) played from the same starts, their
-    frames side by side at half size; the shorter episodes hold their last frame. An EDE-TD3
-    run's ``embedding`` (with its decoder's identity) must be the one it trained with."""
-    played = []
+    frames side by side at half size (the shorter episodes hold their last frame), and each
+    one's mean return. An EDE-TD3 run's ``embedding`` (with its decoder's identity) must be the
+    one it trained with."""
+    played, returns = [], []
     for run in runs:
         try:
             meta, tensors = read_policy(run)
@@ -131,10 +139,12 @@ def side_by_side(
             if embedding is None or embedding[1] != meta.get("embedding"):
                 raise BadInput(f"{run}: its family's embedding is not the one it trained with")
             used = embedding[0]
-        played.append(frames_of(meta, tensors, adapter_of(meta, used), episodes, shrink=2)[0])
+        frames, each = frames_of(meta, tensors, adapter_of(meta, used), episodes, shrink=2)
+        played.append(frames)
+        returns.append(float(np.mean(each)))
     length = max(len(frames) for frames in played)
     held = [frames + frames[-1:] * (length - len(frames)) for frames in played]
-    return [np.concatenate(row, axis=1) for row in zip(*held, strict=True)]
+    return [np.concatenate(row, axis=1) for row in zip(*held, strict=True)], returns
 
 
 def encode(frames: list[np.ndarray], fps: float, suffix: str, to: Path) -> None:
@@ -215,7 +225,7 @@ def render(
     if out is None:
         out = layout.video(task, algo, seed)
         check_out(out)
-    embedding = embedding_for(meta, params, encoder, decoder) if algo == "ede-td3" else None
+    embedding = embedding_for(run, meta, params, encoder, decoder) if algo == "ede-td3" else None
     frames, returns = frames_of(meta, tensors, adapter_of(meta, embedding), episodes)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_video(out, frames, fps_of(task))

@@ -439,7 +439,7 @@ def _videos(
             else None
         )
         try:
-            frames = side_by_side(runs, embedding)
+            frames, _ = side_by_side(runs, embedding)
             with tempfile.TemporaryDirectory() as scratch:
                 clip = Path(scratch) / "clip.mp4"
                 encode(frames, fps_of(task), ".mp4", clip)

@@ -13,7 +13,7 @@ from ede.atomic import write_json
 from ede.config import (
     Params,
 )
-from ede.runs import PUBLISHED
+from ede.runs import POLICY, PUBLISHED
 from ede_pipeline import layout
 from ede_pipeline.common import DEFAULT_PARAMS, BadInput, read_params
 from ede_pipeline.experiments.workspace import WORKSPACES, experiment_file
@@ -29,7 +29,13 @@ from ede_pipeline.experiments.workspace import WORKSPACES, experiment_file
     show_default=True,
     help="The published runs' folder.",
 )
-def export(name: str, to: Path) -> None:
+@click.option(
+    "--policies",
+    is_flag=True,
+    help="Publish each run's final policy too (policy/, about 0.5 MB a run), and the decoder "
+    "its EDE-TD3 runs act through, so that `ede-pipeline render` plays them.",
+)
+def export(name: str, to: Path, policies: bool) -> None:
     """Copy experiment NAME's finished runs into the published layout.
 
     Each finished run's eval.csv, diagnostics.csv, run.json and metrics.json go to
@@ -37,7 +43,9 @@ def export(name: str, to: Path) -> None:
     params name, finished, its files whole), and the held-out metrics of the embedding its
     EDE-TD3 runs used to TO/<task>/embedding/<checksum>/. Each task's source.json names the
     experiment file, the commits its runs were made at (an earlier export's too), its seeds,
-    and report.thresholds' returns for it. Where the task's folder already holds seeds from
+    and report.thresholds' returns for it. With --policies, each run's policy/ goes beside its
+    files, and the embedding's decoder/ beside its metrics (its encoder is not needed to play a
+    policy, and stays out). Where the task's folder already holds seeds from
     other experiments (an experiment adding seeds to a published task), source.json keeps their
     parts beside this one; seeds already published by another experiment are refused, and so
     are runs there that `ede-pipeline results` would refuse (a folder not named seed<N>, a file
@@ -86,12 +94,18 @@ def export(name: str, to: Path) -> None:
             for file in PUBLISHED:
                 if (folder / file).is_file():
                     shutil.copy2(folder / file, target / file)
+            if policies:
+                shutil.copytree(folder / POLICY, target / POLICY, dirs_exist_ok=True)
         embedding = workspace / layout.embedding(params.runs.tasks[task])
         for checksum in {made["embedding"] for algo, *_, made in runs if algo == "ede-td3"}:
             kept = layout.published_embedding(task, checksum, to)
             kept.mkdir(parents=True, exist_ok=True)
             for file in EMBEDDING_METRICS:
                 shutil.copy2(embedding / file, kept / file)
+            if policies:
+                shutil.copytree(
+                    embedding / layout.DECODER, kept / layout.DECODER, dirs_exist_ok=True
+                )
         write_json(layout.task_runs(task, to) / "source.json", source)
         click.echo(f"{task}: {len(runs)} runs to {layout.task_runs(task, to)}", err=True)
 

@@ -19,6 +19,8 @@ from ede.stats import Band
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, check_outputs, params_option
 from ede_pipeline.published import TaskRuns, read_ablations, read_runs
+from ede_pipeline.render import VIDEO_KIND, write_video
+from ede_pipeline.results.clips import CLIP, clips
 from ede_pipeline.results.pages import fill_pages, read_pages
 from ede_pipeline.results.sections import (
     Section,
@@ -205,8 +207,9 @@ def check_figures(figures: Path, names: Iterable[str], inputs: tuple[Path, ...])
     type=click.Path(exists=True, path_type=Path),
     multiple=True,
     help="Markdown pages (or folders of them) whose marked blocks to fill with the sections they "
-    "name, from the runs folder each names, instead of printing; each runs folder's figures go "
-    "to the folder above it. Repeatable.",
+    "name, from the runs folder each names, instead of printing; each runs folder's figures, "
+    "and its clips where its policies are published (`Clip: <task>` blocks), go to the folder "
+    "above it. Repeatable.",
 )
 @params_option
 def results(
@@ -234,15 +237,31 @@ def results(
                 "--ablations"
             )
         found = read_pages(pages)
+        folders = list(dict.fromkeys(block.runs for block in found.blocks))
+        named = {(b.runs, b.heading.startswith(CLIP)) for b in found.blocks}
         made = {
             folder: draw(params, folder, bins, folder.parent / "ablations", folder.parent)
-            for folder in dict.fromkeys(block.runs for block in found.blocks)
+            for folder in folders
+            if (folder, False) in named
         }
+        played = {folder: clips(folder, params) for folder in folders if (folder, True) in named}
         for folder, drawn in made.items():
             check_figures(folder.parent, drawn.figures, (folder,))
-        filled = fill_pages(found, {folder: drawn.sections for folder, drawn in made.items()})
-        for folder, drawn in made.items():  # the figures first: a page filled is one complete
+        for folder, each in played.items():
+            for clip in each:
+                check_outputs((None, VIDEO_KIND), files=((clip.gif, VIDEO_KIND),), inputs=(folder,))
+        sections = {
+            folder: [
+                *(made[folder].sections if folder in made else []),
+                *(clip.section for clip in played.get(folder, [])),
+            ]
+            for folder in folders
+        }
+        filled = fill_pages(found, sections)
+        for folder, drawn in made.items():  # figures and clips first: a page filled is complete
             save_figures(folder.parent, drawn.figures)
+        for clip in (clip for each in played.values() for clip in each):
+            write_video(clip.gif, clip.frames, clip.fps)
         for page, text in filled.items():
             write_text(page, text)
             click.echo(f"Filled: {page}")

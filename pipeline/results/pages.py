@@ -7,7 +7,8 @@ fills. A block names a section of the results of one runs folder, by its heading
 
 ``runs`` is the runs folder, relative to the page; the heading is the section's, as printed
 after ``### `` (a task's id, ``Across tasks: the reacher family``, ``The tasks at a glance``,
-``step: ede/ReacherVertical-v0, TD3``). Everything outside a block is the author's and is kept
+``step: ede/ReacherVertical-v0, TD3``; ``Clip: ede/ReacherPush-v0``, a runs folder's clip where
+its policies are published: :mod:`ede_pipeline.results.clips`). Everything outside a block is the author's and is kept
 byte for byte; a block's content is the command's and is replaced whole, so that no number of a
 page's tables is ever typed.
 """

@@ -153,6 +153,12 @@ def test_save_then_load_gives_identical_outputs(
     z = embedding.encode(actions)
     again = load_action_embedding(*saved)[1]
     torch.testing.assert_close(again.decode(z), embedding.decode(z), rtol=0, atol=0)
+    # The decoder alone (a published one) decodes as the whole embedding does, and encodes nothing.
+    alone_meta, alone = load_action_embedding(None, saved[1])
+    assert alone_meta.identity == meta.identity and (alone.k, alone.dim) == (4, 2)
+    torch.testing.assert_close(alone.decode(z), embedding.decode(z), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="without its encoder"):
+        alone.encode(actions)
 
 
 def test_a_tampered_metadata_file_is_refused(saved: tuple[Path, Path]) -> None:

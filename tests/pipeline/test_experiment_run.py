@@ -10,6 +10,8 @@ import subprocess
 import time
 from pathlib import Path
 
+import imageio.v3 as iio
+import numpy as np
 import pytest
 import yaml
 
@@ -284,3 +286,45 @@ def test_make_quick_runs_the_quick_look_as_an_experiment_with_no_warning(tmp_pat
     assert (repo / "data" / "report" / "index.html").is_file()
     assert yaml.safe_load((repo / "params.yaml").read_text())["td3"]["lr"] == 0.002
 
+
+def test_an_export_with_policies_publishes_what_render_plays(repo: Path) -> None:
+    """`experiment export --policies` publishes each run's final policy, and the decoder (not
+    the encoder) its EDE-TD3 runs act through; `render` plays a published EDE-TD3 run from what
+    is published beside it alone, as the run's final evaluation played it."""
+    (repo / "experiments" / "both.yaml").write_text(
+        "# Point at one seed, both algorithms.\nruns:\n  seeds: [0]\n"
+    )
+    commit(repo)
+    ok(experiment(repo, "run", "both", "--jobs", "2"))
+    out = repo / "clips"
+    ok(experiment(repo, "export", "both", "--to", str(out), "--policies"))
+    for algo in ("td3", "ede-td3"):
+        assert (out / TASK / algo / "seed0" / "policy" / "policy.safetensors").is_file()
+    published = out / TASK / "ede-td3" / "seed0"
+    made = json.loads((published / "run.json").read_text())
+    kept = out / TASK / "embedding" / made["embedding"][:12]
+    assert (kept / "decoder" / "weights.safetensors").is_file() and not (kept / "encoder").exists()
+    assert not (repo / "data" / "families").exists()  # no pipeline embedding to fall back on
+
+    played = ok(run(repo, BIN / "ede-pipeline", "render", published, "--episodes", "3",
+                    "--out", repo / "clip.gif", timeout=300))  # fmt: skip
+    mean = float(played.split("(mean ")[1].split(")")[0])
+    last = (published / "eval.csv").read_text().strip().splitlines()[-1].split(",")
+    assert abs(mean - float(last[2])) < 0.01, (played, last)  # as in test_train.py's render test
+
+    # A results page's clip of the folder: TD3 beside EDE-TD3, a GIF beside the page.
+    page = repo / "clips.md"
+    page.write_text(f"# Clips\n\n<!-- results clips: Clip: {TASK} -->\n<!-- /results -->\nEnd.\n")
+    ok(run(repo, BIN / "ede-pipeline", "results", "--pages", page, timeout=300))
+    text = page.read_text()
+    gif = repo / f"clip-{TASK.replace('/', '_')}.gif"
+    assert f"![{TASK}: TD3 (left) beside EDE-TD3 (right), seed 0]({gif.name})" in text
+    finals = [
+        float((out / TASK / algo / "seed0" / "eval.csv").read_text().split()[-1].split(",")[2])
+        for algo in ("td3", "ede-td3")
+    ]
+    assert f"the final evaluation's mean: {finals[0]:.1f} and {finals[1]:.1f}." in text
+    assert text.startswith("# Clips\n\n") and text.endswith("<!-- /results -->\nEnd.\n")
+    clip = iio.imread(gif, index=None)
+    assert clip.shape[:3] == (50, 120, 240)  # 100 steps, every other frame; two half-size halves
+    assert np.abs(clip[0].astype(int) - clip[-1].astype(int)).max() > 50  # the points moved

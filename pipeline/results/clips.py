@@ -1,0 +1,81 @@
+"""The results pages' clips: per task of a runs folder whose policies are published (``ede-pipeline
+experiment export --policies``), TD3 beside EDE-TD3 of one seed, one episode each from the same
+start, as a GIF and the section a page's block takes by the heading ``Clip: <task>``.
+
+The GIF goes where the folder's figures go, the folder above it (``docs/results/clips/`` →
+``docs/results/clip-ede_ReacherPush-v0.gif``), and the section links it from there: the pages
+that name the folder lie there too.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from ede.config import ALGO_LABELS, ALGOS, Params
+from ede.runs import POLICY, RunRejected, read_policy
+from ede_pipeline import layout
+from ede_pipeline.common import BadInput
+from ede_pipeline.published import published_runs, read_source, task_folders
+from ede_pipeline.render import embedding_for, fps_of, side_by_side
+from ede_pipeline.results.sections import Section
+
+CLIP = "Clip: "  # a clip's heading: CLIP + its task
+
+
+class Clip(NamedTuple):
+    """One task's clip: its section, and the GIF it links, to be written."""
+
+    section: Section
+    gif: Path
+    frames: list[np.ndarray]
+    fps: float
+
+
+def clip_name(task: str) -> str:
+    return f"clip-{task.replace('/', '_')}.gif"
+
+
+def clips(runs: Path, params: Params) -> list[Clip]:
+    """Every task under ``runs`` with a seed whose TD3 and EDE-TD3 policies are both kept: the
+    clip of its lowest such seed, the episode its final evaluation played first."""
+    os.environ.setdefault("MUJOCO_GL", "egl")  # read as the first environment renders
+    made = []
+    for task in task_folders(runs):
+        kept: dict[int, dict[str, Path]] = {}
+        finals = {}  # each run's final evaluation's mean return, by (algorithm, seed)
+        for run, record in published_runs(runs, task):
+            algo, seed = record.made["algo"], record.curve.seed
+            finals[(algo, seed)] = float(record.curve.returns[-1])
+            if (run / POLICY).is_dir():
+                kept.setdefault(seed, {})[algo] = run
+        seeds = sorted(seed for seed, algos in kept.items() if set(algos) == set(ALGOS))
+        if not seeds:
+            continue
+        seed = seeds[0]
+        pair = [kept[seed][algo] for algo in ALGOS]
+        try:
+            meta, _ = read_policy(kept[seed]["ede-td3"])
+        except RunRejected as error:
+            raise BadInput(str(error)) from None
+        embedding = embedding_for(pair[1], meta, params, None, None)
+        frames, returns = side_by_side(pair, (embedding, meta["embedding"]))
+        gif = runs.parent / clip_name(task)
+        labels = [ALGO_LABELS[algo] for algo in ALGOS]
+        text = (
+            f"### {CLIP}{task}\n\n"
+            f"![{task}: {labels[0]} (left) beside {labels[1]} (right), seed {seed}]"
+            f"({clip_name(task)})\n\n"
+            f"Seed {seed}'s final policies, each playing the first episode of its run's final "
+            "evaluation; an orange bar marks each step where EDE-TD3 chooses a code. This "
+            f"episode's return: {returns[0]:.1f} ({labels[0]}) and {returns[1]:.1f} "
+            f"({labels[1]}); the final evaluation's mean: "
+            f"{finals[(ALGOS[0], seed)]:.1f} and {finals[(ALGOS[1], seed)]:.1f}. Made by "
+            f"{read_source(layout.task_runs(task, runs)).made_at()}; `{layout.task_runs(task, runs)}`"
+            " holds the runs and their policies.\n"
+        )
+        made.append(Clip(Section(CLIP + task, text), gif, frames, fps_of(task)))
+    return made
