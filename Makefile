@@ -61,13 +61,13 @@ lock:
 		--output-file $(LOCK) pyproject.toml
 	$(BIN)/python scripts/lock.py simulator $(LOCK) $(SIMULATOR_LOCK)
 
-# The pipeline through the sweep (README.md, "Sweeps: in parallel and on a cluster"): the collect
-# and pretrain stages with dvc repro, the out-of-date runs side by side on every core (seeds grouped
-# into one process where that is faster) with one overall progress line, then what is left (the
-# report) with dvc repro. Plain `dvc repro` is the serial way, with the same record.
+# The pipeline through the sweep (README.md, "Sweeps: in parallel and on a cluster"): every
+# out-of-date stage in dependency order, side by side on every core where they do not depend on
+# each other (the families' collect and pretrain stages, then the runs, seeds grouped into one
+# process where that is faster, then the report), with one overall progress line. Plain
+# `dvc repro` is the serial way, with the same record.
 repro: install
 	$(BIN)/ede-pipeline sweep
-	$(BIN)/dvc repro
 
 # The quick look (experiments/quick.yaml), run as every committed experiment is (below): the runs
 # side by side on every core, in a working copy of its own, saved as the DVC experiment `quick`;

@@ -23,14 +23,17 @@ from ede_pipeline.sweep.execute import (
 from ede_pipeline.sweep.on_ray import RETRIES, RayExecutor, check_ray_address
 from ede_pipeline.sweep.plan import (
     Job,
+    RunId,
     default_group_size,
     group_jobs,
     seed_by_seed,
     train_runs,
 )
 from ede_pipeline.sweep.stages import (
-    bring_upstream_up_to_date,
     collect_stages,
+    dependencies,
+    in_waves,
+    out_of_date,
     record,
     repo_lock,
     restore_from_run_cache,
@@ -40,7 +43,10 @@ from ede_pipeline.sweep.stages import (
 from ede_pipeline.sweep.tally import Tally
 
 if TYPE_CHECKING:
+    from dvc.repo import Repo
     from dvc.stage import Stage
+
+    from ede.config import Params
 
 LOGS = Path(".dvc") / "tmp" / "sweep"  # DVC's own git-ignored scratch folder
 LOGS_KIND = "folder of sweep logs"
@@ -118,14 +124,14 @@ def sweep(
     group_size: int | None,
     logs: Path,
 ) -> None:
-    """Run the out-of-date train stages in parallel and record each with DVC.
+    """Run the out-of-date stages in parallel, in dependency order, and record each with DVC.
 
-    TARGETS are stages as `dvc repro` takes them, `*` a wildcard (default: every run of
-    dvc.yaml's `train` stage, e.g. `'train@ede/Reacher*'` only those).
-    Their upstream stages are brought up to date first with `dvc repro`. Exits 1 if any run failed;
-    what succeeded is recorded all the same, and running the sweep again runs only the rest.
+    TARGETS are stages as `dvc repro` takes them, `*` a wildcard (default: every stage of
+    dvc.yaml; e.g. `'train@ede/Reacher*'` only those runs), with the stages they depend on.
+    Exits 1 if any stage failed (what depends on it is not run); what succeeded is recorded all
+    the same, and running the sweep again runs only the rest.
     """
-    from dvc.exceptions import DvcException, NotDvcRepoError
+    from dvc.exceptions import NotDvcRepoError
     from dvc.repo import Repo
 
     if not Path("dvc.yaml").is_file():
@@ -163,72 +169,104 @@ def sweep(
             "repository) first"
         ) from None
 
-    with Repo(".") as repo:
-        stages = collect_stages(repo, targets)
-        bring_upstream_up_to_date(repo, stages)
-
     with Repo(".") as repo, repo_lock(repo):
-        stages = collect_stages(repo, targets)  # the index as it is after the upstream stages ran
-        stale = [stage for stage in stages if stage.changed()]
-        click.echo(f"sweep: {len(stale)} of {len(stages)} stages out of date", err=True)
+        waves = in_waves(repo, collect_stages(repo, targets))
+        stale = out_of_date(repo, waves)
+        count = sum(map(len, waves))
+        click.echo(f"sweep: {len(stale)} of {count} stages out of date", err=True)
         if not stale:
             return
         if chosen:
             claim(logs, LOGS_KIND, ("*.log", "*.attempts"))
-        tally = Tally(len(stale))
-        failed: list[str] = []
-        pending: list[Job] = []
-        for stage in stale:
-            try:
-                stage.remove_outs(ignore_remove=False, force=False)
-                if restore_from_run_cache(stage):
-                    record(stage)
-                    click.echo(
-                        tally.line("cached", stage.addressing, "restored from the run cache")
-                    )
-                    continue
-                stage.save_deps()
-            except (DvcException, OSError) as error:  # this stage only; the others go on
-                failed.append(stage.addressing)
-                click.echo(
-                    tally.line(
-                        "FAILED", stage.addressing, f"not started: {type(error).__name__}: {error}"
-                    )
-                )
-                continue
-            log = (Path(repo.root_dir) / logs / f"{_safe(stage.addressing)}.log").resolve()
-            run = runs.get(stage.addressing)
-            pending.append(
-                Job(
-                    stage.addressing,
-                    stage_argvs(stage),
-                    repo.root_dir,
-                    stage_env(stage),
-                    str(log),
-                    runs=(run,) if run else (),
-                )
-            )
-        workers = jobs or (os.cpu_count() if executor == "local" else None)
-        pending = seed_by_seed(
-            group_jobs(pending, group_size or default_group_size(params, len(pending), workers))
-        )
-        logs_of = {job.stage: Path(job.log) for job in pending}
-        for job in pending:
-            attempts_file(job).unlink(missing_ok=True)  # an earlier sweep's
+        sweeping = _Sweep(repo, params, runs, logs, Tally(len(stale)))
         runner = _executor(executor, jobs, address, cpus_per_run, retries)
-        by_name = {stage.addressing: stage for stage in stale}
-        tally.track(pending, params.runs.budgets)
-        with tally.watch():
-            for outcome in runner.map_unordered(pending):
-                _report(outcome, by_name, logs_of[outcome.stage], tally, failed)
+        workers = jobs or (os.cpu_count() if executor == "local" else None)
+        with sweeping.tally.watch():
+            for wave in waves:
+                sweeping.run_wave(
+                    [stage for stage in wave if stage.addressing in stale],
+                    runner,
+                    group_size,
+                    workers,
+                )
 
-    recorded = len(stale) - len(failed)
-    click.echo(f"sweep: {recorded} recorded, {len(failed)} failed", err=True)
+    failed = sweeping.failed
+    click.echo(f"sweep: {len(stale) - len(failed)} recorded, {len(failed)} failed", err=True)
     if failed:
         click.echo(
             "failed (run `ede-pipeline sweep` again to resume them): " + " ".join(failed), err=True
         )
         ctx.exit(1)
+
+
+class _Sweep:
+    """The sweep's state as its waves run: the progress, and the stages that failed (or could not
+    run, since one they depend on failed)."""
+
+    def __init__(
+        self, repo: Repo, params: Params, runs: dict[str, RunId], logs: Path, tally: Tally
+    ) -> None:
+        self.repo, self.params, self.runs, self.logs, self.tally = repo, params, runs, logs, tally
+        self.failed: list[str] = []
+
+    def run_wave(
+        self, stages: list[Stage], runner: Executor, group_size: int | None, workers: int | None
+    ) -> None:
+        """Run a wave's out-of-date stages side by side and record each as it finishes. A stage
+        is first checked again, as ``dvc repro`` checks it at its turn, and restored from the run
+        cache where DVC has this very run."""
+        from dvc.exceptions import DvcException
+
+        tally, pending = self.tally, []
+        for stage in stages:
+            name = stage.addressing
+            if broken := [
+                dep.addressing
+                for dep in dependencies(self.repo, stage)
+                if dep.addressing in self.failed
+            ]:
+                self.failed.append(name)
+                tally.echo(tally.line("FAILED", name, f"not run: {broken[0]} failed"))
+                continue
+            try:
+                if not stage.changed():
+                    tally.echo(tally.line("ok", name, "up to date: its inputs came out as before"))
+                    continue
+                stage.remove_outs(ignore_remove=False, force=False)
+                if restore_from_run_cache(stage):
+                    record(stage)
+                    tally.echo(tally.line("cached", name, "restored from the run cache"))
+                    continue
+                stage.save_deps()
+            except (DvcException, OSError) as error:  # this stage only; the others go on
+                self.failed.append(name)
+                tally.echo(
+                    tally.line("FAILED", name, f"not started: {type(error).__name__}: {error}")
+                )
+                continue
+            log = (Path(self.repo.root_dir) / self.logs / f"{_safe(name)}.log").resolve()
+            run = self.runs.get(name)
+            pending.append(
+                Job(
+                    name,
+                    stage_argvs(stage),
+                    self.repo.root_dir,
+                    stage_env(stage),
+                    str(log),
+                    runs=(run,) if run else (),
+                )
+            )
+        if not pending:
+            return
+        size = group_size or default_group_size(self.params, len(pending), workers)
+        pending = seed_by_seed(group_jobs(pending, size))
+        logs_of = {job.stage: Path(job.log) for job in pending}
+        for job in pending:
+            attempts_file(job).unlink(missing_ok=True)  # an earlier sweep's
+        by_name = {stage.addressing: stage for stage in stages}
+        tally.track(pending, self.params.runs.budgets)
+        for outcome in runner.map_unordered(pending):
+            _report(outcome, by_name, logs_of[outcome.stage], tally, self.failed)
 
 
 def _report(

@@ -122,13 +122,14 @@ class LocalExecutor:
     """At most ``jobs`` child processes at once, on this machine."""
 
     def __init__(self, jobs: int) -> None:
-        self.pool = ThreadPoolExecutor(max_workers=jobs)
+        self.jobs = jobs
 
     def map_unordered(self, jobs: list[Job]) -> Iterator[Outcome]:
-        pending: set[Future[Outcome]] = {self.pool.submit(run_job, job) for job in jobs}
-        try:
-            while pending:
-                done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                yield from (future.result() for future in done)
-        finally:
-            self.pool.shutdown(wait=True, cancel_futures=True)
+        with ThreadPoolExecutor(max_workers=self.jobs) as pool:
+            pending: set[Future[Outcome]] = {pool.submit(run_job, job) for job in jobs}
+            try:
+                while pending:
+                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    yield from (future.result() for future in done)
+            finally:
+                pool.shutdown(wait=True, cancel_futures=True)

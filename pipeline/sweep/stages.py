@@ -1,5 +1,5 @@
-"""DVC's side of a sweep: which stages, the command each runs, bringing upstream stages up to
-date, and recording a run as ``dvc repro`` records it.
+"""DVC's side of a sweep: which stages, in which waves, which of them are out of date, the
+command each runs, and recording a run as ``dvc repro`` records it.
 
 DVC's public ground where it has one: a stage's command runs as DVC documents it, a run is
 recorded as ``dvc commit`` records it (``Repo.commit``). Two steps of ``dvc repro`` have no
@@ -11,15 +11,10 @@ every name of DVC used here, which is what ``pyproject.toml``'s bound on dvc is 
 from __future__ import annotations
 
 import os
-import shutil
-import subprocess
-import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
-
-import click
 
 from ede_pipeline.common import BadInput
 
@@ -27,15 +22,8 @@ if TYPE_CHECKING:
     from dvc.repo import Repo
     from dvc.stage import Stage
 
-TRAIN_STAGES = "train*"  # dvc.yaml's train stage (one instance per run), unless told others
-
 # The shells DVC starts without reading their startup files, and the options that say so.
 QUIET_SHELLS = {"bash": ["--noprofile", "--norc"], "zsh": ["--no-rcs"]}
-
-
-def dvc_executable() -> str:
-    beside = Path(sys.executable).parent / "dvc"
-    return str(beside) if beside.exists() else (shutil.which("dvc") or "dvc")
 
 
 def stage_argvs(stage: Stage) -> list[list[str]]:
@@ -55,47 +43,63 @@ def stage_env(stage: Stage) -> dict[str, str]:
 
 
 def collect_stages(repo: Repo, targets: tuple[str, ...]) -> list[Stage]:
+    """The stages the targets name (``*`` a wildcard), or every stage of ``dvc.yaml``."""
     from dvc.exceptions import DvcException
 
+    if not targets:
+        return list(repo.stage.collect())
     stages: dict[str, Stage] = {}
-    for target in targets or (TRAIN_STAGES,):
+    for target in targets:
         try:
             found = repo.stage.collect(target, glob="*" in target)
         except DvcException as error:
             raise BadInput(f"{target}: {error}") from None
         stages.update((stage.addressing, stage) for stage in found)
     if not stages:
-        raise BadInput(f"no stages match {' '.join(targets or (TRAIN_STAGES,))}")
+        raise BadInput(f"no stages match {' '.join(targets)}")
     return list(stages.values())
 
 
-def upstream_of(repo: Repo, stages: list[Stage]) -> list[Stage]:
-    """Every stage the given ones depend on, directly or not, that is not one of them."""
+def dependencies(repo: Repo, stage: Stage) -> list[Stage]:
+    """The stages whose outputs this one reads (DVC's edges point to dependencies)."""
+    return list(repo.index.graph.successors(stage))
+
+
+def in_waves(repo: Repo, stages: list[Stage]) -> list[list[Stage]]:
+    """The given stages and every stage they depend on, directly or not, in waves: a stage is
+    in the wave after that of its last dependency, so the stages of a wave can run side by side
+    once the waves before have run. Within a wave, ``dvc.yaml``'s order."""
     import networkx as nx
 
     graph = repo.index.graph
-    names = {stage.addressing for stage in stages}
-    upstream: dict[str, Stage] = {}
+    wanted = {stage.addressing: stage for stage in stages}
     for stage in stages:
-        for dependency in nx.descendants(graph, stage):  # DVC's edges point to dependencies
-            if dependency.addressing not in names:
-                upstream[dependency.addressing] = dependency
-    return list(upstream.values())
+        wanted.update((upstream.addressing, upstream) for upstream in nx.descendants(graph, stage))
+    depth: dict[str, int] = {}
+    for stage in reversed(list(nx.topological_sort(graph))):  # dependencies first
+        if stage.addressing in wanted:
+            depth[stage.addressing] = 1 + max(
+                (depth[dependency.addressing] for dependency in dependencies(repo, stage)),
+                default=-1,
+            )
+    order = {stage.addressing: index for index, stage in enumerate(repo.stage.collect())}
+    waves: list[list[Stage]] = [[] for _ in range(max(depth.values(), default=-1) + 1)]
+    for name in sorted(depth, key=order.__getitem__):
+        waves[depth[name]].append(wanted[name])
+    return waves
 
 
-def bring_upstream_up_to_date(repo: Repo, stages: list[Stage]) -> None:
-    """``dvc repro`` of the stages the given ones depend on that are out of date, if any."""
-    with repo_lock(repo):
-        stale = [stage.addressing for stage in upstream_of(repo, stages) if stage.changed()]
-    if not stale:
-        return
-    click.echo(f"sweep: dvc repro {' '.join(stale)}", err=True)
-    result = subprocess.run([dvc_executable(), "repro", *stale], check=False)
-    if result.returncode != 0:
-        raise click.ClickException(
-            f"dvc repro of the upstream stages failed "
-            f"(exit {result.returncode}); nothing else was run"
-        )
+def out_of_date(repo: Repo, waves: list[list[Stage]]) -> set[str]:
+    """The stages that will run: those out of date now (``Stage.changed``, what ``dvc status``
+    reports) and those downstream of them. A stage downstream is asked again at its turn: if what
+    it depends on came out as before, it is up to date after all, as ``dvc repro`` finds it."""
+    stale: set[str] = set()
+    for wave in waves:
+        for stage in wave:
+            upstream = any(dep.addressing in stale for dep in dependencies(repo, stage))
+            if upstream or stage.changed():
+                stale.add(stage.addressing)
+    return stale
 
 
 def record(stage: Stage) -> None:

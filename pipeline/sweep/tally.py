@@ -1,4 +1,4 @@
-"""The sweep's progress: a line per finished run and one overall line (runs, retries, steps,
+"""The sweep's progress: a line per finished stage and one overall line (stages, retries, steps,
 rate, ETA), from the step counts the runs publish (``EDE_PROGRESS``)."""
 
 from __future__ import annotations
@@ -31,14 +31,14 @@ def job_steps(job: Job, budgets: dict[str, int]) -> int:
 
 
 class Tally:
-    """The sweep's progress: a line per finished run, and one overall line — runs finished,
-    retries (runs started again after a lost Ray worker or node), environment steps done of all,
+    """The sweep's progress: a line per finished stage, and one overall line — stages finished,
+    retries (jobs started again after a lost Ray worker or node), environment steps done of all,
     the aggregate rate and an ETA — live at the bottom of a terminal (``watch``), or printed at
     every tenth of the steps in a log.
 
     Steps come from the runs' progress files (``EDE_PROGRESS``); the steps a resumed run had
     already done count as done but not towards the rate. Without step counts (stages other
-    than train) the ETA is from the pace of finished runs.
+    than train) the ETA is from the pace of finished stages.
     """
 
     POLL = 2.0  # seconds between two reads of the progress files
@@ -54,9 +54,10 @@ class Tally:
         self.next_line = 0.1
 
     def track(self, jobs: list[Job], budgets: dict[str, int]) -> None:
-        """Count the steps of these jobs (``budgets``: the environment steps of a run per task)."""
-        self.jobs = {job.stage: job for job in jobs}
-        self.steps = {job.stage: job_steps(job, budgets) for job in jobs}
+        """Count the steps of these jobs too (``budgets``: the environment steps of a run per
+        task); the sweep tracks each wave's as it starts."""
+        self.jobs.update((job.stage, job) for job in jobs)
+        self.steps.update((job.stage, job_steps(job, budgets)) for job in jobs)
 
     # The counts --------------------------------------------------------------------------
 
@@ -88,7 +89,7 @@ class Tally:
         return sum(max(attempts(job) - 1, 0) for job in self.jobs.values())
 
     def overall(self) -> str:
-        """The one line: runs, retries (if any), steps, rate, ETA."""
+        """The one line: stages, retries (if any), steps, rate, ETA."""
         elapsed = max(time.perf_counter() - self.start, 1e-9)
         counts = done, total, before = self._counts()
         retries = self.retries()
@@ -100,14 +101,14 @@ class Tally:
                 f", {_count(done)}/{_count(total)} steps ({done / total:.0%}), {rate:,.0f} steps/s"
             )
         return (
-            f"sweep: {self.done}/{self.total} runs{again}{steps}, elapsed {_duration(elapsed)}, "
+            f"sweep: {self.done}/{self.total} stages{again}{steps}, elapsed {_duration(elapsed)}, "
             f"{self._eta(elapsed, counts)}"
         )
 
     # Output ------------------------------------------------------------------------------
 
     def line(self, status: str, stage: str, detail: str, job: str | None = None) -> str:
-        """A finished run's line (``job``: the job it was part of, when all of it is over)."""
+        """A finished stage's line (``job``: the job it was part of, when all of it is over)."""
         with self.lock:
             self.done += 1
             if job is not None:
@@ -140,7 +141,7 @@ class Tally:
 
     @contextmanager
     def watch(self) -> Iterator[None]:
-        """Keep the overall line up to date while the runs run."""
+        """Keep the overall line up to date while the stages run."""
         stop = threading.Event()
         if sys.stderr.isatty():
             self.bar = tqdm(total=0, bar_format="{desc}", file=sys.stderr, dynamic_ncols=True)

@@ -118,14 +118,16 @@ def test_sweep_with_two_jobs_records_what_dvc_repro_records(
     copy_of_upstream: Path, reference: dict[str, Any]
 ) -> None:
     copy = copy_of_upstream
-    # An upstream stage out of date (its output gone): the sweep has `dvc repro` bring it back.
+    # An upstream stage out of date (its output gone): the sweep brings it back first (from the run
+    # cache: this very run was made before); the task's inputs, made from it, come out as before.
     shutil.rmtree(copy / "data/families/reacher/embedding/decoder")
     out = ok(sweep(copy, "train", "--jobs", "2", "--group-size", "1"))
-    upstream = next(line for line in out.splitlines() if line.startswith("sweep: dvc repro"))
-    assert "pretrain_decoder@reacher" in upstream.split(), out
-    assert "4 of 4 stages out of date" in out, out
-    assert out.count(" ok ") == 4 and "[4/4]" in out and "ETA" in out, out
-    overall = [line for line in out.splitlines() if line.startswith("sweep: 4/4 runs")]
+    assert "6 of 9 stages out of date" in out, out  # of the runs and the five stages before them
+    first = next(line for line in out.splitlines() if line.startswith("[1/6]"))
+    assert "cached pretrain_decoder@reacher  restored from the run cache" in first, out
+    assert "up to date: its inputs came out as before" in out, out
+    assert out.count(" ok ") == 5 and "[6/6]" in out and "ETA" in out, out
+    overall = [line for line in out.splitlines() if line.startswith("sweep: 6/6 stages")]
     assert overall and "/s" in overall[-1] and "(100%)" in overall[-1], out
     assert record_of(copy) == reference
     assert not (copy / f"data/runs/{TASK}/td3/seed0/checkpoint").exists()
@@ -219,7 +221,7 @@ def test_a_failed_run_is_reported_and_the_others_recorded_then_resumed(
     assert record_of(copy, others) == {stage: reference[stage] for stage in others}
 
     again = ok(sweep(copy, "train", "--jobs", "2", "--group-size", "1"))
-    assert "1 of 4 stages out of date" in again and f"ok     {BROKEN}" in again, again
+    assert "1 of 9 stages out of date" in again and f"ok     {BROKEN}" in again, again
     assert record_of(copy) == reference
     assert_up_to_date(copy)
 

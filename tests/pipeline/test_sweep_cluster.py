@@ -170,7 +170,15 @@ def resumed_from(copy: Path, algo: str) -> int | None:
 def start_sweep(copy: Path, cluster: Any, output: Path) -> subprocess.Popen[bytes]:
     with output.open("ab") as out:
         return subprocess.Popen(
-            [BIN / "ede-pipeline", "sweep", "--executor", "ray", "--address", cluster.address],
+            [
+                BIN / "ede-pipeline",
+                "sweep",
+                "train",
+                "--executor",
+                "ray",
+                "--address",
+                cluster.address,
+            ],
             cwd=copy,
             env=tool_env(),
             stdout=out,
@@ -232,7 +240,7 @@ def test_a_lost_node_costs_only_time(
         f"ok     {STAGES[lost]}" in out and "(attempt 2: 1 lost with a Ray worker or node)" in out
     )
     assert "sweep: 2 recorded, 0 failed" in out, out
-    assert "sweep: 2/2 runs, 1 retry, " in out, out
+    assert "sweep: 2/2 stages, 1 retry, " in out, out
     assert train_record(copy) == undisturbed
     assert "up to date" in ok(dvc(copy, "status", "train"))
 

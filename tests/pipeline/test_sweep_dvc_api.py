@@ -114,6 +114,8 @@ import yaml
 
 params = yaml.safe_load(Path("params.yaml").read_text())
 if sys.argv[1] == "prepare":
+    if Path("refuse").exists():  # a test's way to make this stage fail
+        sys.exit("prepare: refused")
     Path("data").mkdir(exist_ok=True)
     Path("data/prepared.txt").write_text(f"seed {params['collect']['seed']}")
 elif sys.argv[1] == "train":
@@ -203,18 +205,19 @@ def test_a_sweep_records_what_dvc_repro_records_and_restores_runs_from_the_run_c
     swept = _toy(tmp_path / "swept", toy_params)
     first = _sweep(swept, monkeypatch)
     assert first.exit_code == 0, first.output
-    # Which stages: the upstream one by `dvc repro`, then both train stages (the glob `train_*`).
-    assert "sweep: dvc repro prepare" in first.stderr, first.stderr
-    assert "2 of 2 stages out of date" in first.stderr and first.stdout.count(" ok ") == 2
+    # Every stage, the upstream one in a wave before both train stages.
+    assert "3 of 3 stages out of date" in first.stderr and first.stdout.count(" ok ") == 3
+    assert first.stdout.splitlines()[0].split()[2] == "prepare", first.stdout
     assert _lock(swept) == _lock(reference)
     assert _outputs(swept) == _outputs(reference)
-    assert "0 of 2 stages out of date" in _sweep(swept, monkeypatch).stderr
+    assert "0 of 3 stages out of date" in _sweep(swept, monkeypatch).stderr
 
     # A changed param: only the stages that track it; a changed-back param: the run cache.
     tau = toy_params["td3"]["tau"]
     _set_tau(swept, 2 * tau)
     changed = _sweep(swept, monkeypatch)
-    assert "dvc repro" not in changed.stderr and changed.stdout.count(" ok ") == 2, changed.output
+    assert "2 of 3 stages out of date" in changed.stderr, changed.output
+    assert changed.stdout.count(" ok ") == 2 and "prepare" not in changed.stdout, changed.output
     assert _lock(swept) != _lock(reference)
     _set_tau(swept, tau)
     back = _sweep(swept, monkeypatch)
@@ -223,10 +226,42 @@ def test_a_sweep_records_what_dvc_repro_records_and_restores_runs_from_the_run_c
     # A lost output: that stage alone is out of date, and comes back from the cache.
     shutil.rmtree(swept / "data/runs/1")
     lost = _sweep(swept, monkeypatch)
-    assert "1 of 2 stages out of date" in lost.stderr and "cached" in lost.stdout, lost.output
+    assert "1 of 3 stages out of date" in lost.stderr and "cached" in lost.stdout, lost.output
     assert _outputs(swept) == _outputs(reference)
     status = dvc(swept, "status")
     assert "up to date" in status.stdout, status.stdout + status.stderr
+
+
+@pytest.mark.slow
+def test_a_stage_waits_for_what_it_depends_on_and_is_not_run_when_that_fails(
+    tmp_path: Path, toy_params: dict[str, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    swept = _toy(tmp_path / "toy", toy_params)
+    assert _sweep(swept, monkeypatch).exit_code == 0
+    recorded = _lock(swept)
+    # The upstream stage out of date: the runs downstream would run after it, and are asked again
+    # then; made again as it was, they are up to date, as `dvc repro` finds them.
+    (swept / "data/prepared.txt").unlink()
+    again = _sweep(swept, monkeypatch)
+    assert again.exit_code == 0, again.output
+    assert "3 of 3 stages out of date" in again.stderr, again.output
+    assert again.stdout.count("up to date: its inputs came out as before") == 2, again.output
+    assert _lock(swept) == recorded
+    # The upstream stage fails (its param changed, so no earlier run of it is cached): the runs
+    # downstream are not run, and say why; nothing is recorded.
+    params = yaml.safe_load((swept / "params.yaml").read_text())
+    params["collect"]["seed"] += 1
+    (swept / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    (swept / "refuse").touch()
+    failed = _sweep(swept, monkeypatch)
+    assert failed.exit_code == 1, failed.output
+    assert failed.stdout.count("not run: prepare failed") == 2, failed.output
+    assert "sweep: 0 recorded, 3 failed" in failed.stderr, failed.output
+    assert _lock(swept) == recorded
+    # Mended, the next sweep runs them all.
+    (swept / "refuse").unlink()
+    mended = _sweep(swept, monkeypatch)
+    assert mended.exit_code == 0 and mended.stdout.count(" ok ") == 3, mended.output
 
 
 @pytest.mark.slow

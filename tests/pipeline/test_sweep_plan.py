@@ -1,5 +1,5 @@
 """The sweep's plan and progress: how many seeds share a process by default, and the one overall
-line — runs, steps from the runs' progress files, rate and ETA."""
+line — stages, steps from the runs' progress files, rate and ETA."""
 
 from __future__ import annotations
 
@@ -51,19 +51,19 @@ def test_the_overall_line_counts_steps_and_leaves_resumed_ones_out_of_the_rate(
     jobs = [job(tmp_path, "td3", 0), job(tmp_path, "td3", 1)]
     tally = Tally(2)
     tally.track(jobs, {TASK: 1000})
-    assert "0/2 runs, 0/2k steps (0%)" in tally.overall()
+    assert "0/2 stages, 0/2k steps (0%)" in tally.overall()
     # The first run resumed at step 400 (seen first at 400), then did 100 more.
     progress_file(jobs[0]).write_text('{"done": 400, "total": 1000}')
     tally.overall()
     progress_file(jobs[0]).write_text('{"done": 500, "total": 1000}')
     tally.start = time.perf_counter() - 10.0  # 10 s into the sweep: 100 new steps, 10 steps/s
     line = tally.overall()
-    assert "0/2 runs, 500/2k steps (25%)" in line, line
+    assert "0/2 stages, 500/2k steps (25%)" in line, line
     assert "10 steps/s" in line, line
     assert "ETA 2m30s" in line, line  # 1,500 steps left at 10 steps/s
     finished = tally.line("ok", jobs[0].stage, "1.0s", jobs[0].stage)
     assert finished.startswith("[1/2] ok") and "ETA" in finished, finished
-    assert "1/2 runs, 1k/2k steps (50%)" in tally.overall()
+    assert "1/2 stages, 1k/2k steps (50%)" in tally.overall()
 
 
 def test_without_step_counts_the_eta_comes_from_finished_runs(tmp_path: Path) -> None:
