@@ -90,8 +90,8 @@ def adapter_of(meta: dict, embedding: ActionEmbedding | None) -> ActionAdapter:
 def frames_of(
     meta: dict, tensors: dict, adapter: ActionAdapter, episodes: int, shrink: int = 1
 ) -> tuple[list[np.ndarray], list[float]]:
-    """The policy's episodes, one marked frame per step (``shrink`` times smaller than MuJoCo
-    renders it), and each episode's return."""
+    """The policy's episodes, one marked frame per step (``shrink`` times smaller than the task
+    renders it by default), and each episode's return."""
     task = meta["task"]
     try:
         env = make(task, render_mode="rgb_array")
@@ -104,9 +104,8 @@ def frames_of(
     label = ALGO_LABELS[meta["algo"]]
     frames, returns = [], [0.0] * episodes
     try:
-        for frame in play(task, policy, adapter, episodes, seed):
-            small = frame._replace(image=frame.image[::shrink, ::shrink])
-            frames.append(annotate(small, adapter.k, label))
+        for frame in play(task, policy, adapter, episodes, seed, shrink):
+            frames.append(annotate(frame, adapter.k, label))
             returns[frame.episode] = frame.ret
     except gymnasium.error.Error as error:
         raise BadInput(f"{task}: cannot render ({first_line(error)})") from None
