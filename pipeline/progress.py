@@ -2,7 +2,8 @@
 sweep watching many stages — a small file with the counts.
 
 ``EDE_PROGRESS=<path>`` in the environment makes :func:`progress` also keep ``<path>`` up to date
-(atomically, at most once a second, and when it ends) with ``{"done": n, "total": N}``;
+(atomically, at most once a second, and when it ends) with ``{"done": n, "total": N, "start": s}``
+(``s``: the first count, what a resumed stage had done before it started);
 ``ede-pipeline sweep`` sets it for each run it starts and reads it back (:func:`read_progress`) to
 show one line for the whole sweep.
 """
@@ -29,7 +30,9 @@ PUBLISH_EVERY = 1.0  # seconds between two writes of the progress file
 
 @contextmanager
 def progress(total: int, desc: str, unit: str = "step") -> Iterator[Callable[[int], None]]:
-    """Yield ``advance(n)``: a tqdm bar when stderr is a TTY, else a line per 10% done."""
+    """Yield ``advance(n)``: a tqdm bar when stderr is a TTY, else a line per 10% done. A
+    resumed stage's first ``advance`` is what it had done before (the progress file's
+    ``start``)."""
     publish = _publisher(total)
     if sys.stderr.isatty():
         with tqdm(total=total, desc=desc, unit=unit, unit_scale=True, dynamic_ncols=True) as bar:
@@ -63,21 +66,24 @@ def _publisher(total: int) -> Callable[..., None]:
     """``publish(done, final=False)``: the progress file's update, if ``EDE_PROGRESS`` names one."""
     path = os.environ.get(PROGRESS_ENV)
     last = -PUBLISH_EVERY
+    start: int | None = None  # the first count, what a resumed stage had done before
 
     def publish(done: int, final: bool = False) -> None:
-        nonlocal last
+        nonlocal last, start
+        start = done if start is None else start
         now = time.monotonic()
         if path and (final or now - last >= PUBLISH_EVERY):
             last = now
-            write_json(path, {"done": done, "total": total})
+            write_json(path, {"done": done, "total": total, "start": start})
 
     return publish
 
 
-def read_progress(path: Path) -> tuple[int, int] | None:
-    """(done, total) from a progress file; None while there is none (or it cannot be read)."""
+def read_progress(path: Path) -> tuple[int, int, int] | None:
+    """(done, total, start) from a progress file; None while there is none (or it cannot be
+    read)."""
     try:
         counts = json.loads(path.read_text())
-        return int(counts["done"]), int(counts["total"])
+        return int(counts["done"]), int(counts["total"]), int(counts["start"])
     except (OSError, ValueError, KeyError, TypeError):
         return None

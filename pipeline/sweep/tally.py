@@ -37,7 +37,7 @@ class Tally:
     every tenth of the steps in a log.
 
     Steps come from the runs' progress files (``EDE_PROGRESS``); the steps a resumed run had
-    already done count as done but not towards the rate. Without step counts (stages other
+    already done (the file's ``start``) count as done but not towards the rate. Without step counts (stages other
     than train) the ETA is from the pace of finished stages.
     """
 
@@ -48,7 +48,7 @@ class Tally:
         self.jobs: dict[str, Job] = {}
         self.steps: dict[str, int] = {}
         self.finished: set[str] = set()
-        self.resumed: dict[str, int] = {}  # per job: the steps done when first seen
+        self.resumed: dict[str, int] = {}  # per job: the steps done before it started
         self.lock = threading.Lock()
         self.bar: tqdm | None = None
         self.next_line = 0.1
@@ -65,10 +65,12 @@ class Tally:
         """(steps done, steps in all, steps done before this sweep) over the jobs."""
         done = total = before = 0
         for name, job in self.jobs.items():
+            if not self.steps[name]:  # not a run: its progress (epochs, say) is not in steps
+                continue
             read = None if name in self.finished else read_progress(progress_file(job))
             steps = read[1] if read else self.steps[name]
-            if read and name not in self.resumed:
-                self.resumed[name] = read[0]
+            if read:
+                self.resumed[name] = read[2]
             total += steps
             done += steps if name in self.finished else (read[0] if read else 0)
             before += self.resumed.get(name, 0)

@@ -49,21 +49,23 @@ def test_the_overall_line_counts_steps_and_leaves_resumed_ones_out_of_the_rate(
     tmp_path: Path,
 ) -> None:
     jobs = [job(tmp_path, "td3", 0), job(tmp_path, "td3", 1)]
-    tally = Tally(2)
-    tally.track(jobs, {TASK: 1000})
-    assert "0/2 stages, 0/2k steps (0%)" in tally.overall()
-    # The first run resumed at step 400 (seen first at 400), then did 100 more.
-    progress_file(jobs[0]).write_text('{"done": 400, "total": 1000}')
-    tally.overall()
-    progress_file(jobs[0]).write_text('{"done": 500, "total": 1000}')
+    other = Job("collect@reacher", [["true"]], str(tmp_path), {}, str(tmp_path / "c.log"))
+    tally = Tally(3)
+    tally.track([other], {TASK: 1000})
+    tally.track(jobs, {TASK: 1000})  # a later wave's
+    assert "0/3 stages, 0/2k steps (0%)" in tally.overall()
+    # The first run resumed at step 400, then did 100 more; the sweep sees it first now.
+    progress_file(jobs[0]).write_text('{"done": 500, "total": 1000, "start": 400}')
+    # A stage that is not a run counts in its own units, which are not environment steps.
+    progress_file(other).write_text('{"done": 3, "total": 5, "start": 0}')
     tally.start = time.perf_counter() - 10.0  # 10 s into the sweep: 100 new steps, 10 steps/s
     line = tally.overall()
-    assert "0/2 stages, 500/2k steps (25%)" in line, line
+    assert "0/3 stages, 500/2k steps (25%)" in line, line
     assert "10 steps/s" in line, line
     assert "ETA 2m30s" in line, line  # 1,500 steps left at 10 steps/s
     finished = tally.line("ok", jobs[0].stage, "1.0s", jobs[0].stage)
-    assert finished.startswith("[1/2] ok") and "ETA" in finished, finished
-    assert "1/2 stages, 1k/2k steps (50%)" in tally.overall()
+    assert finished.startswith("[1/3] ok") and "ETA" in finished, finished
+    assert "1/3 stages, 1k/2k steps (50%)" in tally.overall()
 
 
 def test_without_step_counts_the_eta_comes_from_finished_runs(tmp_path: Path) -> None:
@@ -79,10 +81,11 @@ def test_a_stage_publishes_its_progress_where_the_sweep_asks(
     path = tmp_path / "run.progress"
     monkeypatch.setenv(PROGRESS_ENV, str(path))
     with progress(10, "steps") as advance:
-        advance(3)
-        assert read_progress(path) == (3, 10)  # the first update is written at once
+        advance(2)  # the first count: what it had done before (resumed)
+        assert read_progress(path) == (2, 10, 2)  # the first update is written at once
+        advance(1)
         advance(7)
-    assert read_progress(path) == (10, 10)  # and the last whatever the time
+    assert read_progress(path) == (10, 10, 2)  # and the last whatever the time
     assert read_progress(tmp_path / "none") is None
     assert not [p for p in tmp_path.iterdir() if p.name != "run.progress"]  # no temporaries
 
@@ -93,15 +96,17 @@ def test_the_overall_line_lives_on_a_terminal_and_ends_in_a_log(tmp_path: Path) 
 import time
 from pathlib import Path
 from ede_pipeline.sweep.execute import progress_file
-from ede_pipeline.sweep.plan import Job
+from ede_pipeline.sweep.plan import Job, RunId
 from ede_pipeline.sweep.tally import Tally
 Tally.POLL = 0.05
-job = Job("t", [["ede-pipeline", "train", "--task", "{TASK}"]], ".", {{}}, r"{tmp_path}/t.log")
+job = Job(
+    "t", [["ede-pipeline", "train"]], ".", {{}}, r"{tmp_path}/t.log", runs=(RunId("{TASK}", "td3", 0),)
+)
 tally = Tally(1)
 tally.track([job], {{"{TASK}": 100}})
 with tally.watch():
     for done in (10, 55, 100):
-        progress_file(job).write_text('{{"done": %d, "total": 100}}' % done)
+        progress_file(job).write_text('{{"done": %d, "total": 100, "start": 0}}' % done)
         time.sleep(0.3)
 """
     result = subprocess.run(
