@@ -1,15 +1,18 @@
-"""Sweep wall time: four short train runs through ``dvc repro`` against ``ede-pipeline sweep --jobs 2``.
+"""Sweep wall time: the stages of two families, and four short train runs, through ``dvc repro``
+against ``ede-pipeline sweep --jobs 2``.
 
     python benchmarks/sweep.py [--steps 3000] [--jobs 2]
 
-Two scratch copies of this repo (its files in a fresh git repository under a temporary folder,
-made by ``tests.support.scratch_copy`` as the tests make theirs) with small params: one
-reacher task, TD3 and EDE-TD3, two seeds — four runs of ``--steps`` environment steps each. The
-embedding (collect, pretrain) is made once, untimed, and copied to both. Then, timed: ``dvc
-repro train`` in one copy (one run at a time) and ``ede-pipeline sweep train --jobs
-N`` in the other. Both include their own start-up and DVC's hashing and caching. Prints both wall
-times and the ratio; goal: >= 1.8x with 2 jobs on 2 cores. Also checks that the two copies agree on
-every run's returns.
+Scratch copies of this repo (its files in a fresh git repository under a temporary folder, made by
+``tests.support.scratch_copy`` as the tests make theirs) with small params. First the families:
+two tasks of two families (ReacherVertical, Pusher), their task code, collect, encoder, decoder and
+task-input stages, timed as ``dvc repro task_inputs`` (one stage at a time) and as ``ede-pipeline
+sweep task_inputs --jobs N`` (in waves, the two families side by side); the two copies must record
+the same outputs. Then the runs: one reacher task, TD3 and EDE-TD3, two seeds — four runs of
+``--steps`` environment steps each; the embedding is made once, untimed, and copied to both; timed
+``dvc repro train`` in one copy and ``ede-pipeline sweep train --jobs N`` in the other, which must
+agree on every run's returns. Each time includes the commands' start-up and DVC's hashing and
+caching. Prints the wall times and ratios; goal for the runs: >= 1.8x with 2 jobs on 2 cores.
 """
 
 from __future__ import annotations
@@ -25,14 +28,20 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout: its tests' support
 from tests.support import BIN, run, scratch_copy
 
 TASK = "ede/ReacherVertical-v0"
+FAMILIES = {TASK: "reacher", "ede/Pusher-v0": "sevendof"}  # a task of each of two families
 
 
-def small_params(steps: int) -> Callable[[dict[str, Any]], None]:
-    """An edit of params.yaml: one reacher task, two seeds, runs of ``steps`` steps, small nets."""
+def small_params(
+    steps: int, tasks: dict[str, str] | None = None
+) -> Callable[[dict[str, Any]], None]:
+    """An edit of params.yaml: one reacher task (or ``tasks``), two seeds, runs of ``steps``
+    steps, small nets."""
 
     def edit(params: dict[str, Any]) -> None:
         params["collect"].update(steps=2_000, num_envs=1)
@@ -47,7 +56,7 @@ def small_params(steps: int) -> Callable[[dict[str, Any]], None]:
             checkpoint_every=10 * steps,
         )
         params["runs"].update(
-            tasks={TASK: "reacher"},
+            tasks=tasks or {TASK: "reacher"},
             seeds=[0, 1],
             budgets={task: steps for task in params["runs"]["budgets"]},
         )
@@ -75,12 +84,34 @@ def returns(copy: Path) -> dict[str, list[str]]:
     return found
 
 
+def recorded_outputs(copy: Path) -> dict[str, list[str]]:
+    """Each stage's output hashes, as ``dvc.lock`` records them."""
+    lock = yaml.safe_load((copy / "dvc.lock").read_text())["stages"]
+    return {stage: [out["md5"] for out in entry["outs"]] for stage, entry in lock.items()}
+
+
+def families(tmp: Path, steps: int, jobs: int) -> tuple[float, float]:
+    """The families' stages, one at a time against in waves: the two wall times."""
+    base = tmp / "families"
+    scratch_copy(base, small_params(steps, FAMILIES))
+    repro, swept = tmp / "families-repro", tmp / "families-sweep"
+    shutil.copytree(base, repro, symlinks=True)
+    shutil.copytree(base, swept, symlinks=True)
+    sequential = timed(repro, BIN / "dvc", "repro", "task_inputs")
+    parallel = timed(swept, BIN / "ede-pipeline", "sweep", "task_inputs", "--jobs", str(jobs))
+    made = recorded_outputs(swept)
+    if made != recorded_outputs(repro) or len(made) != 4 * len(set(FAMILIES.values())) + 2:
+        sys.exit("the sweep's outputs of the families differ from dvc repro's")
+    return sequential, parallel
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=3_000, help="environment steps per run")
     parser.add_argument("--jobs", type=int, default=2)
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="ede-sweep-bench-") as tmp:
+        upstream, waves = families(Path(tmp), args.steps, args.jobs)
         base = Path(tmp) / "base"
         scratch_copy(base, small_params(args.steps))
         timed(base, BIN / "dvc", "repro", "task_inputs")
@@ -91,6 +122,11 @@ def main() -> None:
         parallel = timed(swept, BIN / "ede-pipeline", "sweep", "train", "--jobs", str(args.jobs))
         if returns(repro) != returns(swept) or len(returns(swept)) != 4:
             sys.exit("the sweep's returns differ from dvc repro's")
+    print(f"the stages of two families ({', '.join(FAMILIES.values())}), {os.cpu_count()} cores")
+    print(f"dvc repro task_inputs        {upstream:7.1f} s   1.00x")
+    print(
+        f"ede-pipeline sweep --jobs {args.jobs}           {waves:7.1f} s   {upstream / waves:.2f}x"
+    )
     print(
         f"4 train runs of {args.steps} steps ({TASK}, td3 and ede-td3, seeds 0 and 1), "
         f"{os.cpu_count()} cores"
