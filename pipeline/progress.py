@@ -3,7 +3,7 @@ sweep watching many stages — a small file with the counts.
 
 ``EDE_PROGRESS=<path>`` in the environment makes :func:`progress` also keep ``<path>`` up to date
 (atomically, at most once a second, and when it ends) with ``{"done": n, "total": N, "start": s}``
-(``s``: the first count, what a resumed stage had done before it started);
+(``s``: what a resumed run had done before it started, 0 for a stage that starts afresh);
 ``ede-pipeline sweep`` sets it for each run it starts and reads it back (:func:`read_progress`) to
 show one line for the whole sweep.
 """
@@ -29,11 +29,13 @@ PUBLISH_EVERY = 1.0  # seconds between two writes of the progress file
 
 
 @contextmanager
-def progress(total: int, desc: str, unit: str = "step") -> Iterator[Callable[[int], None]]:
+def progress(
+    total: int, desc: str, unit: str = "step", resumable: bool = False
+) -> Iterator[Callable[[int], None]]:
     """Yield ``advance(n)``: a tqdm bar when stderr is a TTY, else a line per 10% done. A
-    resumed stage's first ``advance`` is what it had done before (the progress file's
-    ``start``)."""
-    publish = _publisher(total)
+    ``resumable`` stage's first ``advance`` is what it had done before it started (the progress
+    file's ``start``; 0 for any other stage)."""
+    publish = _publisher(total, resumable)
     if sys.stderr.isatty():
         with tqdm(total=total, desc=desc, unit=unit, unit_scale=True, dynamic_ncols=True) as bar:
 
@@ -62,11 +64,11 @@ def progress(total: int, desc: str, unit: str = "step") -> Iterator[Callable[[in
     publish(done, final=True)
 
 
-def _publisher(total: int) -> Callable[..., None]:
+def _publisher(total: int, resumable: bool) -> Callable[..., None]:
     """``publish(done, final=False)``: the progress file's update, if ``EDE_PROGRESS`` names one."""
     path = os.environ.get(PROGRESS_ENV)
     last = -PUBLISH_EVERY
-    start: int | None = None  # the first count, what a resumed stage had done before
+    start = None if resumable else 0  # None: the first count, what it had done before
 
     def publish(done: int, final: bool = False) -> None:
         nonlocal last, start

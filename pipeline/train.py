@@ -130,7 +130,7 @@ def train(
         with ExitStack() as locks:
             for run_dir in outs:
                 locks.enter_context(holding((run_dir, RUN_KIND), inputs=inputs))
-            with progress(budget * len(specs), label) as advance:
+            with progress(budget * len(specs), label, resumable=True) as advance:
                 results = train_group(
                     specs, outs, embedding, device, advance, keep_checkpoint, bad_checkpoint, notice
                 )

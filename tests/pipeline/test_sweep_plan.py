@@ -80,12 +80,15 @@ def test_a_stage_publishes_its_progress_where_the_sweep_asks(
 ) -> None:
     path = tmp_path / "run.progress"
     monkeypatch.setenv(PROGRESS_ENV, str(path))
-    with progress(10, "steps") as advance:
+    with progress(10, "steps", resumable=True) as advance:
         advance(2)  # the first count: what it had done before (resumed)
         assert read_progress(path) == (2, 10, 2)  # the first update is written at once
         advance(1)
         advance(7)
     assert read_progress(path) == (10, 10, 2)  # and the last whatever the time
+    with progress(10, "epochs", unit="epoch") as advance:  # a stage that starts afresh
+        advance(3)
+    assert read_progress(path) == (3, 10, 0)
     assert read_progress(tmp_path / "none") is None
     assert not [p for p in tmp_path.iterdir() if p.name != "run.progress"]  # no temporaries
 

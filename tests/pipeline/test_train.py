@@ -20,6 +20,7 @@ from ede.provenance import code_version, machine, software_versions
 from ede.tasks import make
 from ede.training import EVAL_SEED_OFFSET
 from ede_pipeline.cli import main
+from ede_pipeline.progress import PROGRESS_ENV, read_progress
 from tests.support import REPO
 
 BUDGET = 3_000
@@ -140,7 +141,9 @@ def precision(request: pytest.FixtureRequest, in_workdir: Path) -> Iterator[str]
     params.write_text(text)
 
 
-def test_a_run_killed_midway_resumes_to_the_same_returns(in_workdir: Path, precision: str) -> None:
+def test_a_run_killed_midway_resumes_to_the_same_returns(
+    in_workdir: Path, precision: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
     reference = in_workdir / f"reference-{precision}"
     result = run(
         "train",
@@ -181,10 +184,13 @@ def test_a_run_killed_midway_resumes_to_the_same_returns(in_workdir: Path, preci
     state = json.loads((killed / "checkpoint/state.json").read_text())
     assert 0 < state["step"] < BUDGET
 
+    published = in_workdir / f"resumed-{precision}.progress"  # where a sweep would read it
+    monkeypatch.setenv(PROGRESS_ENV, str(published))
     resumed = run(
         "train", "--task", "ede/Point-v0", "--algo", "ede-td3", "--seed", "1", "--out", str(killed)
     )
     assert resumed.exit_code == 0, resumed.output
+    assert read_progress(published) == (BUDGET, BUDGET, state["step"])  # its steps before: start
     assert returns_of(killed) == returns_of(reference)
     # and the training diagnostics, interval by interval, to the bit
     assert (killed / "diagnostics.csv").read_text() == (reference / "diagnostics.csv").read_text()
