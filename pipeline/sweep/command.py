@@ -171,14 +171,14 @@ def sweep(
 
     with Repo(".") as repo, repo_lock(repo):
         waves = in_waves(repo, collect_stages(repo, targets))
-        stale = out_of_date(repo, waves)
+        stale, downstream = out_of_date(repo, waves)
         count = sum(map(len, waves))
         click.echo(f"sweep: {len(stale)} of {count} stages out of date", err=True)
         if not stale:
             return
         if chosen:
             claim(logs, LOGS_KIND, ("*.log", "*.attempts"))
-        sweeping = _Sweep(repo, params, runs, logs, Tally(len(stale)))
+        sweeping = _Sweep(repo, params, runs, logs, downstream, Tally(len(stale)))
         runner = _executor(executor, jobs, address, cpus_per_run, retries)
         workers = jobs or (os.cpu_count() if executor == "local" else None)
         with sweeping.tally.watch():
@@ -204,17 +204,24 @@ class _Sweep:
     run, since one they depend on failed)."""
 
     def __init__(
-        self, repo: Repo, params: Params, runs: dict[str, RunId], logs: Path, tally: Tally
+        self,
+        repo: Repo,
+        params: Params,
+        runs: dict[str, RunId],
+        logs: Path,
+        downstream: set[str],
+        tally: Tally,
     ) -> None:
-        self.repo, self.params, self.runs, self.logs, self.tally = repo, params, runs, logs, tally
+        self.repo, self.params, self.runs, self.logs = repo, params, runs, logs
+        self.downstream, self.tally = downstream, tally  # (downstream: out_of_date's)
         self.failed: list[str] = []
 
     def run_wave(
         self, stages: list[Stage], runner: Executor, group_size: int | None, workers: int | None
     ) -> None:
         """Run a wave's out-of-date stages side by side and record each as it finishes. A stage
-        is first checked again, as ``dvc repro`` checks it at its turn, and restored from the run
-        cache where DVC has this very run."""
+        downstream of others that ran is first asked whether it is out of date, as ``dvc repro``
+        asks at its turn; a stage is restored from the run cache where DVC has this very run."""
         from dvc.exceptions import DvcException
 
         tally, pending = self.tally, []
@@ -229,7 +236,7 @@ class _Sweep:
                 tally.echo(tally.line("FAILED", name, f"not run: {broken[0]} failed"))
                 continue
             try:
-                if not stage.changed():
+                if name in self.downstream and not stage.changed():
                     tally.echo(tally.line("ok", name, "up to date: its inputs came out as before"))
                     continue
                 stage.remove_outs(ignore_remove=False, force=False)

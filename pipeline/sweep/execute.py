@@ -125,11 +125,11 @@ class LocalExecutor:
         self.jobs = jobs
 
     def map_unordered(self, jobs: list[Job]) -> Iterator[Outcome]:
-        with ThreadPoolExecutor(max_workers=self.jobs) as pool:
-            pending: set[Future[Outcome]] = {pool.submit(run_job, job) for job in jobs}
-            try:
-                while pending:
-                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                    yield from (future.result() for future in done)
-            finally:
-                pool.shutdown(wait=True, cancel_futures=True)
+        pool = ThreadPoolExecutor(max_workers=self.jobs)  # one a call: the sweep's waves
+        pending: set[Future[Outcome]] = {pool.submit(run_job, job) for job in jobs}
+        try:
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                yield from (future.result() for future in done)
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)

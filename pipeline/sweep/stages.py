@@ -89,17 +89,20 @@ def in_waves(repo: Repo, stages: list[Stage]) -> list[list[Stage]]:
     return waves
 
 
-def out_of_date(repo: Repo, waves: list[list[Stage]]) -> set[str]:
-    """The stages that will run: those out of date now (``Stage.changed``, what ``dvc status``
-    reports) and those downstream of them. A stage downstream is asked again at its turn: if what
-    it depends on came out as before, it is up to date after all, as ``dvc repro`` finds it."""
+def out_of_date(repo: Repo, waves: list[list[Stage]]) -> tuple[set[str], set[str]]:
+    """The stages that will run — those out of date now (``Stage.changed``, what ``dvc status``
+    reports) and those downstream of them — and, of these, the ones downstream. Those are not
+    asked now but at their turn: if what they depend on came out as before, they are up to date
+    after all, as ``dvc repro`` finds them."""
     stale: set[str] = set()
+    downstream: set[str] = set()
     for wave in waves:
         for stage in wave:
-            upstream = any(dep.addressing in stale for dep in dependencies(repo, stage))
-            if upstream or stage.changed():
+            if any(dep.addressing in stale for dep in dependencies(repo, stage)):
+                downstream.add(stage.addressing)
+            if stage.addressing in downstream or stage.changed():
                 stale.add(stage.addressing)
-    return stale
+    return stale, downstream
 
 
 def record(stage: Stage) -> None:

@@ -37,8 +37,8 @@ class Tally:
     every tenth of the steps in a log.
 
     Steps come from the runs' progress files (``EDE_PROGRESS``); the steps a resumed run had
-    already done (the file's ``start``) count as done but not towards the rate. Without step counts (stages other
-    than train) the ETA is from the pace of finished stages.
+    already done (the file's ``start``) count as done but not towards the rate. Without step
+    counts (stages other than train) the ETA is from the pace of finished stages.
     """
 
     POLL = 2.0  # seconds between two reads of the progress files
