@@ -31,11 +31,16 @@ from ede_pipeline.experiments.workspace import WORKSPACES, experiment_file
 )
 @click.option(
     "--policies",
-    is_flag=True,
+    "policies",
+    is_flag=False,
+    flag_value="all",
+    default=None,
+    metavar="[SEEDS]",
     help="Publish each run's final policy too (policy/, about 0.5 MB a run), and the decoder "
-    "its EDE-TD3 runs act through, so that `ede-pipeline render` plays them.",
+    "its EDE-TD3 runs act through, so that `ede-pipeline render` plays them; followed by "
+    "seeds (4 or 4,6), those seeds' policies only.",
 )
-def export(name: str, to: Path, policies: bool) -> None:
+def export(name: str, to: Path, policies: str | None) -> None:
     """Copy experiment NAME's finished runs into the published layout.
 
     Each finished run's eval.csv, diagnostics.csv, run.json and metrics.json go to
@@ -45,7 +50,8 @@ def export(name: str, to: Path, policies: bool) -> None:
     experiment file, the commits its runs were made at (an earlier export's too), its seeds,
     and report.thresholds' returns for it. With --policies, each run's policy/ goes beside its
     files, and the embedding's decoder/ beside its metrics (its encoder is not needed to play a
-    policy, and stays out). Where the task's folder already holds seeds from
+    policy, and stays out); with --policies SEEDS, those seeds' runs' only (a results page's clip
+    plays one seed's pair), and a policy an earlier export put beside another run goes. Where the task's folder already holds seeds from
     other experiments (an experiment adding seeds to a published task), source.json keeps their
     parts beside this one; seeds already published by another experiment are refused, and so
     are runs there that `ede-pipeline results` would refuse (a folder not named seed<N>, a file
@@ -60,6 +66,7 @@ def export(name: str, to: Path, policies: bool) -> None:
             f"`ede-pipeline experiment run {name}` first"
         )
     params = read_params(workspace / DEFAULT_PARAMS)
+    playable = _policy_seeds(policies, name, params.runs.seeds)
     finished, problems = _finished_runs(workspace, params)
     if problems:
         raise BadInput(problems[0])
@@ -94,15 +101,19 @@ def export(name: str, to: Path, policies: bool) -> None:
             for file in PUBLISHED:
                 if (folder / file).is_file():
                     shutil.copy2(folder / file, target / file)
-            if policies:
+            if seed in playable:
                 shutil.copytree(folder / POLICY, target / POLICY, dirs_exist_ok=True)
+            elif (target / POLICY).is_dir():  # an earlier export's, of the run this one replaces
+                shutil.rmtree(target / POLICY)
         embedding = workspace / layout.embedding(params.runs.tasks[task])
-        for checksum in {made["embedding"] for algo, *_, made in runs if algo == "ede-td3"}:
+        acting = {seed: made["embedding"] for algo, seed, _, made in runs if algo == "ede-td3"}
+        played = {checksum for seed, checksum in acting.items() if seed in playable}
+        for checksum in set(acting.values()):
             kept = layout.published_embedding(task, checksum, to)
             kept.mkdir(parents=True, exist_ok=True)
             for file in EMBEDDING_METRICS:
                 shutil.copy2(embedding / file, kept / file)
-            if policies:
+            if checksum in played:  # the decoder a published EDE-TD3 policy acts through
                 shutil.copytree(
                     embedding / layout.DECODER, kept / layout.DECODER, dirs_exist_ok=True
                 )
@@ -111,6 +122,25 @@ def export(name: str, to: Path, policies: bool) -> None:
 
 
 EMBEDDING_METRICS = ("encoder_metrics.json", "decoder_metrics.json")  # as pretrain writes them
+
+
+def _policy_seeds(policies: str | None, name: str, seeds: list[int]) -> set[int]:
+    """The seeds whose policies ``--policies`` publishes: none without it, every one of the
+    experiment's alone, else those it lists (``4`` or ``4,6``), each one of the experiment's."""
+    if policies is None:
+        return set()
+    if policies == "all":
+        return set(seeds)
+    try:
+        listed = {int(seed) for seed in policies.split(",")}
+    except ValueError:
+        raise BadInput(
+            f"--policies {policies!r}: expected seeds of experiment {name} (4 or 4,6), "
+            "or nothing for all of them"
+        ) from None
+    if unknown := sorted(listed - set(seeds)):
+        raise BadInput(f"--policies: seeds {unknown} are not among experiment {name}'s {seeds}")
+    return listed
 
 
 def _earlier_commits(task: str, params: Params, runs: list[tuple], to: Path) -> set[str]:

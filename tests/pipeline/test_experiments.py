@@ -368,6 +368,56 @@ def test_an_export_names_the_commits_of_runs_an_earlier_export_published(
     assert json.loads(published.read_text()) == earlier
 
 
+def test_an_export_publishes_the_policies_of_the_seeds_it_is_given(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--policies 1`` publishes seed 1's two policies and the decoder its EDE-TD3 policy acts
+    through, and no other run's policy; ``--policies`` alone, every run's; a narrower export
+    again takes away the policies it no longer publishes; a seed the experiment has not, or not
+    a seed, is one line, and nothing is written."""
+    from ede.runs import POLICY
+    from ede_pipeline import layout
+
+    monkeypatch.chdir(tmp_path)
+    workspace = finished_workspace(tmp_path, "pair", [0, 1], ["td3", "ede-td3"])
+    for algo, seed in ((a, s) for a in ("td3", "ede-td3") for s in (0, 1)):
+        policy = workspace / layout.run(TASK, algo, seed) / POLICY
+        policy.mkdir()
+        (policy / "policy.safetensors").write_text(f"{algo} {seed}")
+    decoder = workspace / layout.embedding("reacher") / layout.DECODER
+    decoder.mkdir()
+    (decoder / "weights.safetensors").write_text("decoder")
+    out = Path("published")
+
+    def policies(*given: str) -> dict[tuple[str, int], str]:
+        result = CliRunner().invoke(
+            main, ["experiment", "export", "pair", "--to", str(out), "--policies", *given]
+        )
+        assert result.exit_code == 0, result.output
+        return {
+            (algo, seed): (file / "policy.safetensors").read_text()
+            for algo, seed in ((a, s) for a in ("td3", "ede-td3") for s in (0, 1))
+            if (file := layout.run(TASK, algo, seed, out) / POLICY).is_dir()
+        }
+
+    assert policies("1") == {("td3", 1): "td3 1", ("ede-td3", 1): "ede-td3 1"}
+    kept = layout.published_embedding(TASK, "e0" * 32, out) / layout.DECODER
+    assert (kept / "weights.safetensors").read_text() == "decoder"
+    assert len(policies()) == 4
+    assert policies("0") == {("td3", 0): "td3 0", ("ede-td3", 0): "ede-td3 0"}
+    for given, line in (
+        ("0,7", "--policies: seeds [7] are not among experiment pair's [0, 1]"),
+        ("pair", "--policies 'pair': expected seeds of experiment pair (4 or 4,6), "
+                 "or nothing for all of them"),
+    ):  # fmt: skip
+        before = published()
+        result = CliRunner().invoke(
+            main, ["experiment", "export", "pair", "--to", str(out), "--policies", given]
+        )
+        assert (result.exit_code, result.stderr) == (2, f"Error: {line}\n"), result.output
+        assert published() == before
+
+
 def test_an_experiments_tools_run_the_code_of_its_working_copy(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
 ) -> None:
