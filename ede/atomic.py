@@ -138,8 +138,13 @@ def mark_file(path: str | Path, kind: str, writing: bool = False) -> None:
     (:func:`file_problem`); with ``writing``, that this process is about to write it (before it
     does, so that a writer killed between its write and its mark leaves a file still its own)."""
     path = place(path)
-    digest = None if writing else sha256(path)
-    mark = {"kind": kind, "sha256": digest, "writer": os.getpid()}
+    # A written file's mark is its kind and bytes alone: the same file made again marks the same
+    # (a committed figure redrawn unchanged leaves its mark unchanged). Only a file being written
+    # names its writer, for a rerun to tell a killed writer's leftovers from a live one's.
+    if writing:
+        mark = {"kind": kind, "sha256": None, "writer": os.getpid()}
+    else:
+        mark = {"kind": kind, "sha256": sha256(path)}
     write_text(_file_mark(path), json.dumps(mark) + "\n")
 
 
