@@ -64,6 +64,7 @@ def clips(runs: Path, params: Params) -> list[Clip]:
         embedding = embedding_for(pair[1], meta, params, None, None)
         frames, returns = side_by_side(pair, (embedding, meta["embedding"]))
         gif = runs.parent / clip_name(task)
+        folder = layout.task_runs(task, Path(runs.name)).as_posix()  # from the page, as the GIF
         labels = [ALGO_LABELS[algo] for algo in ALGOS]
         text = (
             f"### {CLIP}{task}\n\n"
@@ -74,8 +75,8 @@ def clips(runs: Path, params: Params) -> list[Clip]:
             f"episode's return: {returns[0]:.1f} ({labels[0]}) and {returns[1]:.1f} "
             f"({labels[1]}); the final evaluation's mean: "
             f"{finals[(ALGOS[0], seed)]:.1f} and {finals[(ALGOS[1], seed)]:.1f}. Made by "
-            f"{read_source(layout.task_runs(task, runs)).made_at()}; `{layout.task_runs(task, runs)}`"
-            " holds the runs and their policies.\n"
+            f"{read_source(layout.task_runs(task, runs)).made_at()}; [`{folder}`]({folder}) "
+            "holds the runs and their policies.\n"
         )
         made.append(Clip(Section(CLIP + task, text), gif, frames, fps_of(task)))
     return made

@@ -179,39 +179,69 @@ def resampled(block: str) -> str:
     return re.sub(r"\| \d+, \d+ \(of \d+\) \|", "| … |", block)
 
 
+NUMBER = r"-?\d+\.\d"  # a return, as a clip's block prints it
+
+
+def played(block: str) -> tuple[str, list[float]]:
+    """A clip's block: its words, and its returns apart. Its episodes are played again here, and a
+    policy's actions take the last bits of this CPU's kernels, so a return may round the other way
+    (the episode's return and the run's own evaluation agree within 0.01:
+    test_experiment_run.py's render test); everything else is exact."""
+    return re.sub(NUMBER, "…", block), [float(n) for n in re.findall(NUMBER, block)]
+
+
 @pytest.mark.slow
 def test_the_committed_pages_redraw(tmp_path: Path) -> None:
+    import imageio.v3 as iio
+
     # The pages, copied, beside the committed runs folders, linked where they lie in docs/.
     docs = tmp_path / "docs"
     (docs / "results" / "1e6").mkdir(parents=True)
     shutil.copy(REPO / "docs" / "results.md", docs)
     for page in (REPO / "docs" / "results").glob("*.md"):
         shutil.copy(page, docs / "results")
-    for folder in ("runs", "ablations", "1e6/runs"):
+    for folder in ("runs", "ablations", "1e6/runs", "clips"):
         (docs / "results" / folder).symlink_to(REPO / "docs" / "results" / folder)
     done = results(tmp_path, tmp_path / "figures", docs / "results.md", docs / "results")
     assert done.returncode == 0, done.stderr
-    for page in [docs / "results.md", *sorted((docs / "results").glob("*.md"))]:
+    pages = [docs / "results.md", *sorted((docs / "results").glob("*.md"))]
+    for page in pages:
         committed = (REPO / page.relative_to(tmp_path)).read_text()
         redrawn = page.read_text()
         # The words around the blocks are the author's, and each block is the command's: the same
-        # but for its resamples (drawn here at fewer than the committed params' 2,000).
+        # but for its resamples (drawn here at fewer than the committed params' 2,000), and for a
+        # clip's returns, played again on this CPU (:func:`played`).
         assert re.split(r"<!-- results .*?<!-- /results -->\n", redrawn, flags=re.S) == re.split(
             r"<!-- results .*?<!-- /results -->\n", committed, flags=re.S
         )
-        assert [(r, h, resampled(b)) for r, h, b in blocks(redrawn)] == [
-            (r, h, resampled(b)) for r, h, b in blocks(committed)
-        ], page.name
-    # Every task with published runs has its section on a page, its runs folder's as it lies.
-    placed = {
-        (runs, heading)
-        for page in [docs / "results.md", *(docs / "results").glob("*.md")]
-        for runs, heading, _ in blocks(page.read_text())
+        for (runs, heading, block), kept in zip(blocks(redrawn), blocks(committed), strict=True):
+            if not heading.startswith("Clip: "):
+                assert (runs, heading, resampled(block)) == (kept[0], kept[1], resampled(kept[2]))
+                continue
+            (words, returns), (kept_words, kept_returns) = played(block), played(kept[2])
+            assert (runs, heading, words) == (kept[0], kept[1], kept_words), page.name
+            assert np.allclose(returns, kept_returns, rtol=0, atol=0.1 + 1e-9), heading
+    # Each clip a page links is drawn again as committed: its frames' count and size, and an
+    # episode that moves.
+    linked = {
+        name for page in pages for name in re.findall(r"\]\((clip-\S+\.gif)\)", page.read_text())
     }
-    for folder in ("runs", "1e6/runs"):
+    assert linked, "no page shows a clip"
+    for name in linked:
+        clip = iio.imread(docs / "results" / name, index=None)
+        assert clip.shape == iio.imread(REPO / "docs" / "results" / name, index=None).shape
+        assert np.abs(clip[0].astype(int) - clip[-1].astype(int)).max() > 50, name
+    # Every task with published runs has its section on a page, its runs folder's as it lies, and
+    # every task with published policies its clip.
+    placed = {(runs, heading) for page in pages for runs, heading, _ in blocks(page.read_text())}
+    for folder in ("runs", "1e6/runs", "clips"):
         made = REPO / "docs" / "results" / folder
-        for task in {json.loads(r.read_text())["task"] for r in made.rglob("seed*/run.json")}:
-            assert (folder, task) in placed or (f"results/{folder}", task) in placed, task
+        for record in made.rglob("seed*/run.json"):
+            task = json.loads(record.read_text())["task"]
+            if folder != "clips":
+                assert (folder, task) in placed or (f"results/{folder}", task) in placed, task
+            if (record.parent / "policy").is_dir():
+                assert (folder, f"Clip: {task}") in placed, task
 
 
 def task_table(out: str, task: str) -> str:
