@@ -19,7 +19,7 @@ from ede.config import ALGO_LABELS, ALGOS, Params
 from ede.runs import POLICY, RunRejected, read_policy
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput
-from ede_pipeline.published import published_runs, read_source, task_folders
+from ede_pipeline.published import Source, published_runs, read_source, task_folders
 from ede_pipeline.render import embedding_for, fps_of, side_by_side
 from ede_pipeline.results.sections import Section
 
@@ -65,6 +65,8 @@ def clips(runs: Path, params: Params) -> list[Clip]:
         frames, returns = side_by_side(pair, (embedding, meta["embedding"]))
         gif = runs.parent / clip_name(task)
         folder = layout.task_runs(task, Path(runs.name)).as_posix()  # from the page, as the GIF
+        source = read_source(layout.task_runs(task, runs))  # the part that made this seed's runs
+        made_by = Source([part for part in source.parts if seed in part.seeds] or source.parts)
         labels = [ALGO_LABELS[algo] for algo in ALGOS]
         text = (
             f"### {CLIP}{task}\n\n"
@@ -75,7 +77,7 @@ def clips(runs: Path, params: Params) -> list[Clip]:
             f"episode's return: {returns[0]:.1f} ({labels[0]}) and {returns[1]:.1f} "
             f"({labels[1]}); the final evaluation's mean: "
             f"{finals[(ALGOS[0], seed)]:.1f} and {finals[(ALGOS[1], seed)]:.1f}. Made by "
-            f"{read_source(layout.task_runs(task, runs)).made_at()}; [`{folder}`]({folder}) "
+            f"{made_by.made_at()}; [`{folder}`]({folder}) "
             "holds the runs and their policies.\n"
         )
         made.append(Clip(Section(CLIP + task, text), gif, frames, fps_of(task)))
