@@ -8,9 +8,10 @@ run's final evaluation, from the same starts (:mod:`ede.video`); each step's fra
 offscreen rendering (``MUJOCO_GL=egl``, or ``osmesa``), marked with the episode, the step and the
 return so far, and for EDE-TD3 with a bar at each step where a code starts. The format follows
 ``--out``'s suffix: ``.mp4`` (H.264 through the ffmpeg that imageio-ffmpeg's wheel carries, at the
-task's frame rate) or ``.gif`` (every other frame at half size, for pages). An EDE-TD3 run needs its
-family's embedding, the one its ``run.json`` names: the decoder published beside it, where
-``ede-pipeline experiment export --policies`` published the run, else the pipeline's for its task.
+task's frame rate) or ``.gif`` (every other frame, halved where taller than 240 pixels, for pages).
+An EDE-TD3 run needs its family's embedding, the one its ``run.json`` names: the decoder published
+beside it, where ``ede-pipeline experiment export --policies`` published the run, else the
+pipeline's for its task.
 
 Bad input is one line (exit 2): a folder with no policy (a published copy keeps one only where
 exported with ``--policies``), a damaged
@@ -146,15 +147,21 @@ def side_by_side(
     return [np.concatenate(row, axis=1) for row in zip(*held, strict=True)], returns
 
 
+# A GIF's frames are halved where taller than this: a run's own 480-pixel frames are; TD3 beside
+# EDE-TD3 (:func:`side_by_side`) is already half size, and its labels would not read halved again.
+GIF_HEIGHT = 240
+
+
 def encode(frames: list[np.ndarray], fps: float, suffix: str, to: Path) -> None:
     """``frames`` into the file ``to`` as ``suffix`` says: H.264 MP4, or a GIF of every other
-    frame at half size (a page's clip, small)."""
+    frame (a page's clip, small), halved where taller than :data:`GIF_HEIGHT`."""
     if suffix == ".mp4":
         iio.imwrite(
             to, np.stack(frames), plugin="FFMPEG", fps=fps, codec="libx264", extension=suffix
         )
     else:
-        small = [f[::2, ::2] for f in frames[::2]]
+        step = 2 if frames[0].shape[0] > GIF_HEIGHT else 1
+        small = [f[::step, ::step] for f in frames[::2]]
         iio.imwrite(
             to, np.stack(small), plugin="pillow", duration=2000 / fps, loop=0, extension=suffix
         )

@@ -328,5 +328,5 @@ def test_an_export_with_policies_publishes_what_render_plays(repo: Path) -> None
     assert f"the final evaluation's mean: {finals[0]:.1f} and {finals[1]:.1f}." in text
     assert text.startswith("# Clips\n\n") and text.endswith("<!-- /results -->\nEnd.\n")
     clip = iio.imread(gif, index=None)
-    assert clip.shape[:3] == (50, 120, 240)  # 100 steps, every other frame; two half-size halves
+    assert clip.shape[:3] == (50, 240, 480)  # 100 steps, every other frame; two half-size halves
     assert np.abs(clip[0].astype(int) - clip[-1].astype(int)).max() > 50  # the points moved
