@@ -10,9 +10,7 @@ from pathlib import Path
 import click
 
 from ede.atomic import write_json
-from ede.config import (
-    Params,
-)
+from ede.config import ALGO_LABELS, Params
 from ede.runs import POLICY, PUBLISHED
 from ede_pipeline import layout
 from ede_pipeline.common import DEFAULT_PARAMS, BadInput, read_params
@@ -51,7 +49,9 @@ def export(name: str, to: Path, policies: str | None) -> None:
     and report.thresholds' returns for it. With --policies, each run's policy/ goes beside its
     files, and the embedding's decoder/ beside its metrics (its encoder is not needed to play a
     policy, and stays out); with --policies SEEDS, those seeds' runs' only (a results page's clip
-    plays one seed's pair), and a policy an earlier export put beside another run goes. Where the task's folder already holds seeds from
+    plays one seed's pair: each listed seed's runs must have finished), and a policy an earlier
+    export put beside one of this export's other runs goes. Without --policies, the policies
+    published beside its runs stay as they are. Where the task's folder already holds seeds from
     other experiments (an experiment adding seeds to a published task), source.json keeps their
     parts beside this one; seeds already published by another experiment are refused, and so
     are runs there that `ede-pipeline results` would refuse (a folder not named seed<N>, a file
@@ -66,7 +66,7 @@ def export(name: str, to: Path, policies: str | None) -> None:
             f"`ede-pipeline experiment run {name}` first"
         )
     params = read_params(workspace / DEFAULT_PARAMS)
-    playable = _policy_seeds(policies, name, params.runs.seeds)
+    playable = _policy_seeds(policies, name, params.runs.seeds)  # None: no --policies
     finished, problems = _finished_runs(workspace, params)
     if problems:
         raise BadInput(problems[0])
@@ -82,6 +82,11 @@ def export(name: str, to: Path, policies: str | None) -> None:
         if not runs:  # none of this task's runs has finished yet
             click.echo(f"{task}: no run finished yet; nothing exported", err=True)
             continue
+        listed = policies != "all"  # seeds named, not every one whose runs finished
+        if playable is not None and (
+            problem := _unplayable(task, runs, playable, listed, params, workspace)
+        ):
+            raise BadInput(problem)
         published = _published_beside(task, runs, to)
         commits = sorted(
             {made["code"]["commit"] for *_, made in runs} | _earlier_commits(task, params, runs, to)
@@ -101,13 +106,16 @@ def export(name: str, to: Path, policies: str | None) -> None:
             for file in PUBLISHED:
                 if (folder / file).is_file():
                     shutil.copy2(folder / file, target / file)
+            if playable is None:  # no --policies: what is published beside the run stays
+                continue
             if seed in playable:
                 shutil.copytree(folder / POLICY, target / POLICY, dirs_exist_ok=True)
-            elif (target / POLICY).is_dir():  # an earlier export's, of the run this one replaces
+            elif (target / POLICY).is_dir():  # an earlier export's, of a run this one does not play
                 shutil.rmtree(target / POLICY)
+                click.echo(f"{target / POLICY}: removed (--policies {policies})", err=True)
         embedding = workspace / layout.embedding(params.runs.tasks[task])
         acting = {seed: made["embedding"] for algo, seed, _, made in runs if algo == "ede-td3"}
-        played = {checksum for seed, checksum in acting.items() if seed in playable}
+        played = {checksum for seed, checksum in acting.items() if seed in (playable or ())}
         for checksum in set(acting.values()):
             kept = layout.published_embedding(task, checksum, to)
             kept.mkdir(parents=True, exist_ok=True)
@@ -124,11 +132,11 @@ def export(name: str, to: Path, policies: str | None) -> None:
 EMBEDDING_METRICS = ("encoder_metrics.json", "decoder_metrics.json")  # as pretrain writes them
 
 
-def _policy_seeds(policies: str | None, name: str, seeds: list[int]) -> set[int]:
-    """The seeds whose policies ``--policies`` publishes: none without it, every one of the
+def _policy_seeds(policies: str | None, name: str, seeds: list[int]) -> set[int] | None:
+    """The seeds whose policies ``--policies`` publishes: None without it, every one of the
     experiment's alone, else those it lists (``4`` or ``4,6``), each one of the experiment's."""
     if policies is None:
-        return set()
+        return None
     if policies == "all":
         return set(seeds)
     try:
@@ -136,11 +144,56 @@ def _policy_seeds(policies: str | None, name: str, seeds: list[int]) -> set[int]
     except ValueError:
         raise BadInput(
             f"--policies {policies!r}: expected seeds of experiment {name} (4 or 4,6), "
-            "or nothing for all of them"
+            "or nothing for all of them; give --policies after NAME"
         ) from None
     if unknown := sorted(listed - set(seeds)):
         raise BadInput(f"--policies: seeds {unknown} are not among experiment {name}'s {seeds}")
     return listed
+
+
+def _unplayable(
+    task: str,
+    runs: list[tuple],
+    playable: set[int],
+    listed: bool,
+    params: Params,
+    workspace: Path,
+) -> str | None:
+    """Why ``runs`` (one task's finished runs) cannot publish the policies of ``playable``: a
+    seed ``--policies`` lists whose runs have not all finished, a run without its policy/ (made
+    before runs kept one), or a decoder in the working copy that is not the embedding a played
+    EDE-TD3 run trained with (the family's made again since). None where they can. ``listed``:
+    the seeds were named (``--policies 4``), not every seed's runs that finished."""
+    from ede.artifacts import DecoderMeta
+
+    done = {(algo, seed) for algo, seed, *_ in runs}
+    if listed:
+        for algo, seed in itertools.product(params.runs.algos, sorted(playable)):
+            if (algo, seed) not in done:
+                return (
+                    f"--policies: {task} seed {seed} has no finished {ALGO_LABELS[algo]} run "
+                    "yet; publish its policies once its runs have finished"
+                )
+    decoder = workspace / layout.embedding(params.runs.tasks[task]) / layout.DECODER
+    for algo, seed, folder, made in runs:
+        if seed not in playable:
+            continue
+        if not (folder / POLICY).is_dir():
+            return f"{folder}: no {POLICY}/ to publish (a run made before runs kept their policy)"
+        if algo == "ede-td3":
+            try:
+                identity = DecoderMeta.model_validate_json(
+                    (decoder / "meta.json").read_text()
+                ).identity
+            except (OSError, ValueError):
+                return f"{decoder}: no readable decoder to publish beside {folder}'s policy"
+            if identity != made["embedding"]:
+                return (
+                    f"{decoder}: not the embedding {folder} trained with (its checksum "
+                    f"{identity[:12]}…, the run's {made['embedding'][:12]}…): its family's "
+                    "embedding was made again since; run the experiment again to publish it"
+                )
+    return None
 
 
 def _earlier_commits(task: str, params: Params, runs: list[tuple], to: Path) -> set[str]:

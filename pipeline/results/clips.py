@@ -64,7 +64,7 @@ def clips(runs: Path, params: Params) -> list[Clip]:
         embedding = embedding_for(pair[1], meta, params, None, None)
         frames, returns = side_by_side(pair, (embedding, meta["embedding"]))
         gif = runs.parent / clip_name(task)
-        folder = layout.task_runs(task, Path(runs.name)).as_posix()  # from the page, as the GIF
+        folder = layout.task_runs(task, Path(runs.name)).as_posix()  # from a page in runs.parent
         source = read_source(layout.task_runs(task, runs))  # the part that made this seed's runs
         made_by = Source([part for part in source.parts if seed in part.seeds] or source.parts)
         labels = [ALGO_LABELS[algo] for algo in ALGOS]

@@ -372,26 +372,38 @@ def test_an_export_publishes_the_policies_of_the_seeds_it_is_given(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """``--policies 1`` publishes seed 1's two policies and the decoder its EDE-TD3 policy acts
-    through, and no other run's policy; ``--policies`` alone, every run's; a narrower export
-    again takes away the policies it no longer publishes; a seed the experiment has not, or not
-    a seed, is one line, and nothing is written."""
+    through, and no other run's policy; an export without --policies leaves them; ``--policies``
+    alone publishes every run's; a narrower one takes away those it no longer plays. A seed the
+    experiment has not, a value that is no seed, a seed whose runs have not finished, and a
+    decoder that is not the one the runs trained with: one line each, nothing written."""
+    from ede.artifacts import ActionSpaceMeta, DecoderMeta, WhiteningMeta
     from ede.runs import POLICY
     from ede_pipeline import layout
 
+    decoder_meta = DecoderMeta(
+        software={}, weights_sha256="0" * 64, meta_sha256="1" * 64, family="reacher", k=4, dim=2,
+        action_space=ActionSpaceMeta(low=[-1.0], high=[1.0]), hidden=[8], bound=1.0,
+        code_whitening=WhiteningMeta(mean=[0.0, 0.0], std=[1.0, 1.0]), params={},
+        data_fingerprint="data", encoder_sha256="2" * 64,
+    )  # fmt: skip
     monkeypatch.chdir(tmp_path)
-    workspace = finished_workspace(tmp_path, "pair", [0, 1], ["td3", "ede-td3"])
+    workspace = finished_workspace(
+        tmp_path, "pair", [0, 1], ["td3", "ede-td3"], embedding=decoder_meta.identity
+    )
     for algo, seed in ((a, s) for a in ("td3", "ede-td3") for s in (0, 1)):
         policy = workspace / layout.run(TASK, algo, seed) / POLICY
         policy.mkdir()
         (policy / "policy.safetensors").write_text(f"{algo} {seed}")
     decoder = workspace / layout.embedding("reacher") / layout.DECODER
     decoder.mkdir()
-    (decoder / "weights.safetensors").write_text("decoder")
+    (decoder / "meta.json").write_text(decoder_meta.model_dump_json())
     out = Path("published")
+    kept = layout.published_embedding(TASK, decoder_meta.identity, out) / layout.DECODER
 
-    def policies(*given: str) -> dict[tuple[str, int], str]:
+    def export_pair(*policies: str) -> dict[tuple[str, int], str]:
+        """The export, and the policies published after it."""
         result = CliRunner().invoke(
-            main, ["experiment", "export", "pair", "--to", str(out), "--policies", *given]
+            main, ["experiment", "export", "pair", "--to", str(out), *policies]
         )
         assert result.exit_code == 0, result.output
         return {
@@ -400,22 +412,34 @@ def test_an_export_publishes_the_policies_of_the_seeds_it_is_given(
             if (file := layout.run(TASK, algo, seed, out) / POLICY).is_dir()
         }
 
-    assert policies("1") == {("td3", 1): "td3 1", ("ede-td3", 1): "ede-td3 1"}
-    kept = layout.published_embedding(TASK, "e0" * 32, out) / layout.DECODER
-    assert (kept / "weights.safetensors").read_text() == "decoder"
-    assert len(policies()) == 4
-    assert policies("0") == {("td3", 0): "td3 0", ("ede-td3", 0): "ede-td3 0"}
-    for given, line in (
-        ("0,7", "--policies: seeds [7] are not among experiment pair's [0, 1]"),
-        ("pair", "--policies 'pair': expected seeds of experiment pair (4 or 4,6), "
-                 "or nothing for all of them"),
-    ):  # fmt: skip
+    def refused(policies: str, line: str) -> None:
         before = published()
         result = CliRunner().invoke(
-            main, ["experiment", "export", "pair", "--to", str(out), "--policies", given]
+            main, ["experiment", "export", "pair", "--to", str(out), "--policies", policies]
         )
         assert (result.exit_code, result.stderr) == (2, f"Error: {line}\n"), result.output
         assert published() == before
+
+    assert export_pair() == {} and not kept.exists()
+    assert export_pair("--policies", "1") == {("td3", 1): "td3 1", ("ede-td3", 1): "ede-td3 1"}
+    assert (kept / "meta.json").read_text() == decoder_meta.model_dump_json()
+    assert len(export_pair()) == 2  # without --policies, the published ones stay
+    assert len(export_pair("--policies")) == 4
+    refused("1,7", "--policies: seeds [7] are not among experiment pair's [0, 1]")
+    refused("pair", "--policies 'pair': expected seeds of experiment pair (4 or 4,6), or "
+                    "nothing for all of them; give --policies after NAME")  # fmt: skip
+    made_again = decoder_meta.model_copy(update={"weights_sha256": "3" * 64})
+    (decoder / "meta.json").write_text(made_again.model_dump_json())  # the family's, made again
+    run = workspace.relative_to(tmp_path) / layout.run(TASK, "ede-td3", 1)
+    refused("1", f"{decoder.relative_to(tmp_path)}: not the embedding {run} trained with (its "
+                 f"checksum {made_again.identity[:12]}…, the run's {decoder_meta.identity[:12]}…): "
+                 "its family's embedding was made again since; run the experiment again to "
+                 "publish it")  # fmt: skip
+    (decoder / "meta.json").write_text(decoder_meta.model_dump_json())
+    assert export_pair("--policies", "0") == {("td3", 0): "td3 0", ("ede-td3", 0): "ede-td3 0"}
+    shutil.rmtree(workspace / layout.run(TASK, "ede-td3", 1))  # a run not finished yet
+    refused("1", f"--policies: {TASK} seed 1 has no finished EDE-TD3 run yet; publish its "
+                 "policies once its runs have finished")  # fmt: skip
 
 
 def test_an_experiments_tools_run_the_code_of_its_working_copy(
