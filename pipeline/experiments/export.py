@@ -16,6 +16,8 @@ from ede_pipeline import layout
 from ede_pipeline.common import DEFAULT_PARAMS, BadInput, read_params
 from ede_pipeline.experiments.workspace import WORKSPACES, experiment_file
 
+EVERY_SEED = "all"  # --policies given alone: every finished run's policy
+
 
 @click.command("export")
 @click.argument("name")
@@ -31,7 +33,7 @@ from ede_pipeline.experiments.workspace import WORKSPACES, experiment_file
     "--policies",
     "policies",
     is_flag=False,
-    flag_value="all",
+    flag_value=EVERY_SEED,
     default=None,
     metavar="[SEEDS]",
     help="Publish each run's final policy too (policy/, about 0.5 MB a run), and the decoder "
@@ -67,6 +69,7 @@ def export(name: str, to: Path, policies: str | None) -> None:
         )
     params = read_params(workspace / DEFAULT_PARAMS)
     playable = _policy_seeds(policies, name, params.runs.seeds)  # None: no --policies
+    listed = policies != EVERY_SEED  # seeds named, not every one whose runs finished
     finished, problems = _finished_runs(workspace, params)
     if problems:
         raise BadInput(problems[0])
@@ -82,7 +85,6 @@ def export(name: str, to: Path, policies: str | None) -> None:
         if not runs:  # none of this task's runs has finished yet
             click.echo(f"{task}: no run finished yet; nothing exported", err=True)
             continue
-        listed = policies != "all"  # seeds named, not every one whose runs finished
         if playable is not None and (
             problem := _unplayable(task, runs, playable, listed, params, workspace)
         ):
@@ -137,7 +139,7 @@ def _policy_seeds(policies: str | None, name: str, seeds: list[int]) -> set[int]
     experiment's alone, else those it lists (``4`` or ``4,6``), each one of the experiment's."""
     if policies is None:
         return None
-    if policies == "all":
+    if policies == EVERY_SEED:
         return set(seeds)
     try:
         listed = {int(seed) for seed in policies.split(",")}
