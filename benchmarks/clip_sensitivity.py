@@ -1,0 +1,87 @@
+"""How far a results page's clip moves on another CPU: the bound the redraw test allows its returns.
+
+    python benchmarks/clip_sensitivity.py [--runs docs/results/clips] [--draws 6] [--scale 1e-6]
+
+A clip plays a published seed's TD3 and EDE-TD3 policies for the first episode of their runs' final
+evaluations (``ede-pipeline results``' ``Clip:`` blocks), and the block prints each episode's return
+to 0.1. Played again on another CPU, the policies' actions take that CPU's kernels' last bits. This
+plays each clip's episodes again with every action scaled by ``1 + scale·N(0, 1)`` (1e-6: a few
+float32 ulps), ``--draws`` times a policy, and prints how far each return moved: what
+``tests/pipeline/test_results.py``'s ``played`` tolerance has to hold. Needs offscreen GL, as the
+clips do (``MUJOCO_GL=egl``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ede.config import ALGOS, load_params
+from ede.runs import POLICY, read_policy
+from ede.tasks import make
+from ede.training import EVAL_SEED_OFFSET
+from ede.video import actor_of, play
+from ede_pipeline import layout
+from ede_pipeline.published import published_runs, task_folders
+from ede_pipeline.render import adapter_of, embedding_for
+
+
+def episode_return(run: Path, scale: float, rng: np.random.Generator) -> float:
+    """The return of the first episode of ``run``'s final evaluation, each action scaled by
+    ``1 + scale·N(0, 1)``."""
+    meta, tensors = read_policy(run)
+    params = load_params("params.yaml")
+    embedding = embedding_for(run, meta, params, None, None) if meta["algo"] != "td3" else None
+    adapter = adapter_of(meta, embedding)
+    decode = adapter.decode
+
+    def jittered(codes: torch.Tensor) -> torch.Tensor:
+        actions = decode(codes)
+        noise = torch.from_numpy(rng.standard_normal(tuple(actions.shape)))
+        return actions * (1 + scale * noise.to(actions.dtype))
+
+    setattr(adapter, "decode", jittered)  # noqa: B010 (a method replaced on this one instance)
+    env = make(meta["task"])
+    obs_size = int(np.prod(env.observation_space.shape or ()))
+    env.close()
+    policy = actor_of(meta, tensors, obs_size)
+    start = EVAL_SEED_OFFSET * (int(meta["seed"]) + 1)  # as ede_pipeline.render plays it
+    ret = 0.0
+    for frame in play(meta["task"], policy, adapter, 1, start, shrink=2):
+        ret = frame.ret
+    return ret
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=Path, default=layout.RESULTS / "clips")
+    parser.add_argument("--draws", type=int, default=6)
+    parser.add_argument("--scale", type=float, default=1e-6)
+    args = parser.parse_args()
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    rng = np.random.default_rng(0)
+    print(f"{'task':<24} {'algo':<8} {'return':>10} {'largest move':>13}")
+    for task in task_folders(args.runs):
+        kept = {
+            (record.made["algo"], record.curve.seed): run
+            for run, record in published_runs(args.runs, task)
+            if (run / POLICY).is_dir()
+        }
+        seeds = sorted({seed for _, seed in kept})
+        if not seeds:
+            continue
+        for algo in ALGOS:
+            run = kept[(algo, seeds[0])]
+            exact = episode_return(run, 0.0, rng)
+            moved = max(
+                abs(episode_return(run, args.scale, rng) - exact) for _ in range(args.draws)
+            )
+            print(f"{task:<24} {algo:<8} {exact:>10.4f} {moved:>13.5f}")
+
+
+if __name__ == "__main__":
+    main()
