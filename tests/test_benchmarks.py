@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -33,3 +34,25 @@ def test_gpu_throughput_runs_on_cpu_in_its_tiny_form() -> None:
         assert rate > 0 and update_us > 0, row
         assert float(ratio) > 0 and (ratio == "1.00" or row[2] != "1x1"), row  # against alone
         assert row[6:] == ["-", "-"], row  # no CUDA graph, no GPU to be busy on CPU
+
+
+def test_clip_sensitivity_plays_a_published_clip_again(tmp_path: Path) -> None:
+    import shutil
+
+    task = "ede/ReacherVertical-v0"
+    shutil.copytree(REPO / "docs/results/clips" / task, tmp_path / task)
+    command = [
+        sys.executable,
+        str(REPO / "benchmarks/clip_sensitivity.py"),
+        *("--runs", str(tmp_path), "--draws", "1"),
+    ]
+    done = subprocess.run(command, capture_output=True, text=True, check=False, timeout=600)
+    assert done.returncode == 0, done.stderr
+    rows = [line.split() for line in done.stdout.splitlines() if line.startswith("ede/")]
+    assert [row[:2] for row in rows] == [[task, "td3"], [task, "ede-td3"]]
+    page = (REPO / "docs/results/reacher-vertical.md").read_text()
+    shown = page.split("This episode's return: ")[1]  # "-9.9 (TD3) and -6.0 (EDE-TD3); …"
+    printed = [float(shown.split(" (TD3) and ")[0]), float(shown.split(" and ")[1].split(" ")[0])]
+    for row, on_page in zip(rows, printed, strict=True):
+        assert abs(float(row[2]) - on_page) <= 0.05 + 0.1, (row, on_page)  # the page's rounding
+        assert 0 <= float(row[3]) < 0.1, row  # a few ulps move the return less than 0.1
