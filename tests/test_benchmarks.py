@@ -14,15 +14,19 @@ from tests.support import REPO
 pytestmark = pytest.mark.slow
 
 
-def test_gpu_throughput_runs_on_cpu_in_its_tiny_form() -> None:
-    command = [
-        sys.executable,
-        str(REPO / "benchmarks/gpu_throughput.py"),
-        *("--device", "cpu", "--tiny", "--tasks", "ede/ReacherVertical-v0"),
-    ]
+def table(benchmark: str, *args: str) -> list[list[str]]:
+    """The rows of the table ``benchmarks/BENCHMARK`` prints (one per task's line), run to its
+    end."""
+    command = [sys.executable, str(REPO / "benchmarks" / benchmark), *args]
     done = subprocess.run(command, capture_output=True, text=True, check=False, timeout=600)
     assert done.returncode == 0, done.stderr
-    rows = [line.split() for line in done.stdout.splitlines() if line.startswith("ede/")]
+    return [line.split() for line in done.stdout.splitlines() if line.startswith("ede/")]
+
+
+def test_gpu_throughput_runs_on_cpu_in_its_tiny_form() -> None:
+    rows = table(
+        "gpu_throughput.py", "--device", "cpu", "--tiny", "--tasks", "ede/ReacherVertical-v0"
+    )
     assert [(row[1], row[2]) for row in rows] == [
         ("td3", "1x1"),
         ("td3", "2x2"),
@@ -41,14 +45,7 @@ def test_clip_sensitivity_plays_a_published_clip_again(tmp_path: Path) -> None:
 
     task = "ede/ReacherVertical-v0"
     shutil.copytree(REPO / "docs/results/clips" / task, tmp_path / task)
-    command = [
-        sys.executable,
-        str(REPO / "benchmarks/clip_sensitivity.py"),
-        *("--runs", str(tmp_path), "--draws", "1"),
-    ]
-    done = subprocess.run(command, capture_output=True, text=True, check=False, timeout=600)
-    assert done.returncode == 0, done.stderr
-    rows = [line.split() for line in done.stdout.splitlines() if line.startswith("ede/")]
+    rows = table("clip_sensitivity.py", "--runs", str(tmp_path), "--draws", "1")
     assert [row[:2] for row in rows] == [[task, "td3"], [task, "ede-td3"]]
     page = (REPO / "docs/results/reacher-vertical.md").read_text()
     shown = page.split("This episode's return: ")[1]  # "-9.9 (TD3) and -6.0 (EDE-TD3); …"
