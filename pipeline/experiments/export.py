@@ -127,11 +127,30 @@ def export(name: str, to: Path, policies: str | None) -> None:
                 shutil.copytree(
                     embedding / layout.DECODER, kept / layout.DECODER, dirs_exist_ok=True
                 )
+        _drop_unused_embeddings(task, to)
         write_json(layout.task_runs(task, to) / "source.json", source)
         click.echo(f"{task}: {len(runs)} runs to {layout.task_runs(task, to)}", err=True)
 
 
 EMBEDDING_METRICS = ("encoder_metrics.json", "decoder_metrics.json")  # as pretrain writes them
+
+
+def _drop_unused_embeddings(task: str, to: Path) -> None:
+    """Remove the task's published embeddings that none of its published EDE-TD3 runs names: an
+    experiment made again (its family's embedding with it) and exported over its earlier runs
+    leaves the earlier embedding to no run."""
+    from ede_pipeline.published import published_runs
+
+    named = {
+        layout.published_embedding(task, record.made["embedding"], to)
+        for _, record in published_runs(to, task)
+        if record.made["algo"] == "ede-td3"
+    }
+    folder = layout.task_runs(task, to) / layout.PUBLISHED_EMBEDDINGS
+    for kept in sorted(folder.iterdir() if folder.is_dir() else []):
+        if kept not in named:
+            shutil.rmtree(kept)
+            click.echo(f"{kept}: removed (no published run acts through it now)", err=True)
 
 
 def _policy_seeds(policies: str | None, name: str, seeds: list[int]) -> set[int] | None:

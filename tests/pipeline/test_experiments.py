@@ -368,6 +368,29 @@ def test_an_export_names_the_commits_of_runs_an_earlier_export_published(
     assert json.loads(published.read_text()) == earlier
 
 
+def test_an_experiment_made_again_exports_without_its_earlier_embedding(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An experiment exported, then made again with its family's embedding (another machine's
+    kernels, say) and exported over its runs: the earlier embedding's folder, which no run names
+    now, goes; another experiment's embedding, which its seeds still name, stays."""
+    from ede_pipeline import layout
+
+    monkeypatch.chdir(tmp_path)
+    earlier, again, other = "a0" * 32, "b1" * 32, "c2" * 32
+    finished_workspace(tmp_path, "beside", [2], ["td3", "ede-td3"], embedding=other)
+    assert export("beside").exit_code == 0
+    workspace = finished_workspace(tmp_path, "clip", [0], ["td3", "ede-td3"], embedding=earlier)
+    assert export("clip").exit_code == 0
+    shutil.rmtree(workspace)
+    finished_workspace(tmp_path, "clip", [0], ["td3", "ede-td3"], embedding=again)
+    result = export("clip")
+    assert result.exit_code == 0, result.output
+    kept = layout.task_runs(TASK, Path("published")) / layout.PUBLISHED_EMBEDDINGS
+    assert sorted(p.name for p in kept.iterdir()) == [again[:12], other[:12]]
+    assert f"{kept / earlier[:12]}: removed" in result.stderr
+
+
 def test_an_export_publishes_the_policies_of_the_seeds_it_is_given(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
