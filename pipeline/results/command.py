@@ -244,7 +244,11 @@ def results(
             for folder in folders
             if (folder, False) in named
         }
-        played = {folder: clips(folder, params) for folder in folders if (folder, True) in named}
+        shown: dict[Path, set[str]] = {}  # the clips the pages show; the others' GIFs stay
+        for block in found.blocks:
+            if block.heading.startswith(CLIP):
+                shown.setdefault(block.runs, set()).add(block.heading.removeprefix(CLIP))
+        played = {folder: clips(folder, params, tasks) for folder, tasks in shown.items()}
         for folder, drawn in made.items():
             check_figures(folder.parent, drawn.figures, (folder,))
         for folder, each in played.items():

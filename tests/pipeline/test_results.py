@@ -246,6 +246,26 @@ def test_the_committed_pages_redraw(tmp_path: Path) -> None:
                 assert (folder, f"Clip: {task}") in placed, task
 
 
+@pytest.mark.slow
+def test_a_page_plays_only_the_clips_it_shows(tmp_path: Path) -> None:
+    """A page showing one clip of a folder that holds several plays and writes that one alone:
+    redrawing one page leaves the GIFs other pages link as they are (another CPU would draw
+    them again at other last bits)."""
+    clips = REPO / "docs" / "results" / "clips"
+    assert len(list((clips / "ede").iterdir())) > 1  # the committed folder: more than one clip
+    folder = tmp_path / "results"
+    folder.mkdir()
+    (folder / "clips").symlink_to(clips)
+    page = folder / "page.md"
+    page.write_text(
+        "# One clip\n\n<!-- results clips: Clip: ede/ReacherVertical-v0 -->\n<!-- /results -->\n"
+    )
+    done = results(tmp_path, tmp_path / "figures", page)
+    assert done.returncode == 0, done.stderr
+    assert [p.name for p in folder.glob("*.gif")] == ["clip-ede_ReacherVertical-v0.gif"]
+    assert "](clip-ede_ReacherVertical-v0.gif)" in page.read_text()
+
+
 def task_table(out: str, task: str) -> str:
     """One task's section of the output."""
     return out.split(f"### {task}\n")[1].split("\n### ")[0]
