@@ -39,15 +39,13 @@ def clip_name(task: str) -> str:
     return f"clip-{task.replace('/', '_')}.gif"
 
 
-def clips(runs: Path, params: Params, tasks: set[str] | None = None) -> list[Clip]:
-    """Every task under ``runs`` (of ``tasks``, where given: the clips a page shows) with a seed
-    whose TD3 and EDE-TD3 policies are both kept: the clip of its lowest such seed, the episode
-    its final evaluation played first."""
+def clips(runs: Path, params: Params, tasks: set[str]) -> list[Clip]:
+    """Each of ``tasks`` (the clips the pages show) under ``runs`` with a seed whose TD3 and
+    EDE-TD3 policies are both kept: the clip of its lowest such seed, the episode its final
+    evaluation played first."""
     os.environ.setdefault("MUJOCO_GL", "egl")  # read as the first environment renders
     made = []
-    for task in task_folders(runs):
-        if tasks is not None and task not in tasks:
-            continue
+    for task in (task for task in task_folders(runs) if task in tasks):
         kept: dict[int, dict[str, Path]] = {}
         finals = {}  # each run's final evaluation's mean return, by (algorithm, seed)
         for run, record in published_runs(runs, task):
