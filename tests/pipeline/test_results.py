@@ -187,9 +187,9 @@ def played(block: str) -> tuple[str, list[float]]:
     policy's actions take the last bits of this CPU's kernels, so a return may round the other way:
     the one step of 0.1 the block prints. Measured (2026-12-06, one AMD EPYC): every action of a
     clip's episode scaled by 1 + 1e-6·N(0, 1), a few float32 ulps, moved its return by under
-    0.0001 on ReacherVertical and Pusher, at most 0.0002 on ReacherPush, whose arm pushes a block,
-    0.0006 on Striker and 0.008 on ReacherTurn (TD3's; six draws a policy, seed 4's TD3 and
-    EDE-TD3)."""
+    0.0001 on ReacherVertical, ReacherPush and Pusher, at most 0.0003 on Striker and 0.008 on
+    ReacherTurn (TD3's; six draws a policy, seed 4's TD3 and EDE-TD3:
+    `python benchmarks/clip_sensitivity.py`)."""
     return re.sub(NUMBER, "…", block), [float(n) for n in re.findall(NUMBER, block)]
 
 
