@@ -22,38 +22,31 @@ import torch
 
 from ede.config import ALGOS, load_params
 from ede.runs import POLICY, read_policy
-from ede.tasks import make
-from ede.training import EVAL_SEED_OFFSET
-from ede.video import actor_of, play
 from ede_pipeline import layout
 from ede_pipeline.published import published_runs, task_folders
-from ede_pipeline.render import adapter_of, embedding_for
+from ede_pipeline.render import adapter_of, embedding_for, frames_of
 
 
-def episode_return(run: Path, scale: float, rng: np.random.Generator) -> float:
-    """The return of the first episode of ``run``'s final evaluation, each action scaled by
+def returns(run: Path, scales: list[float], rng: np.random.Generator) -> list[float]:
+    """The return of the first episode of ``run``'s final evaluation, as ``ede-pipeline render``
+    plays it (:func:`~ede_pipeline.render.frames_of`), once per scale, each action scaled by
     ``1 + scale·N(0, 1)``."""
     meta, tensors = read_policy(run)
     params = load_params("params.yaml")
     embedding = embedding_for(run, meta, params, None, None) if meta["algo"] != "td3" else None
     adapter = adapter_of(meta, embedding)
     decode = adapter.decode
+    made = []
+    for scale in scales:
 
-    def jittered(codes: torch.Tensor) -> torch.Tensor:
-        actions = decode(codes)
-        noise = torch.from_numpy(rng.standard_normal(tuple(actions.shape)))
-        return actions * (1 + scale * noise.to(actions.dtype))
+        def jittered(codes: torch.Tensor, scale: float = scale) -> torch.Tensor:
+            actions = decode(codes)
+            noise = torch.from_numpy(rng.standard_normal(tuple(actions.shape)))
+            return actions * (1 + scale * noise.to(actions.dtype))
 
-    setattr(adapter, "decode", jittered)  # noqa: B010 (a method replaced on this one instance)
-    env = make(meta["task"])
-    obs_size = int(np.prod(env.observation_space.shape or ()))
-    env.close()
-    policy = actor_of(meta, tensors, obs_size)
-    start = EVAL_SEED_OFFSET * (int(meta["seed"]) + 1)  # as ede_pipeline.render plays it
-    ret = 0.0
-    for frame in play(meta["task"], policy, adapter, 1, start, shrink=2):
-        ret = frame.ret
-    return ret
+        setattr(adapter, "decode", jittered)  # noqa: B010 (a method replaced on this one instance)
+        made.append(frames_of(meta, tensors, adapter, 1, shrink=2)[1][0])
+    return made
 
 
 def main() -> None:
@@ -76,10 +69,8 @@ def main() -> None:
             continue
         for algo in ALGOS:
             run = kept[(algo, seeds[0])]
-            exact = episode_return(run, 0.0, rng)
-            moved = max(
-                abs(episode_return(run, args.scale, rng) - exact) for _ in range(args.draws)
-            )
+            exact, *jittered = returns(run, [0.0] + [args.scale] * args.draws, rng)
+            moved = max(abs(ret - exact) for ret in jittered)
             print(f"{task:<24} {algo:<8} {exact:>10.4f} {moved:>13.5f}")
 
 
