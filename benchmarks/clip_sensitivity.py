@@ -1,14 +1,15 @@
 """How far a results page's clip moves on another CPU: the bound the redraw test allows its returns.
 
-    python benchmarks/clip_sensitivity.py [--runs docs/results/clips] [--draws 6] [--scale 1e-6]
+    python benchmarks/clip_sensitivity.py [--runs DIR]... [--draws 6] [--scale 1e-6]
 
 A clip plays a published seed's TD3 and EDE-TD3 policies for the first episode of their runs' final
-evaluations (``ede-pipeline results``' ``Clip:`` blocks), and the block prints each episode's return
-to 0.1. Played again on another CPU, the policies' actions take that CPU's kernels' last bits. This
-plays each clip's episodes again with every action scaled by ``1 + scale·N(0, 1)`` (1e-6: a few
-float32 ulps), ``--draws`` times a policy, and prints how far each return moved: what
-``tests/pipeline/test_results.py``'s ``played`` tolerance has to hold. Needs offscreen GL, as the
-clips do (``MUJOCO_GL=egl``).
+evaluations (``ede-pipeline results``' ``Clip:`` blocks; published in ``docs/results/clips``, and
+ReacherPush's among its runs in ``docs/results/runs``, the two folders ``--runs`` defaults to), and
+the block prints each episode's return to 0.1. Played again on another CPU, the policies' actions
+take that CPU's kernels' last bits. This plays each clip's episodes again with every action scaled
+by ``1 + scale·N(0, 1)`` (1e-6: a few float32 ulps), ``--draws`` times a policy, and prints how far
+each return moved: what ``tests/pipeline/test_results.py``'s ``played`` tolerance has to hold. Needs
+offscreen GL, as the clips do (``MUJOCO_GL=egl``).
 """
 
 from __future__ import annotations
@@ -51,17 +52,18 @@ def returns(run: Path, scales: list[float], rng: np.random.Generator) -> list[fl
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", type=Path, default=layout.RESULTS / "clips")
+    parser.add_argument("--runs", type=Path, action="append", help="repeatable")
     parser.add_argument("--draws", type=int, default=6)
     parser.add_argument("--scale", type=float, default=1e-6)
     args = parser.parse_args()
     os.environ.setdefault("MUJOCO_GL", "egl")
     rng = np.random.default_rng(0)
     print(f"{'task':<24} {'algo':<8} {'return':>10} {'largest move':>13}")
-    for task in task_folders(args.runs):
+    folders = args.runs or [layout.RESULTS / "clips", layout.RESULTS / "runs"]
+    for folder, task in [(runs, task) for runs in folders for task in task_folders(runs)]:
         kept = {
             (record.made["algo"], record.curve.seed): run
-            for run, record in published_runs(args.runs, task)
+            for run, record in published_runs(folder, task)
             if (run / POLICY).is_dir()
         }
         seeds = sorted({seed for _, seed in kept})
