@@ -1,8 +1,8 @@
 """One writer per output: an exclusive lock beside it, released by the OS when its holder dies.
 
-Every stage holds :func:`exclusive` on its output while it writes it, so that two processes given
-the same output (two ``train`` of one run, a rerun started while the first still runs) cannot
-interleave: the second is refused at once, naming the holder's PID, and touches nothing. The lock
+Every stage holds :func:`exclusive` on each of its outputs, folders and files alike, while it
+writes them, so that two processes given the same output (two ``train`` of one run, a rerun
+started while the first still runs, two ``report`` given one ``--metrics``) cannot interleave: the second is refused at once, naming the holder's PID, and touches nothing. The lock
 is ``flock`` on a hidden file beside the output (``.<name>.lock``); the kernel drops it when the
 process exits however it exits, so a killed stage never leaves a lock that blocks its rerun. The
 file is removed on release; a process that opened it just before is detected (the path no longer
@@ -25,12 +25,12 @@ __all__ = ["OutputBusy", "exclusive", "lock_path"]
 class OutputBusy(Exception):
     """Another live process is writing this output."""
 
-    def __init__(self, output: Path, holder: int | None) -> None:
+    def __init__(self, output: Path, holder: int | None, shown: str | None = None) -> None:
         self.output, self.holder = output, holder
         who = f"process {holder}" if holder else "another process"
         super().__init__(
-            f"{output}: being written by {who} (lock {lock_path(output)}); wait for it to finish, "
-            "or stop it, and run again"
+            f"{shown or output}: being written by {who} (lock {lock_path(output)}); wait for it "
+            "to finish, or stop it, and run again"
         )
 
 
@@ -50,8 +50,9 @@ def _holder(fd: int) -> int | None:
 
 
 @contextmanager
-def exclusive(output: str | Path) -> Iterator[None]:
-    """Hold the lock of ``output`` for the block; :class:`OutputBusy` if another process does."""
+def exclusive(output: str | Path, shown: str | None = None) -> Iterator[None]:
+    """Hold the lock of ``output`` for the block; :class:`OutputBusy` if another process does
+    (naming the output as ``shown``, e.g. the variable that named it, where given)."""
     output = Path(output)
     lock = lock_path(output)
     lock.parent.mkdir(parents=True, exist_ok=True)
@@ -62,7 +63,7 @@ def exclusive(output: str | Path) -> Iterator[None]:
         except BlockingIOError:
             holder = _holder(fd)
             os.close(fd)
-            raise OutputBusy(output, holder) from None
+            raise OutputBusy(output, holder, shown) from None
         try:
             current = os.stat(lock).st_ino
         except FileNotFoundError:

@@ -9,8 +9,8 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import ExitStack, contextmanager
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import AbstractContextManager, ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -21,12 +21,13 @@ from ede.atomic import (
     NotWritten,
     file_problem,
     ownership_problem,
+    place,
     unwritable,
     writing_files,
 )
 from ede.config import Params, ParamsError, load_params
 from ede.locks import OutputBusy, exclusive
-from ede_pipeline.progress import PROGRESS_ENV
+from ede_pipeline.progress import PROGRESS_ENV, PROGRESS_KIND
 
 DEFAULT_PARAMS = Path("params.yaml")
 
@@ -108,19 +109,22 @@ def check_outputs(
 ) -> None:
     """Before any work, the one rule for every place a stage writes — ``output`` (a folder) with
     its lock and temporaries, the other folders ``dirs`` and files ``files``, each with its
-    kind, and the progress file ``EDE_PROGRESS`` names — each taken where its symbolic links
-    lead: it can be written (:func:`ede.atomic.unwritable`: its name fits, nothing in the way, a
-    location that takes data); it is new or this kind's own earlier output (a folder holding
-    only what its mark owns, :func:`ede.atomic.ownership_problem`; a file as its mark records
-    it, :func:`ede.atomic.file_problem`), never a user's or another stage's; a folder is not the
-    working directory or a folder above it; and none is, holds or lies inside one of ``inputs``
-    or the params file.
+    kind, and the progress file ``EDE_PROGRESS`` names (a file of its own kind) — each taken
+    where its symbolic links lead: it can be written (:func:`ede.atomic.unwritable`: its name
+    fits, nothing in the way, a location that takes data); it is new or this kind's own earlier
+    output (a folder holding only what its mark owns, :func:`ede.atomic.ownership_problem`; a
+    file as its mark records it, :func:`ede.atomic.file_problem`), never a user's or another
+    stage's; a folder is not the working directory or a folder above it; and none is, holds or
+    lies inside one of ``inputs``, the params file, or another of these places.
 
     Raises:
-        BadInput: one line naming the place and what is in the way.
+        BadInput: one line naming the place (the variable, for the progress file) and what is
+            in the way.
     """
-    inputs = (*inputs, _params_file())
+    given = (*inputs, _params_file())
+    inputs = tuple(path for path in given if path is not None and path.exists())
     places = [(output, True), *((d, True) for d in dirs), *((f, False) for f in files)]
+    written = [where for (where, _), _ in places if where is not None]
     for (where, kind), folder in places:
         if where is None:
             continue
@@ -132,9 +136,19 @@ def check_outputs(
         )
         if problem:
             raise BadInput(problem)
-    progress_file = os.environ.get(PROGRESS_ENV)
-    if progress_file and (problem := unwritable(Path(progress_file), directory=False)):
-        raise BadInput(f"{PROGRESS_ENV}={problem}")
+    for where in written:  # each apart from the others, once each is a place of its own
+        if problem := _overlap(where, _others(written, where), "output"):
+            raise BadInput(problem)
+    if progress_file := os.environ.get(PROGRESS_ENV):
+        where = Path(progress_file)
+        problem = (
+            unwritable(where, directory=False)
+            or _overlap(where, inputs)
+            or _overlap(where, written, "output")
+            or file_problem(where, PROGRESS_KIND)
+        )
+        if problem:
+            raise BadInput(f"{PROGRESS_ENV}={problem}")
 
 
 def _params_file() -> Path:
@@ -154,11 +168,19 @@ def _above_working_directory(folder: Path) -> str | None:
     return None
 
 
-def _overlap(output: Path, inputs: tuple[Path | None, ...]) -> str | None:
+def _others(places: list[Path], one: Path) -> list[Path]:
+    """``places`` without the one entry that is ``one`` (another entry naming the same path
+    stays: two outputs given one place)."""
+    others = list(places)
+    others.remove(one)
+    return others
+
+
+def _overlap(output: Path, places: Iterable[Path], role: str = "input") -> str | None:
+    """Why ``output`` may not be written: it is, holds or lies inside one of ``places``, the
+    stage's ``role`` (its inputs, or its other outputs); None where it is apart from them."""
     there = output.resolve()
-    for given in filter(None, inputs):
-        if not given.exists():  # the params file of a command that reads none
-            continue
+    for given in places:
         source = given.resolve()
         if there == source or source.is_relative_to(there) or there.is_relative_to(source):
             how = (
@@ -168,8 +190,49 @@ def _overlap(output: Path, inputs: tuple[Path | None, ...]) -> str | None:
                 if source.is_relative_to(there)
                 else "lies inside"
             )
-            return f"{output}: {how} the stage's input {given}; expected a place apart from it"
+            return f"{output}: {how} the stage's {role} {given}; expected a place apart from it"
     return None
+
+
+def _lock(
+    places: Iterable[Path | None], enter: Callable[[AbstractContextManager[Any]], Any]
+) -> None:
+    """Take each place's exclusive lock (:func:`ede.locks.exclusive`), handing it to ``enter``
+    (which holds it as long as its owner lasts).
+
+    Raises:
+        BadInput: another process holds one: one line naming it and its PID.
+    """
+    for where in places:
+        if where is not None:
+            try:
+                enter(exclusive(where))
+            except OutputBusy as error:
+                raise BadInput(str(error)) from None
+
+
+def hold(*places: Path | None) -> None:
+    """Each place's lock held until the running command ends: one writer per output for a
+    command that writes its outputs at its end, outside a :func:`holding` block. A place the
+    command holds already (by another of its names) is held once."""
+    context = click.get_current_context()
+    held: set[Path] = context.meta.setdefault("ede_pipeline.held", set())
+    named = {place(where): where for where in places if where is not None}  # real: as given
+    fresh = {real: where for real, where in named.items() if real not in held}
+    _lock(fresh.values(), context.with_resource)
+    held.update(fresh)
+
+
+def hold_outputs(
+    output: Output,
+    files: tuple[Output, ...] = (),
+    dirs: tuple[Output, ...] = (),
+    inputs: tuple[Path | None, ...] = (),
+) -> None:
+    """:func:`check_outputs`, then each place's lock held until the running command ends
+    (:func:`hold`), for a command that writes its outputs without a :func:`holding` block."""
+    check_outputs(output, files, dirs, inputs)
+    hold(output[0], *(d for d, _ in dirs), *(f for f, _ in files))
 
 
 @contextmanager
@@ -179,25 +242,23 @@ def holding(
     dirs: tuple[Output, ...] = (),
     inputs: tuple[Path | None, ...] = (),
 ) -> Iterator[None]:
-    """The stage's exclusive lock on its output (:func:`ede.locks.exclusive`) for the block,
-    after :func:`check_outputs`, and each file of ``files`` marked as its kind's once the block
-    has written it. A place that cannot be written or that holds what the stage did not write,
-    and a second process on the same output, are refused as bad input: one line, exit 2,
-    nothing written. A write that fails in the block (a full disk) is one line, exit 1, its
-    temporaries removed (:class:`ede.atomic.NotWritten`)."""
+    """The stage's exclusive lock on each of its outputs — the folder ``output``, the folders
+    ``dirs`` and the files ``files`` (:func:`ede.locks.exclusive`) — for the block, after
+    :func:`check_outputs`, and each file of ``files`` marked as its kind's once the block has
+    written it. A place that cannot be written or that holds what the stage did not write,
+    and a second process on one of the outputs (or on the progress file), are refused as bad
+    input: one line, exit 2, nothing written. A write that fails in the block (a full disk) is
+    one line, exit 1, its temporaries removed (:class:`ede.atomic.NotWritten`)."""
     check_outputs(output, files, dirs, inputs)
-    folder = output[0]
-    assert folder is not None
-    lock = ExitStack()
-    try:
-        lock.enter_context(exclusive(folder))
-    except OutputBusy as error:
-        raise BadInput(str(error)) from None
-    with lock:
+    assert output[0] is not None
+    with ExitStack() as held:
+        _lock((output[0], *(d for d, _ in dirs), *(f for f, _ in files)), held.enter_context)
         try:
             with writing_files((file, kind) for file, kind in files if file is not None):
                 yield
-        except NotOurs as error:  # what the checks above could not see (a nested folder)
+        # What the checks above could not see (a nested folder), or the progress file's lock,
+        # taken in the block (ede_pipeline.progress).
+        except (NotOurs, OutputBusy) as error:
             raise BadInput(str(error)) from None
         except NotWritten as error:
             raise Failed(error.strerror or str(error)) from None

@@ -6,6 +6,12 @@ sweep watching many stages — a small file with the counts.
 (``s``: what a resumed run had done before it started, 0 for a stage that starts afresh);
 ``ede-pipeline sweep`` sets it for each run it starts and reads it back (:func:`read_progress`) to
 show one line for the whole sweep.
+
+The file is an output like any other (:func:`ede_pipeline.common.check_outputs` holds it to the
+same rule before any work): while a stage publishes it holds the file's lock (``.<name>.lock``
+beside it, gone when it ends) and marks it as a progress writer's (``.<name>.ede-output.json``
+beside it, :func:`ede.atomic.writing_files`), so that a later stage may replace it and nothing
+replaces a file it did not write.
 """
 
 from __future__ import annotations
@@ -21,10 +27,12 @@ from pathlib import Path
 import click
 from tqdm import tqdm
 
-from ede.atomic import write_json
+from ede.atomic import write_json, writing_files
+from ede.locks import exclusive
 
 LOG_EVERY = 0.1  # fraction of the total between two log lines when stderr is not a terminal
 PROGRESS_ENV = "EDE_PROGRESS"
+PROGRESS_KIND = "progress"  # what a progress file's mark says wrote it (ede.atomic.writing_files)
 PUBLISH_EVERY = 1.0  # seconds between two writes of the progress file
 
 
@@ -35,37 +43,45 @@ def progress(
     """Yield ``advance(n)``: a tqdm bar when stderr is a TTY, else a line per 10% done. A
     ``resumable`` stage's first ``advance`` is what it had done before it started (the progress
     file's ``start``; 0 for any other stage)."""
-    publish = _publisher(total, resumable)
-    if sys.stderr.isatty():
-        with tqdm(total=total, desc=desc, unit=unit, unit_scale=True, dynamic_ncols=True) as bar:
+    with _publisher(total, resumable) as publish:
+        if sys.stderr.isatty():
+            with tqdm(
+                total=total, desc=desc, unit=unit, unit_scale=True, dynamic_ncols=True
+            ) as bar:
 
-            def advance_bar(n: int) -> None:
-                bar.update(n)
-                publish(bar.n)
+                def advance_bar(n: int) -> None:
+                    bar.update(n)
+                    publish(bar.n)
 
-            yield advance_bar
-        publish(bar.n, final=True)
-        return
-    start = time.perf_counter()
-    done = 0
-    next_report = LOG_EVERY
+                yield advance_bar
+            publish(bar.n, final=True)
+            return
+        start = time.perf_counter()
+        done = 0
+        next_report = LOG_EVERY
 
-    def advance(n: int) -> None:
-        nonlocal done, next_report
-        done += n
-        publish(done)
-        if done >= next_report * total or done >= total:
-            elapsed = time.perf_counter() - start
-            click.echo(f"{desc}: {done}/{total} {unit}s ({elapsed:.1f}s)", err=True)
-            while next_report * total <= done:
-                next_report += LOG_EVERY
+        def advance(n: int) -> None:
+            nonlocal done, next_report
+            done += n
+            publish(done)
+            if done >= next_report * total or done >= total:
+                elapsed = time.perf_counter() - start
+                click.echo(f"{desc}: {done}/{total} {unit}s ({elapsed:.1f}s)", err=True)
+                while next_report * total <= done:
+                    next_report += LOG_EVERY
 
-    yield advance
-    publish(done, final=True)
+        yield advance
+        publish(done, final=True)
 
 
-def _publisher(total: int, resumable: bool) -> Callable[..., None]:
-    """``publish(done, final=False)``: the progress file's update, if ``EDE_PROGRESS`` names one."""
+@contextmanager
+def _publisher(total: int, resumable: bool) -> Iterator[Callable[..., None]]:
+    """Yield ``publish(done, final=False)``: the progress file's update, if ``EDE_PROGRESS``
+    names one, its lock held and its mark kept for the block.
+
+    Raises:
+        OutputBusy: another process publishes to the same file.
+    """
     path = os.environ.get(PROGRESS_ENV)
     last = -PUBLISH_EVERY
     start = None if resumable else 0  # None: the first count, what it had done before
@@ -78,7 +94,14 @@ def _publisher(total: int, resumable: bool) -> Callable[..., None]:
             last = now
             write_json(path, {"done": done, "total": total, "start": start})
 
-    return publish
+    if not path:
+        yield publish
+        return
+    with (
+        exclusive(path, shown=f"{PROGRESS_ENV}={path}"),
+        writing_files([(Path(path), PROGRESS_KIND)]),
+    ):
+        yield publish
 
 
 def read_progress(path: Path) -> tuple[int, int, int] | None:

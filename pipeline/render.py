@@ -43,7 +43,7 @@ from ede.td3 import ActionAdapter, EmbeddingAdapter, IdentityAdapter
 from ede.training import EVAL_SEED_OFFSET
 from ede.video import actor_of, annotate, play
 from ede_pipeline import layout
-from ede_pipeline.common import BadInput, Failed, check_outputs, embedding_options, params_option
+from ede_pipeline.common import BadInput, Failed, embedding_options, hold_outputs, params_option
 
 VIDEO_KIND = "video"  # what a video's mark says made it (ede.atomic.writing_files)
 FORMATS = (".mp4", ".gif")
@@ -226,7 +226,7 @@ def render(
     def check_out(out: Path) -> None:
         if out.suffix not in FORMATS:
             raise BadInput(f"--out {out}: expected a file ending in {' or '.join(FORMATS)}")
-        check_outputs((None, VIDEO_KIND), files=((out, VIDEO_KIND),), inputs=(run,))
+        hold_outputs((None, VIDEO_KIND), files=((out, VIDEO_KIND),), inputs=(run,))
 
     if out is not None:  # checked before anything is read
         check_out(out)

@@ -17,7 +17,7 @@ from ede.probes import RANDOM_EPISODES, ZERO_EPISODES, random_policy_return, zer
 from ede.results import across_tasks
 from ede.stats import Band
 from ede_pipeline import layout
-from ede_pipeline.common import BadInput, check_outputs, params_option
+from ede_pipeline.common import BadInput, hold, hold_outputs, params_option
 from ede_pipeline.published import TaskRuns, read_ablations, read_runs
 from ede_pipeline.render import VIDEO_KIND, write_video
 from ede_pipeline.results.clips import CLIP, clips
@@ -169,8 +169,9 @@ def save_figures(figures: Path, drawn: dict[str, Figure]) -> None:
 
 
 def check_figures(figures: Path, names: Iterable[str], inputs: tuple[Path, ...]) -> None:
-    """Each figure a new file or one this command drew, before any is drawn."""
-    check_outputs(
+    """Each figure a new file or one this command drew, before any is drawn; held until the
+    command ends."""
+    hold_outputs(
         (None, FIGURE_KIND),
         files=tuple((figures / f"{name}.png", FIGURE_KIND) for name in names),
         inputs=inputs,
@@ -253,7 +254,7 @@ def results(
             check_figures(folder.parent, drawn.figures, (folder,))
         for folder, each in played.items():
             for clip in each:
-                check_outputs((None, VIDEO_KIND), files=((clip.gif, VIDEO_KIND),), inputs=(folder,))
+                hold_outputs((None, VIDEO_KIND), files=((clip.gif, VIDEO_KIND),), inputs=(folder,))
         sections = {
             folder: [
                 *(made[folder].sections if folder in made else []),
@@ -262,6 +263,7 @@ def results(
             for folder in folders
         }
         filled = fill_pages(found, sections)
+        hold(*filled)  # one writer per page, as per figure
         for folder, drawn in made.items():  # figures and clips first: a page filled is complete
             save_figures(folder.parent, drawn.figures)
         for clip in (clip for each in played.values() for clip in each):

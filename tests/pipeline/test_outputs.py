@@ -7,6 +7,7 @@ import errno
 import json
 import os
 import shutil
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -219,9 +220,11 @@ def contents(root: Path) -> dict[str, bytes]:
     }
 
 
-def refused(args: list[str], workdir: Path, *message: str) -> None:
+def refused(
+    args: list[str], workdir: Path, *message: str, env: dict[str, str] | None = None
+) -> None:
     before = contents(workdir)
-    result = CliRunner().invoke(main, args)
+    result = CliRunner(env=env).invoke(main, args)
     assert result.exit_code == 2, result.output
     assert len(result.stderr.splitlines()) == 1 and result.exception is not None, result.stderr
     assert all(part in result.stderr for part in message), result.stderr
@@ -597,3 +600,241 @@ def test_a_file_output_whose_writer_was_killed_before_marking_it_is_still_its_ow
     again = CliRunner().invoke(main, args)
     assert again.exit_code == 0, again.output
     assert json.loads((workdir / ".out.file.ede-output.json").read_text())["sha256"] is not None
+
+
+# ---------------------------------------------------------------------------------------------
+# Every door, not only the options: the environment variables that name paths.
+
+# Every environment variable the code reads, by what it names: a path a command writes, a path it
+# only reads (or runs), or no path. A new one must be added to one of them (the test below finds
+# each read in ede/, pipeline/ and envs/), and every written one is then held to the rule below.
+ENV_WRITES = {"EDE_PROGRESS"}
+ENV_READS = {"RAY_TLS_SERVER_CERT", "RAY_TLS_SERVER_KEY", "RAY_TLS_CA_CERT", "SHELL", "PATH",
+             "PYTHONPATH"}  # fmt: skip
+ENV_NOT_PATHS = {"EDE_COMMIT", "EDE_PARENT", "MUJOCO_GL", "RAY_ADDRESS", "RAY_USE_TLS"}
+# Reads whose name is a loop's variable, not a constant: the names it takes, by its module.
+ENV_LOOPS = {
+    "ede_pipeline.sweep.on_ray": lambda module: {*module.RAY_TLS.values(), module.RAY_TLS_CA}
+}
+
+
+def environment_variables() -> set[str]:
+    """Every variable that ``os.environ.get/pop/setdefault``, ``os.environ[...]`` or
+    ``os.getenv`` reads in the project's packages, each name resolved to its value."""
+    import ast
+    import importlib
+
+    packages = {"ede": "ede", "pipeline": "ede_pipeline", "envs": "ede_envs"}
+    found: set[str] = set()
+    for folder, package in packages.items():
+        for source in sorted((REPO / folder).rglob("*.py")):
+            parts = source.relative_to(REPO / folder).with_suffix("").parts
+            name = ".".join((package, *parts)).removesuffix(".__init__")
+            for node in ast.walk(ast.parse(source.read_text())):
+                read = _environment_read(node)
+                if read is None:
+                    continue
+                if isinstance(read, ast.Constant):
+                    found.add(read.value)
+                    continue
+                module = importlib.import_module(name)
+                assert isinstance(read, ast.Name), f"{source}:{node.lineno}: name it as a constant"
+                value = getattr(module, read.id, None)
+                if isinstance(value, str):
+                    found.add(value)
+                else:
+                    assert name in ENV_LOOPS, f"{source}:{node.lineno}: add it to ENV_LOOPS"
+                    found |= ENV_LOOPS[name](module)
+    return found
+
+
+def _environment_read(node: object) -> object:
+    """The name argument of an environment read, or None where ``node`` is none."""
+    import ast
+
+    def environ(value: ast.expr) -> bool:
+        return (
+            isinstance(value, ast.Attribute)
+            and value.attr == "environ"
+            and isinstance(value.value, ast.Name)
+            and value.value.id == "os"
+        )
+
+    if isinstance(node, ast.Subscript) and environ(node.value):
+        return node.slice
+    if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.args:
+        method = node.func
+        if (method.attr in ("get", "pop", "setdefault") and environ(method.value)) or (
+            method.attr == "getenv"
+            and isinstance(method.value, ast.Name)
+            and method.value.id == "os"
+        ):
+            return node.args[0]
+    return None
+
+
+def test_every_environment_variable_is_known_as_a_path_written_read_or_none() -> None:
+    assert environment_variables() == ENV_WRITES | ENV_READS | ENV_NOT_PATHS
+
+
+# The commands that publish their progress to the file EDE_PROGRESS names (ede_pipeline.progress).
+PUBLISHERS = {
+    "collect": ["collect", "--family", "point", "--out", "c2.zarr"],
+    "pretrain encoder": ["pretrain", "encoder", "--family", "point", "--out", "e"],
+    "pretrain decoder": ["pretrain", "decoder", "--family", "point", "--out", "d"],
+    "train": [*STAGES["train"][:-1], "run"],
+}
+# Where EDE_PROGRESS may not lead, and what the one line may say (a file of the rollouts store is
+# the input of some commands, and a file no progress writer wrote for the others).
+PROGRESS_PLACES = {
+    "the params file": ("params.yaml", "is the stage's input params.yaml"),
+    "a link to the params file": ("link.yaml", "is the stage's input params.yaml"),
+    "a user's file": ("afile", "afile: a file a progress writer did not write there"),
+    "a file of the rollouts store": (
+        f"{ROLLOUTS}/zarr.json",
+        "a file a progress writer did not write there",
+        f"lies inside the stage's input {ROLLOUTS}",
+    ),
+    "a folder": ("data", "data: a directory is in the way; expected a file"),
+    "the working directory": (".", ".: a directory is in the way"),
+}
+
+
+@pytest.mark.parametrize("place", PROGRESS_PLACES)
+@pytest.mark.parametrize("command", PUBLISHERS)
+def test_the_progress_file_is_held_to_the_rule_of_every_output(
+    workdir: Path, command: str, place: str
+) -> None:
+    """The issue's example, ``EDE_PROGRESS=params.yaml ede-pipeline collect --family point
+    --out c2.zarr``, for every command that publishes and every place that is not its own: one
+    line naming the variable, exit 2, every file kept byte for byte."""
+    (workdir / "link.yaml").symlink_to("params.yaml")
+    value, *messages = PROGRESS_PLACES[place]
+    before = contents(workdir)
+    result = CliRunner(env={"EDE_PROGRESS": value}).invoke(main, PUBLISHERS[command])
+    assert result.exit_code == 2, result.output
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"Error: EDE_PROGRESS={value}: "), lines
+    assert any(message in lines[0] for message in messages), lines
+    assert contents(workdir) == before
+
+
+@pytest.mark.parametrize(
+    ("args", "value", "message"),
+    [
+        (
+            ["pretrain", "encoder", "--family", "point", "--out", "e"],
+            f"{ROLLOUTS}/new.json",
+            f"lies inside the stage's input {ROLLOUTS}",
+        ),
+        (
+            ["pretrain", "decoder", "--family", "point", "--out", "d"],
+            f"{ENCODER}/progress.json",
+            f"lies inside the stage's input {ENCODER}",
+        ),
+        (PUBLISHERS["collect"], "c2.zarr/progress.json", "lies inside the stage's output c2.zarr"),
+        (
+            ["pretrain", "encoder", "--family", "point", "--out", "e", "--metrics", "m.json"],
+            "m.json",
+            "is the stage's output m.json",
+        ),
+        (PUBLISHERS["train"], "run/progress.json", "lies inside the stage's output run"),
+    ],
+)
+def test_the_progress_file_is_apart_from_the_stages_inputs_and_outputs(
+    workdir: Path, args: list[str], value: str, message: str
+) -> None:
+    refused(args, workdir, f"Error: EDE_PROGRESS={value}: {message}", env={"EDE_PROGRESS": value})
+
+
+def test_outputs_of_one_stage_are_apart_from_each_other(workdir: Path) -> None:
+    (workdir / "empty").mkdir()
+    refused(
+        ["report", "--runs", "empty", "--out", "r", "--metrics", "r/m.json"],
+        workdir,
+        "r: holds the stage's output r/m.json",
+    )
+    refused(
+        [*FILE_OUTPUTS["encoder metrics"], "h.csv", "--plots", "h.csv"],
+        workdir,
+        "h.csv: is the stage's output h.csv",
+    )
+
+
+def test_the_progress_file_is_the_stages_own_and_replaced_only_as_such(workdir: Path) -> None:
+    """A progress file is marked as a progress writer's: the next stage given it replaces it,
+    a file edited since is kept; nothing but it and its mark is left beside it."""
+    env = {"EDE_PROGRESS": "progress/p.json"}
+    args = PUBLISHERS["pretrain encoder"]
+    first = CliRunner(env=env).invoke(main, args)
+    assert first.exit_code == 0, first.output
+    assert json.loads((workdir / "progress" / "p.json").read_text())["done"] == 1
+    assert sorted(p.name for p in (workdir / "progress").iterdir()) == [
+        ".p.json.ede-output.json",
+        "p.json",
+    ]  # no lock left
+    again = CliRunner(env=env).invoke(main, PUBLISHERS["pretrain decoder"])
+    assert again.exit_code == 0, again.output
+    (workdir / "progress" / "p.json").write_text("{}\n")
+    refused(args, workdir, "progress/p.json: a file a progress writer did not write", env=env)
+
+
+# ---------------------------------------------------------------------------------------------
+# One writer per output: each file output is locked as a folder is.
+
+HOLDER = """
+import sys
+from ede.locks import exclusive
+with exclusive(sys.argv[1]):
+    print("held", flush=True)
+    sys.stdin.read()
+"""
+
+
+@pytest.fixture
+def held(workdir: Path) -> Iterator[Callable[[str], int]]:
+    """``held(path)``: the lock of ``path`` taken by another process, until the test ends; its
+    PID."""
+    import subprocess
+    import sys
+
+    holders: list[subprocess.Popen[str]] = []
+
+    def hold(path: str) -> int:
+        holder = subprocess.Popen(
+            [sys.executable, "-c", HOLDER, path],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        holders.append(holder)
+        assert holder.stdout is not None and holder.stdout.readline() == "held\n"
+        return holder.pid
+
+    yield hold
+    for holder in holders:
+        holder.communicate("", timeout=60)
+
+
+@pytest.mark.parametrize(
+    ("args", "output"),
+    [
+        (["report", "--runs", "empty", "--out", "r2", "--metrics", "m.json"], "m.json"),
+        (["report", "--runs", "empty", "--out", "r2", "--curves", "c"], "c"),
+        ([*FILE_OUTPUTS["encoder metrics"], "m.json"], "m.json"),
+        ([*FILE_OUTPUTS["decoder history"], "h.csv"], "h.csv"),
+        (["render", "a-run", "--out", "v.mp4"], "v.mp4"),
+        ([*PUBLISHERS["collect"]], "EDE_PROGRESS=p.json"),
+    ],
+)
+def test_a_second_writer_of_a_file_output_is_refused_with_the_holders_pid(
+    workdir: Path, held: Callable[[str], int], args: list[str], output: str
+) -> None:
+    """The issue's example: two ``report`` given one ``--metrics`` at once; the second is one
+    line naming the first, exit 2, and the first's file is as it wrote it."""
+    (workdir / "empty").mkdir()
+    holder = held(output.removeprefix("EDE_PROGRESS="))
+    refused(
+        args, workdir, f"Error: {output}: being written by process {holder}",
+        env={"EDE_PROGRESS": "p.json", "MUJOCO_GL": "egl"},
+    )  # fmt: skip

@@ -90,7 +90,9 @@ def test_a_stage_publishes_its_progress_where_the_sweep_asks(
         advance(3)
     assert read_progress(path) == (3, 10, 0)
     assert read_progress(tmp_path / "none") is None
-    assert not [p for p in tmp_path.iterdir() if p.name != "run.progress"]  # no temporaries
+    # No temporaries and no lock: the file and its mark as a progress writer's (ede.atomic).
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == [".run.progress.ede-output.json", "run.progress"]
 
 
 def test_the_overall_line_lives_on_a_terminal_and_ends_in_a_log(tmp_path: Path) -> None:
