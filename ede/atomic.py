@@ -112,17 +112,21 @@ def _file_mark(path: Path) -> Path:
 def file_problem(path: str | Path, kind: str) -> str | None:
     """Why a writer of ``kind`` may not replace the file ``path``; None where it may: nothing
     there, or the very file a writer of ``kind`` wrote (its mark names the kind, and the bytes
-    are those it wrote: a file edited since, or put there by hand, is kept)."""
+    are those it wrote: a file edited since, or put there by hand, is kept). A file that another
+    live writer of ``kind`` is writing is said to be, naming its PID."""
     path = Path(path)
     if not path.is_file():
         return None
     try:
         mark = json.loads(_file_mark(place(path)).read_text())
-        ours = mark["kind"] == kind and (
-            mark["sha256"] == sha256(path)
-            # a writer of this kind stopped midway: what it left is its own or its forerunner's
-            or (mark["sha256"] is None and not _alive(int(mark["writer"])))
-        )
+        writing = mark["kind"] == kind and mark["sha256"] is None
+        if writing and _alive(writer := int(mark["writer"])):
+            return (
+                f"{path}: being written by process {writer}; wait for it to finish, or stop "
+                "it, and run again"
+            )
+        # (a writer of this kind that stopped midway left its own or its forerunner's file)
+        ours = writing or (mark["kind"] == kind and mark["sha256"] == sha256(path))
     except (OSError, ValueError, KeyError, TypeError):
         ours = False
     if ours:

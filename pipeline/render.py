@@ -237,6 +237,11 @@ def render(
     task, algo, seed = meta["task"], meta["algo"], int(meta["seed"])
     if out is None:
         out = layout.video(task, algo, seed)
+        if not Path(os.path.normpath(out)).is_relative_to(layout.VIDEOS):  # names from the run
+            raise BadInput(
+                f"{run}: its policy's task {task!r} and algo {algo!r} put the video at {out}, "
+                f"outside {layout.VIDEOS}; expected names of a task and an algorithm, or --out"
+            )
         check_out(out)
     embedding = embedding_for(run, meta, params, encoder, decoder) if algo == "ede-td3" else None
     frames, returns = frames_of(meta, tensors, adapter_of(meta, embedding), episodes)

@@ -838,3 +838,36 @@ def test_a_second_writer_of_a_file_output_is_refused_with_the_holders_pid(
         args, workdir, f"Error: {output}: being written by process {holder}",
         env={"EDE_PROGRESS": "p.json", "MUJOCO_GL": "egl"},
     )  # fmt: skip
+
+
+def test_a_file_output_another_writer_is_writing_is_refused_naming_it(
+    workdir: Path, held: Callable[[str], int]
+) -> None:
+    """Two ``report`` given one ``--metrics`` file that an earlier report wrote: while the first
+    writes it (its lock held, its mark naming it), the second says so in one line."""
+    (workdir / "empty").mkdir()
+    args = [*FILE_OUTPUTS["report metrics"], "m.json"]
+    assert CliRunner().invoke(main, args).exit_code == 0
+    holder = held("m.json")
+    mark = {"kind": "report metrics", "sha256": None, "writer": holder}  # as writing_files does
+    (workdir / ".m.json.ede-output.json").write_text(json.dumps(mark))
+    refused(args, workdir, f"Error: m.json: being written by process {holder}; wait for it")
+
+
+def test_a_runs_names_cannot_lead_its_video_out_of_the_videos_folder(workdir: Path) -> None:
+    """``render RUN`` puts the video where the run's policy names its task and algorithm
+    (``data/videos/<task>/<algo>/``): names that climb out of it are refused before any work."""
+    import torch
+    from safetensors.torch import save_file
+
+    policy = workdir / "a-run" / "policy"
+    policy.mkdir(parents=True)
+    save_file({"w": torch.zeros(1)}, policy / "policy.safetensors")
+    meta = {"task": "ede/Point-v0", "algo": "../../../../../elsewhere", "seed": 0, "hidden": [16],
+            "k": 1, "code_size": 1, "code_low": 0.0, "code_high": 1.0}  # fmt: skip
+    (policy / "policy.json").write_text(json.dumps(meta))
+    refused(
+        ["render", "a-run"], workdir, "a-run: its policy's task", "outside data/videos",
+        env={"MUJOCO_GL": "egl"},
+    )  # fmt: skip
+    assert not (workdir.parent / "elsewhere").exists()
