@@ -121,8 +121,7 @@ def check_outputs(
         BadInput: one line naming the place (the variable, for the progress file) and what is
             in the way.
     """
-    given = (*inputs, _params_file())
-    inputs = tuple(path for path in given if path is not None and path.exists())
+    sources = [path for path in (*inputs, _params_file()) if path is not None and path.exists()]
     places = [(output, True), *((d, True) for d in dirs), *((f, False) for f in files)]
     written = [where for (where, _), _ in places if where is not None]
     for (where, kind), folder in places:
@@ -131,7 +130,7 @@ def check_outputs(
         problem = (
             unwritable(where, folder)
             or (folder and _above_working_directory(where))
-            or _overlap(where, inputs)
+            or _overlap(where, sources)
             or (ownership_problem(where, kind) if folder else file_problem(where, kind))
         )
         if problem:
@@ -143,7 +142,7 @@ def check_outputs(
         where = Path(progress_file)
         problem = (
             unwritable(where, directory=False)
-            or _overlap(where, inputs)
+            or _overlap(where, sources)
             or _overlap(where, written, "output")
             or file_problem(where, PROGRESS_KIND)
         )

@@ -3,6 +3,7 @@ progress file: a place it cannot write is one line naming it, exit 2, and nothin
 
 from __future__ import annotations
 
+import ast
 import errno
 import json
 import os
@@ -621,7 +622,6 @@ ENV_LOOPS = {
 def environment_variables() -> set[str]:
     """Every variable that ``os.environ.get/pop/setdefault``, ``os.environ[...]`` or
     ``os.getenv`` reads in the project's packages, each name resolved to its value."""
-    import ast
     import importlib
 
     packages = {"ede": "ede", "pipeline": "ede_pipeline", "envs": "ede_envs"}
@@ -634,23 +634,23 @@ def environment_variables() -> set[str]:
                 read = _environment_read(node)
                 if read is None:
                     continue
-                if isinstance(read, ast.Constant):
+                where = f"{source}:{read.lineno}"
+                if isinstance(read, ast.Constant) and isinstance(read.value, str):
                     found.add(read.value)
                     continue
+                assert isinstance(read, ast.Name), f"{where}: name the variable by a constant"
                 module = importlib.import_module(name)
-                assert isinstance(read, ast.Name), f"{source}:{node.lineno}: name it as a constant"
                 value = getattr(module, read.id, None)
                 if isinstance(value, str):
                     found.add(value)
                 else:
-                    assert name in ENV_LOOPS, f"{source}:{node.lineno}: add it to ENV_LOOPS"
+                    assert name in ENV_LOOPS, f"{where}: add the names it takes to ENV_LOOPS"
                     found |= ENV_LOOPS[name](module)
     return found
 
 
-def _environment_read(node: object) -> object:
+def _environment_read(node: ast.AST) -> ast.expr | None:
     """The name argument of an environment read, or None where ``node`` is none."""
-    import ast
 
     def environ(value: ast.expr) -> bool:
         return (
