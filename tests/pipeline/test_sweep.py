@@ -257,3 +257,40 @@ def test_sweep_on_a_ray_cluster_records_what_dvc_repro_records(
     assert record_of(copy, others) == {stage: reference[stage] for stage in others}
     log = copy / ".dvc/tmp/sweep" / (BROKEN.replace("/", "_").replace("@", "__") + ".log")
     assert HELD in log.read_text()
+
+
+def test_a_sweep_writes_into_its_own_logs_folder_again_and_never_beside_a_users_file(
+    repo_copy: Path,
+) -> None:
+    """A folder given as ``--logs`` is marked as the sweep's, owning every file a sweep writes
+    there: each job's log, attempts and progress file, and what the writers of these put beside
+    them (a temporary, a lock, a mark), so that the next sweep writes there again; a user's file
+    put there is never written beside."""
+    copy, logs = repo_copy, repo_copy / "logs"
+    ok(sweep(copy, "collect@point", "--logs", "logs"))
+    written = {path.name for path in logs.iterdir()}
+    assert {"collect__point.log", "collect__point.progress"} <= written, written
+    # What a writer killed midway leaves beside its file, and what marks and locks a file.
+    for name in (
+        "collect__point.progress.tmp-4194304",
+        ".collect__point.progress.ede-output.json",
+        ".collect__point.progress.ede-output.json.tmp-4194304",
+        ".collect__point.progress.lock",
+    ):
+        (logs / name).write_text("")
+
+    shutil.rmtree(copy / "data/families/point/rollouts.zarr")  # out of date again
+    again = ok(sweep(copy, "collect@point", "--logs", "logs"))
+    assert "1 of 2 stages out of date" in again and "collect@point" in again, again
+
+    shutil.rmtree(copy / "data/families/point/rollouts.zarr")
+    (logs / "notes.txt").write_text("mine")
+    before = {path.name: path.read_bytes() for path in logs.iterdir()}
+    refused = sweep(copy, "collect@point", "--logs", "logs")
+    assert refused.returncode == 2, refused.stderr
+    assert refused.stderr == (
+        f"Error: --logs {Path('logs')}: holds notes.txt beside the folder of sweep logs written "
+        "there; move it out first\n"
+    )
+    assert {path.name: path.read_bytes() for path in logs.iterdir()} == before
+

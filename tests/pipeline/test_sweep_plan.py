@@ -16,6 +16,7 @@ import pytest
 from ede.config import Params
 from ede_pipeline.common import read_params
 from ede_pipeline.progress import PROGRESS_ENV, progress, read_progress
+from ede_pipeline.sweep.command import _tail
 from ede_pipeline.sweep.execute import attempts_file, problem, progress_file, run_job
 from ede_pipeline.sweep.plan import Job, RunId, default_group_size, group_jobs, train_command
 from ede_pipeline.sweep.tally import Tally, job_steps
@@ -99,6 +100,7 @@ def test_the_overall_line_lives_on_a_terminal_and_ends_in_a_log(tmp_path: Path) 
     script = f"""
 import time
 from pathlib import Path
+from ede_pipeline.sweep.command import _tail
 from ede_pipeline.sweep.execute import attempts_file, problem, progress_file, run_job
 from ede_pipeline.sweep.plan import Job, RunId
 from ede_pipeline.sweep.tally import Tally
@@ -235,3 +237,15 @@ def test_an_error_in_the_overall_line_ends_the_line_not_the_sweep(
     assert "Traceback" not in out + err, out + err
     assert out.count("the overall line stops here (RuntimeError: a bug)") == 1, out
     assert err.startswith("sweep: 0/1 stages"), err  # the last line all the same
+
+
+def test_a_failed_jobs_log_is_shown_whatever_bytes_it_holds_or_if_it_is_gone(
+    tmp_path: Path,
+) -> None:
+    log = tmp_path / "t.log"
+    log.write_bytes(b"$ ede-pipeline train\nbinary \xff\xfe output\nError: it failed\n")
+    assert (
+        _tail(log)
+        == "    | $ ede-pipeline train\n    | binary \ufffd\ufffd output\n    | Error: it failed"
+    )
+    assert _tail(tmp_path / "removed.log") == ""
