@@ -294,3 +294,25 @@ def test_a_sweep_writes_into_its_own_logs_folder_again_and_never_beside_a_users_
     )
     assert {path.name: path.read_bytes() for path in logs.iterdir()} == before
 
+
+@pytest.mark.parametrize(
+    ("name", "damaged", "said"),
+    [
+        (
+            "dvc.lock",
+            'schema: "2.0"\nstages:\n  collect@point: 5\n',
+            "'./dvc.lock' validation failed",
+        ),
+        ("dvc.yaml", "stages:\n  a:\n    cmd: x\n    deps: [5\n", "unable to read: 'dvc.yaml'"),
+    ],
+)
+def test_a_damaged_dvc_file_is_one_line_before_anything_runs(
+    repo_copy: Path, name: str, damaged: str, said: str
+) -> None:
+    (repo_copy / name).write_text(damaged)
+    for targets in ((), ("task_code@point",)):
+        result = sweep(repo_copy, *targets)
+        assert result.returncode == 2, result.stderr
+        [line] = result.stderr.splitlines()
+        assert line.startswith("Error: ") and said in line, line
+    assert not (repo_copy / "data").exists()
