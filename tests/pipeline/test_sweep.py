@@ -277,11 +277,14 @@ def test_a_sweep_writes_into_its_own_logs_folder_again_and_never_beside_a_users_
         ".collect__point.progress.ede-output.json.tmp-4194304",
         ".collect__point.progress.lock",
     ):
-        (logs / name).write_text("")
+        (logs / name).touch()  # where the sweep wrote none itself
 
-    shutil.rmtree(copy / "data/families/point/rollouts.zarr")  # out of date again
+    # Out of date again, a run not made before (not in the run cache): it writes there again.
+    params = yaml.safe_load((copy / "params.yaml").read_text())
+    params["collect"]["steps"] += 1
+    (copy / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     again = ok(sweep(copy, "collect@point", "--logs", "logs"))
-    assert "1 of 2 stages out of date" in again and "collect@point" in again, again
+    assert "1 of 2 stages out of date" in again and "ok     collect@point" in again, again
 
     shutil.rmtree(copy / "data/families/point/rollouts.zarr")
     (logs / "notes.txt").write_text("mine")
