@@ -198,8 +198,8 @@ def sweep(
                 claim(logs, LOGS_KIND, LOGS_OWN)
             except NotOurs as error:  # a file put there since the check above
                 raise BadInput(f"--logs {error}") from None
-            except OSError as error:  # a full disk
-                raise Failed(f"--logs {logs}: not written ({error.strerror or error})") from None
+            except OSError as error:  # a full disk: its mark not written
+                raise Failed(f"--logs {logs}: {error.strerror or error}") from None
         sweeping = _Sweep(repo, params, runs, logs, downstream, Tally(len(stale)))
         runner = _executor(executor, jobs, address, cpus_per_run, retries)
         workers = jobs or (os.cpu_count() if executor == "local" else None)
