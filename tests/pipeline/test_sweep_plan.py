@@ -100,8 +100,7 @@ def test_the_overall_line_lives_on_a_terminal_and_ends_in_a_log(tmp_path: Path) 
     script = f"""
 import time
 from pathlib import Path
-from ede_pipeline.sweep.command import _tail
-from ede_pipeline.sweep.execute import attempts_file, problem, progress_file, run_job
+from ede_pipeline.sweep.execute import progress_file
 from ede_pipeline.sweep.plan import Job, RunId
 from ede_pipeline.sweep.tally import Tally
 Tally.POLL = 0.05
