@@ -162,26 +162,29 @@ def test_the_overall_line_is_read_while_the_next_wave_is_tracked(tmp_path: Path)
         progress_file(each).write_text('{"done": 10, "total": 1000, "start": 0}')
     tally = Tally(len(jobs))
     tally.track(jobs[:100], {TASK: 1000})
-    stop, reads, failures = threading.Event(), [], []
+    reading, stop, failures = threading.Event(), threading.Event(), []
 
     def read() -> None:  # as the progress thread does, with a much shorter pause
-        while not stop.wait(0.001):
-            try:
-                reads.append((tally.overall(), tally.retries()))
-            except Exception as error:  # the failure, for the assert below
-                failures.append(error)
-                return
+        try:
+            while True:
+                tally.overall(), tally.retries()
+                reading.set()
+                if stop.wait(0.001):
+                    return
+        except Exception as error:  # the failure, for the assert below
+            failures.append(error)
 
     reader = threading.Thread(target=read)
     reader.start()
     try:
+        assert reading.wait(timeout=60)  # the reader at work before the next wave's jobs come
         for each in jobs[100:]:  # the next wave's, one by one
             tally.track([each], {TASK: 1000})
             time.sleep(0.001)
     finally:
         stop.set()
         reader.join()
-    assert failures == [] and reads, failures
+    assert failures == [], failures
     assert "0/300 stages, 3k/300k steps (1%)" in tally.overall()
 
 
