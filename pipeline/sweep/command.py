@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import click
 from click.core import ParameterSource
 
-from ede.atomic import MARK, NotOurs, claim, unwritable
+from ede.atomic import MARK, NotOurs, claim, place, unwritable
 from ede_pipeline.common import DEFAULT_PARAMS, BadInput, Failed, check_outputs, read_params
 from ede_pipeline.sweep.execute import (
     Executor,
@@ -169,8 +169,9 @@ def sweep(
     params = read_params(DEFAULT_PARAMS)  # bad params end here, before anything runs
     runs = train_runs(params)
     # A folder given for the logs is checked as every output is (new, empty or an earlier
-    # sweep's), and marked; the default is inside DVC's own scratch folder, where no user's file is.
-    chosen = ctx.get_parameter_source("logs") != ParameterSource.DEFAULT
+    # sweep's), and marked; the default is inside DVC's own scratch folder, where no user's file
+    # is, whether or not it is given by name.
+    chosen = place(logs) != place(LOGS)
     try:
         if chosen:
             check_outputs((logs, LOGS_KIND))

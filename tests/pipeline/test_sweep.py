@@ -319,3 +319,14 @@ def test_a_damaged_dvc_file_is_one_line_before_anything_runs(
         [line] = result.stderr.splitlines()
         assert line.startswith("Error: ") and said in line, line
     assert not (repo_copy / "data").exists()
+
+
+def test_the_default_logs_folder_given_by_name_is_the_default(repo_copy: Path) -> None:
+    """``--logs .dvc/tmp/sweep`` is the default folder, DVC's scratch, where earlier sweeps left
+    their logs unmarked: written into as the default is, not refused as a user's folder."""
+    earlier = repo_copy / ".dvc/tmp/sweep/task_code__point.log"
+    earlier.parent.mkdir(parents=True)
+    earlier.write_text("an earlier sweep's log\n")
+    out = ok(sweep(repo_copy, "task_code@point", "--logs", "./.dvc/tmp/sweep"))
+    assert "ok     task_code@point" in out, out
+    assert "ede-pipeline task-code" in earlier.read_text()  # this sweep's log now
