@@ -3,6 +3,7 @@ docstring says what a sweep does)."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 from pathlib import Path
@@ -11,8 +12,8 @@ from typing import TYPE_CHECKING
 import click
 from click.core import ParameterSource
 
-from ede.atomic import claim, unwritable
-from ede_pipeline.common import DEFAULT_PARAMS, BadInput, check_outputs, read_params
+from ede.atomic import MARK, NotOurs, claim, place, unwritable
+from ede_pipeline.common import DEFAULT_PARAMS, BadInput, Failed, check_outputs, read_params
 from ede_pipeline.sweep.execute import (
     Executor,
     LocalExecutor,
@@ -50,6 +51,22 @@ if TYPE_CHECKING:
 
 LOGS = Path(".dvc") / "tmp" / "sweep"  # DVC's own git-ignored scratch folder
 LOGS_KIND = "folder of sweep logs"
+# What a sweep writes into its logs folder, each job's: its log, its attempts (attempts_file) and
+# its run's progress file (progress_file, EDE_PROGRESS); and beside each what a writer of a file
+# may put there (ede.atomic, ede.locks): its temporary, its lock, its mark and the mark's
+# temporary. The folder's mark owns them all, so that the next sweep writes there again; a file
+# of any other name is a user's.
+LOGS_OWN = tuple(
+    pattern
+    for name in ("*.log", "*.attempts", "*.progress")
+    for pattern in (
+        name,
+        f"{name}.tmp-*",
+        f".{name}.lock",
+        f".{name}{MARK}",
+        f".{name}{MARK}.tmp-*",
+    )
+)
 TAIL = 20  # lines of a failed run's log shown in the report
 
 
@@ -152,8 +169,9 @@ def sweep(
     params = read_params(DEFAULT_PARAMS)  # bad params end here, before anything runs
     runs = train_runs(params)
     # A folder given for the logs is checked as every output is (new, empty or an earlier
-    # sweep's), and marked; the default is inside DVC's own scratch folder, where no user's file is.
-    chosen = ctx.get_parameter_source("logs") != ParameterSource.DEFAULT
+    # sweep's), and marked; the default is inside DVC's own scratch folder, where no user's file
+    # is, whether or not it is given by name.
+    chosen = place(logs) != place(LOGS)
     try:
         if chosen:
             check_outputs((logs, LOGS_KIND))
@@ -177,7 +195,12 @@ def sweep(
         if not stale:
             return
         if chosen:
-            claim(logs, LOGS_KIND, ("*.log", "*.attempts"))
+            try:
+                claim(logs, LOGS_KIND, LOGS_OWN)
+            except NotOurs as error:  # a file put there since the check above
+                raise BadInput(f"--logs {error}") from None
+            except OSError as error:  # a full disk: its mark not written
+                raise Failed(f"--logs {logs}: {error.strerror or error}") from None
         sweeping = _Sweep(repo, params, runs, logs, downstream, Tally(len(stale)))
         runner = _executor(executor, jobs, address, cpus_per_run, retries)
         workers = jobs or (os.cpu_count() if executor == "local" else None)
@@ -269,7 +292,10 @@ class _Sweep:
         pending = seed_by_seed(group_jobs(pending, size))
         logs_of = {job.stage: Path(job.log) for job in pending}
         for job in pending:
-            attempts_file(job).unlink(missing_ok=True)  # an earlier sweep's
+            # An earlier sweep's; where it cannot be removed (the logs folder replaced by a file,
+            # say), the job cannot write it either, and fails saying so (run_job).
+            with contextlib.suppress(OSError):
+                attempts_file(job).unlink(missing_ok=True)
         by_name = {stage.addressing: stage for stage in stages}
         tally.track(pending, self.params.runs.budgets)
         for outcome in runner.map_unordered(pending):
@@ -304,8 +330,8 @@ def _report(
             tally.echo(
                 tally.line("ok", name, f"{outcome.seconds:.1f}s{shared}{again}", outcome.stage)
             )
-    if problem(outcome) and log.is_file():
-        tally.echo(_tail(log.read_text()))
+    if problem(outcome) and (tail := _tail(log)):
+        tally.echo(tail)
 
 
 def _executor(
@@ -316,7 +342,13 @@ def _executor(
     return RayExecutor(address, cpus_per_run, jobs, retries)
 
 
-def _tail(text: str) -> str:
+def _tail(log: Path) -> str:
+    """The log's last lines, indented ("" where there is no log to read: the logs folder
+    removed, say); bytes that are not UTF-8 text (a command's binary output) shown as �."""
+    try:
+        text = log.read_text(errors="replace")
+    except OSError:
+        return ""
     lines = text.rstrip().splitlines()[-TAIL:]
     return "\n".join(f"    | {line}" for line in lines)
 

@@ -23,10 +23,11 @@ from ede_pipeline.sweep.plan import Job
 @dataclass(frozen=True)
 class Outcome:
     stage: str
-    returncode: int | None  # None: no exit status, the executor lost the run (``error`` says why)
+    returncode: int | None  # None: no exit status (``error`` says why)
     seconds: float
     error: str = ""
     attempts: int = 1  # the job's starts: more than one after a lost Ray worker or node
+    lost: bool = True  # with no exit status: lost by the executor, or (False) could not run
 
 
 def run_job(job: Job, where: str = "") -> Outcome:
@@ -34,7 +35,9 @@ def run_job(job: Job, where: str = "") -> Outcome:
 
     Each start is an attempt, counted in :func:`attempts_file`: Ray starts a job again when its
     worker or node is lost. A first attempt starts the log afresh; a later one adds to it, under
-    a line saying which attempt it is and ``where`` it runs.
+    a line saying which attempt it is and ``where`` it runs. A job that cannot be run (its log
+    cannot be written: the logs folder removed or full; the shell missing) has no exit status,
+    and the error says why: the job's failure, reported as any other.
 
     Module-level and free of DVC so that a Ray worker can import and run it.
     """
@@ -45,22 +48,33 @@ def run_job(job: Job, where: str = "") -> Outcome:
     env["PATH"] = os.pathsep.join([bin_dir, env.get("PATH", "")])
     env[PROGRESS_ENV] = str(progress_file(job))  # the sweep's overall line reads it
     env[PARENT_ENV] = str(os.getpid())  # the run ends with this process (follow_parent)
-    progress_file(job).unlink(missing_ok=True)  # an earlier sweep's, or the lost attempt's
     log_path = Path(job.log)
-    log_path.parent.mkdir(parents=True, exist_ok=True)
-    attempt = _start_attempt(job, where)
-    returncode = 0
-    with log_path.open("w" if attempt == 1 else "a") as log:
-        if where or attempt > 1:
-            log.write(f"# attempt {attempt}{f' on {where}' if where else ''}\n")
-        for argv in job.argvs:
-            log.write(f"$ {' '.join(argv)}\n")
-            log.flush()
-            returncode = subprocess.run(
-                argv, cwd=job.cwd, env=env, stdout=log, stderr=subprocess.STDOUT, check=False
-            ).returncode
-            if returncode != 0:
-                break
+    attempt, returncode = 1, 0
+    try:
+        progress_file(job).unlink(missing_ok=True)  # an earlier sweep's, or the lost attempt's
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        attempt = _start_attempt(job, where)
+        with log_path.open("w" if attempt == 1 else "a") as log:
+            if where or attempt > 1:
+                log.write(f"# attempt {attempt}{f' on {where}' if where else ''}\n")
+            for argv in job.argvs:
+                log.write(f"$ {' '.join(argv)}\n")
+                log.flush()
+                returncode = subprocess.run(
+                    argv, cwd=job.cwd, env=env, stdout=log, stderr=subprocess.STDOUT, check=False
+                ).returncode
+                if returncode != 0:
+                    break
+    except OSError as error:
+        named = f"{error.filename}: " if error.filename else ""
+        return Outcome(
+            job.stage,
+            None,
+            time.perf_counter() - start,
+            error=f"{named}{error.strerror or error}",
+            attempts=attempt,
+            lost=False,
+        )
     return Outcome(job.stage, returncode, time.perf_counter() - start, attempts=attempt)
 
 
@@ -85,8 +99,8 @@ def _start_attempt(job: Job, where: str) -> int:
 def attempts(job: Job) -> int:
     """How many times the job has started in this sweep (0: not yet)."""
     try:
-        return len(attempts_file(job).read_text().splitlines())
-    except FileNotFoundError:
+        return len(attempts_file(job).read_bytes().splitlines())
+    except OSError:  # none yet; or the logs folder removed, or something else in its place
         return 0
 
 
@@ -97,6 +111,8 @@ def progress_file(job: Job) -> Path:
 
 def problem(outcome: Outcome) -> str:
     """What went wrong with a job, in words ("" if nothing did)."""
+    if outcome.returncode is None and not outcome.lost:
+        return f"could not run ({outcome.error})"
     if outcome.returncode is None:
         tries = f" in each of {outcome.attempts} attempts" if outcome.attempts > 1 else ""
         return f"lost{tries} after {outcome.seconds:.1f}s ({outcome.error})"

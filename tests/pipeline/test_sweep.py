@@ -257,3 +257,76 @@ def test_sweep_on_a_ray_cluster_records_what_dvc_repro_records(
     assert record_of(copy, others) == {stage: reference[stage] for stage in others}
     log = copy / ".dvc/tmp/sweep" / (BROKEN.replace("/", "_").replace("@", "__") + ".log")
     assert HELD in log.read_text()
+
+
+def test_a_sweep_writes_into_its_own_logs_folder_again_and_never_beside_a_users_file(
+    repo_copy: Path,
+) -> None:
+    """A folder given as ``--logs`` is marked as the sweep's, owning every file a sweep writes
+    there: each job's log, attempts and progress file, and what the writers of these put beside
+    them (a temporary, a lock, a mark), so that the next sweep writes there again; a user's file
+    put there is never written beside."""
+    copy, logs = repo_copy, repo_copy / "logs"
+    ok(sweep(copy, "collect@point", "--logs", "logs"))
+    written = {path.name for path in logs.iterdir()}
+    assert {"collect__point.log", "collect__point.progress"} <= written, written
+    # What a writer killed midway leaves beside its file, and what marks and locks a file.
+    for name in (
+        "collect__point.progress.tmp-4194304",
+        ".collect__point.progress.ede-output.json",
+        ".collect__point.progress.ede-output.json.tmp-4194304",
+        ".collect__point.progress.lock",
+    ):
+        (logs / name).touch()  # where the sweep wrote none itself
+
+    # Out of date again, a run not made before (not in the run cache): it writes there again.
+    params = yaml.safe_load((copy / "params.yaml").read_text())
+    params["collect"]["steps"] += 1
+    (copy / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    again = ok(sweep(copy, "collect@point", "--logs", "logs"))
+    assert "1 of 2 stages out of date" in again and "ok     collect@point" in again, again
+
+    shutil.rmtree(copy / "data/families/point/rollouts.zarr")
+    (logs / "notes.txt").write_text("mine")
+    before = {path.name: path.read_bytes() for path in logs.iterdir()}
+    refused = sweep(copy, "collect@point", "--logs", "logs")
+    assert refused.returncode == 2, refused.stderr
+    assert refused.stderr == (
+        f"Error: --logs {Path('logs')}: holds notes.txt beside the folder of sweep logs written "
+        "there; move it out first\n"
+    )
+    assert {path.name: path.read_bytes() for path in logs.iterdir()} == before
+
+
+@pytest.mark.parametrize(
+    ("name", "damaged", "said"),
+    [
+        (
+            "dvc.lock",
+            'schema: "2.0"\nstages:\n  collect@point: 5\n',
+            "'./dvc.lock' validation failed",
+        ),
+        ("dvc.yaml", "stages:\n  a:\n    cmd: x\n    deps: [5\n", "unable to read: 'dvc.yaml'"),
+    ],
+)
+def test_a_damaged_dvc_file_is_one_line_before_anything_runs(
+    repo_copy: Path, name: str, damaged: str, said: str
+) -> None:
+    (repo_copy / name).write_text(damaged)
+    for targets in ((), ("task_code@point",)):
+        result = sweep(repo_copy, *targets)
+        assert result.returncode == 2, result.stderr
+        [line] = result.stderr.splitlines()
+        assert line.startswith("Error: ") and said in line, line
+    assert not (repo_copy / "data").exists()
+
+
+def test_the_default_logs_folder_given_by_name_is_the_default(repo_copy: Path) -> None:
+    """``--logs .dvc/tmp/sweep`` is the default folder, DVC's scratch, where earlier sweeps left
+    their logs unmarked: written into as the default is, not refused as a user's folder."""
+    earlier = repo_copy / ".dvc/tmp/sweep/task_code__point.log"
+    earlier.parent.mkdir(parents=True)
+    earlier.write_text("an earlier sweep's log\n")
+    out = ok(sweep(repo_copy, "task_code@point", "--logs", "./.dvc/tmp/sweep"))
+    assert "ok     task_code@point" in out, out
+    assert "ede-pipeline task-code" in earlier.read_text()  # this sweep's log now

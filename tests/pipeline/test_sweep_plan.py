@@ -7,6 +7,7 @@ import os
 import shlex
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -15,7 +16,8 @@ import pytest
 from ede.config import Params
 from ede_pipeline.common import read_params
 from ede_pipeline.progress import PROGRESS_ENV, progress, read_progress
-from ede_pipeline.sweep.execute import progress_file
+from ede_pipeline.sweep.command import _tail
+from ede_pipeline.sweep.execute import attempts_file, problem, progress_file, run_job
 from ede_pipeline.sweep.plan import Job, RunId, default_group_size, group_jobs, train_command
 from ede_pipeline.sweep.tally import Tally, job_steps
 
@@ -150,3 +152,104 @@ def test_on_cpu_seeds_share_a_process_while_every_job_still_gets_one() -> None:
 def test_every_schedule_and_precision_groups_alike() -> None:  # one agent: a group is any run
     assert default_group_size(paper_params(update_schedule="episode"), 80, 2) == 8
     assert default_group_size(paper_params(precision="bf16"), 80, 2) == 8
+
+
+def test_the_overall_line_is_read_while_the_next_wave_is_tracked(tmp_path: Path) -> None:
+    """The progress thread reads the tally (its jobs' progress and attempts files) while the
+    sweep tracks a wave's jobs: neither sees the other's work half done. (A job added while the
+    jobs were counted once ended `make quick`'s progress thread: "dictionary changed size during
+    iteration".)"""
+    jobs = [job(tmp_path, "td3", seed) for seed in range(300)]
+    for each in jobs:
+        progress_file(each).write_text('{"done": 10, "total": 1000, "start": 0}')
+    tally = Tally(len(jobs))
+    tally.track(jobs[:100], {TASK: 1000})
+    reading, stop, failures = threading.Event(), threading.Event(), []
+
+    def read() -> None:  # as the progress thread does, with a much shorter pause
+        try:
+            while True:
+                tally.overall(), tally.retries()
+                reading.set()
+                if stop.wait(0.001):
+                    return
+        except Exception as error:  # the failure, for the assert below
+            failures.append(error)
+
+    reader = threading.Thread(target=read)
+    reader.start()
+    try:
+        assert reading.wait(timeout=60)  # the reader at work before the next wave's jobs come
+        for each in jobs[100:]:  # the next wave's, one by one
+            tally.track([each], {TASK: 1000})
+            time.sleep(0.001)
+    finally:
+        stop.set()
+        reader.join()
+    assert failures == [], failures
+    assert "0/300 stages, 3k/300k steps (1%)" in tally.overall()
+
+
+def test_damaged_progress_and_attempts_files_leave_the_overall_line_going(tmp_path: Path) -> None:
+    """A progress file that holds no counts that make sense (an infinite count, JSON nested past
+    Python's limit, a negative count, bytes that are not text) is read as none yet; an attempts
+    file that cannot be read, as no attempt: the line goes on, and says the rest."""
+    jobs = [job(tmp_path, "td3", seed) for seed in range(5)]
+    damaged = [
+        b'{"done": 1e400, "total": 1000, "start": 0}',
+        b"[" * 100_000,
+        b'{"done": -5, "total": 1000, "start": 0}',
+        b"\xff\xfe\x00",
+    ]
+    for each, content in zip(jobs, damaged, strict=False):
+        progress_file(each).write_bytes(content)
+    progress_file(jobs[4]).write_text('{"done": 500, "total": 1000, "start": 0}')
+    attempts_file(jobs[0]).mkdir()  # a folder where the file goes
+    tally = Tally(5)
+    tally.track(jobs, {TASK: 1000})
+    assert "0/5 stages, 500/5k steps (10%)" in tally.overall()
+    assert tally.retries() == 0
+
+
+def test_a_job_that_cannot_write_its_log_fails_in_one_line(tmp_path: Path) -> None:
+    """The logs folder removed and a file put in its place while the sweep runs, or a shell that
+    is not there: the job is not run, and its outcome says why, as any failed job's does."""
+    (tmp_path / "logs").write_text("not a folder")
+    outcome = run_job(
+        Job("report", [["true"]], str(tmp_path), {}, str(tmp_path / "logs" / "report.log"))
+    )
+    assert outcome.returncode is None and outcome.attempts == 1
+    assert problem(outcome) == f"could not run ({tmp_path}/logs/report.progress: Not a directory)"
+    no_shell = Job(
+        "report", [["/no/such/shell", "-c", "true"]], str(tmp_path), {}, str(tmp_path / "r.log")
+    )
+    assert problem(run_job(no_shell)) == "could not run (/no/such/shell: No such file or directory)"
+
+
+def test_an_error_in_the_overall_line_ends_the_line_not_the_sweep(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def broken(self: Tally) -> None:
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(Tally, "POLL", 0.01)
+    monkeypatch.setattr(Tally, "tick", broken)
+    tally = Tally(1)
+    with tally.watch():
+        time.sleep(0.2)
+    out, err = capsys.readouterr()
+    assert "Traceback" not in out + err, out + err
+    assert out.count("the overall line stops here (RuntimeError: a bug)") == 1, out
+    assert err.startswith("sweep: 0/1 stages"), err  # the last line all the same
+
+
+def test_a_failed_jobs_log_is_shown_whatever_bytes_it_holds_or_if_it_is_gone(
+    tmp_path: Path,
+) -> None:
+    log = tmp_path / "t.log"
+    log.write_bytes(b"$ ede-pipeline train\nbinary \xff\xfe output\nError: it failed\n")
+    assert (
+        _tail(log)
+        == "    | $ ede-pipeline train\n    | binary \ufffd\ufffd output\n    | Error: it failed"
+    )
+    assert _tail(tmp_path / "removed.log") == ""
