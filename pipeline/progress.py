@@ -87,12 +87,16 @@ def _publisher(total: int, resumable: bool) -> Iterator[Callable[..., None]]:
     start = None if resumable else 0  # None: the first count, what it had done before
 
     def publish(done: int, final: bool = False) -> None:
-        nonlocal last, start
+        nonlocal last, start, path
         start = done if start is None else start
         now = time.monotonic()
         if path and (final or now - last >= PUBLISH_EVERY):
             last = now
-            write_json(path, {"done": done, "total": total, "start": start})
+            try:
+                write_json(path, {"done": done, "total": total, "start": start})
+            except OSError as error:  # a full disk: the file is for display, the stage goes on
+                click.echo(f"{PROGRESS_ENV}={path}: no longer kept up to date ({error})", err=True)
+                path = None
 
     if not path:
         yield publish
@@ -110,5 +114,6 @@ def read_progress(path: Path) -> tuple[int, int, int] | None:
     try:
         counts = json.loads(path.read_text())
         return int(counts["done"]), int(counts["total"]), int(counts["start"])
-    except (OSError, ValueError, KeyError, TypeError):
+    # OverflowError: int() of an infinite count; RecursionError: JSON nested past the limit.
+    except (OSError, ValueError, KeyError, TypeError, OverflowError, RecursionError):
         return None

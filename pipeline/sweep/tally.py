@@ -188,10 +188,7 @@ def _read_progress(job: Job) -> tuple[int, int, int] | None:
     """A running job's (done, total, start) from its progress file; None while there is none,
     and where the file holds no counts that make sense (``0 <= start <= done <= total``, finite:
     a file damaged by hand, say), so that the overall line goes on without them."""
-    try:
-        read = read_progress(progress_file(job))
-    except (ArithmeticError, RecursionError):  # an infinite count; JSON nested too deep
-        return None
+    read = read_progress(progress_file(job))
     if read is None or not 0 <= read[2] <= read[0] <= read[1]:
         return None
     return read

@@ -97,6 +97,27 @@ def test_a_stage_publishes_its_progress_where_the_sweep_asks(
     assert left == [".run.progress.ede-output.json", "run.progress"]
 
 
+def test_a_stage_goes_on_when_its_progress_file_can_no_longer_be_written(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The progress file is for display: a write that fails midway (the disk filled) is said
+    once and the file left as it was, never the stage's failure."""
+    path = tmp_path / "run.progress"
+    monkeypatch.setenv(PROGRESS_ENV, str(path))
+    with progress(10, "steps") as advance:
+        advance(2)
+        monkeypatch.setattr(
+            "ede_pipeline.progress.write_json",
+            lambda *_: (_ for _ in ()).throw(OSError(28, "No space left on device")),
+        )
+        advance(8)
+    assert read_progress(path) == (2, 10, 0)
+    said = [line for line in capsys.readouterr().err.splitlines() if PROGRESS_ENV in line]
+    assert said == [
+        f"{PROGRESS_ENV}={path}: no longer kept up to date ([Errno 28] No space left on device)"
+    ]
+
+
 def test_the_overall_line_lives_on_a_terminal_and_ends_in_a_log(tmp_path: Path) -> None:
     """Without a terminal the line is printed at every further tenth of the steps, and last."""
     script = f"""
