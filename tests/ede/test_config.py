@@ -10,7 +10,7 @@ import pytest
 
 from ede import config
 from ede.config import Params, ParamsError, load_params, overridden, read_yaml
-from tests.support import REPO
+from tests.support import HOSTILE_NAMES, REPO
 
 
 def test_committed_params_hold_the_papers_configuration() -> None:
@@ -384,32 +384,11 @@ def test_a_missing_file_is_named(tmp_path: Path) -> None:
         load_params(tmp_path / "absent.yaml")
 
 
-# Names that are no names: each would be a shell's words, another folder, an option, or a line
-# of its own wherever a name goes (dvc.yaml's commands, data/families/NAME/, messages).
-HOSTILE = [
-    "pt;touch PWNED;echo",
-    "$(touch PWNED)",
-    "`touch PWNED`",
-    "a'b",
-    "..",
-    ".",
-    "a.b",
-    "a/b",
-    "../x",
-    "my family",
-    "",
-    "x" * 65,
-    "famille-é",
-    "-rf",
-    "a\nb",
-]
-
-
 def _family_named(name: str):
     return lambda p: p["families"].update({name: {"source": "Pendulum-v1"}})
 
 
-@pytest.mark.parametrize("name", HOSTILE, ids=repr)
+@pytest.mark.parametrize("name", HOSTILE_NAMES, ids=repr)
 @pytest.mark.parametrize(
     ("edit", "key"),
     [

@@ -19,24 +19,8 @@ from click.testing import CliRunner
 
 from ede_pipeline.cli import main
 from ede_pipeline.sweep.stages import stage_argvs
-from tests.support import BIN, run, scratch_copy
+from tests.support import BIN, HOSTILE_NAMES, run, scratch_copy
 
-# Each is a shell's words, another folder, an option, or more than one line wherever it goes.
-HOSTILE = [
-    "pt;touch PWNED;echo",
-    "$(touch PWNED)",
-    "`touch PWNED`",
-    "a'b",
-    "..",
-    "a/b",
-    "a.b",
-    "my family",
-    "",
-    "x" * 300,
-    "ünïcode",
-    "-rf",
-    "a\nb",
-]
 # Everything a shell acts on, in one name: DVC fills it in, the command must take it as one word.
 SHELL_WORDS = "pt;touch PWNED;echo $(touch PWNED) `touch PWNED` & x | y > PWNED {a,b} * ~"
 
@@ -65,7 +49,7 @@ def made(copy: Path) -> list[str]:
     return sorted(line for line in listed.stdout.splitlines() if "params.yaml" not in line)
 
 
-@pytest.mark.parametrize("name", HOSTILE, ids=repr)
+@pytest.mark.parametrize("name", HOSTILE_NAMES, ids=repr)
 def test_validate_and_sweep_refuse_a_name_that_is_no_name_in_one_line(
     copy: Path, name: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
