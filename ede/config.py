@@ -14,7 +14,7 @@ import functools
 import json
 import re
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -544,12 +544,12 @@ class Params(_Section):
             if family not in self.families:
                 problems.append(
                     f"runs.tasks.{task}: got {family!r}; expected a family of "
-                    f"`families` ({', '.join(self.families)})"
+                    f"`families` ({_listed(self.families)})"
                 )
             elif task not in self.families[family].tasks:
                 problems.append(
                     f"runs.tasks.{task}: not a task of the {family} family "
-                    f"({', '.join(self.families[family].tasks)})"
+                    f"({_listed(self.families[family].tasks)})"
                 )
         for task in self.report.thresholds:
             if task not in self.runs.all_tasks:
@@ -559,7 +559,7 @@ class Params(_Section):
             if named is not None and named not in self.families:
                 problems.append(
                     f"report.{key}: got {named!r}; expected a family of `families` "
-                    f"({', '.join(self.families)}) or null"
+                    f"({_listed(self.families)}) or null"
                 )
         in_families: dict[str, list[str]] = {}  # each task, the families it is in
         for name, config in self.families.items():
@@ -1001,12 +1001,17 @@ _PLAIN_KEY = re.compile(r"[A-Za-z0-9_./-]{1,100}")
 
 
 def _both(names: list[str]) -> str:
-    """``both a and b``, ``a, b and c``, or ``a, b, c and 7 more``."""
-    if len(names) == 2:
-        return f"both {names[0]} and {names[1]}"
-    shown = names[:3] if len(names) > 4 else names[:-1]
-    rest = f"{len(names) - 3} more" if len(names) > 4 else names[-1]
-    return f"{', '.join(shown)} and {rest}"
+    """``both a and b``, ``a, b, c``, or ``a, b, c and 7 more``."""
+    return f"both {names[0]} and {names[1]}" if len(names) == 2 else _listed(names, most=3)
+
+
+def _listed(names: Iterable[str], most: int = 8) -> str:
+    """``a, b, c``, each once; past ``most`` of them, the first ``most`` and how many more (a
+    problem stays a line however many families the params hold)."""
+    distinct = list(dict.fromkeys(names))
+    if len(distinct) <= most:
+        return ", ".join(distinct)
+    return f"{', '.join(distinct[:most])} and {len(distinct) - most} more"
 
 
 def _found(content: Any) -> str:

@@ -521,24 +521,55 @@ def test_an_experiments_section_that_is_none_is_named(tmp_path: Path, committed_
         assert caught.value.problems[0].startswith(problem), caught.value.problems
 
 
-def test_integers_are_bounded_by_key_and_nothing_of_the_files_size_takes_long(
-    write_params,
-) -> None:
-    """A number no stage can use is named by its key; the cross-checks take the largest file
-    there can be (10,000 values) in well under a second: 2,000 families of one source."""
+def test_an_integer_past_what_a_stage_takes_is_named_by_its_key(write_params) -> None:
     with pytest.raises(ParamsError) as caught:
         load_params(write_params(lambda p: p["td3"].update(buffer_size=2**63)))
     assert caught.value.problems == [
         f"td3.buffer_size: got {2**63}; expected less than or equal to {2**63 - 1}"
     ]
 
-    def many_families(p: dict) -> None:
-        p["families"].update({f"f{i}": {"source": "ede/Point-v0"} for i in range(2_000)})
 
+@pytest.mark.parametrize(
+    ("edit", "problems"),
+    [
+        (
+            lambda p: p["families"].update(
+                {f"f{i}": {"source": "ede/Point-v0"} for i in range(2_000)}
+            ),
+            ["families: ede/Point-v0 in point, f0, f1 and 1998 more; expected in one family"],
+        ),
+        (
+            lambda p: p["families"]["reacher"].update(targets=["ede/ReacherTurn-v0"] * 5_000),
+            [
+                "runs.tasks.ede/ReacherPush-v0: not a task of the reacher family "
+                "(ede/ReacherVertical-v0, ede/ReacherTurn-v0)",
+                "families.reacher.targets: ede/ReacherTurn-v0 given twice in the family (its "
+                "source counts); expected each task once",
+            ],
+        ),
+        (
+            lambda p: (
+                p["families"].update(f0={"source": "Pendulum-v1"}),
+                p["families"].update({f"g{i}": {"source": "ede/Point-v0"} for i in range(9)}),
+                p["runs"]["tasks"].update({"ede/Pusher-v0": "moon"}),
+            ),
+            [
+                "runs.tasks.ede/Pusher-v0: got 'moon'; expected a family of `families` (reacher, "
+                "sevendof, point, pointmass, f0, g0, g1, g2 and 6 more)",
+                "families: ede/Point-v0 in point, g0, g1 and 7 more; expected in one family",
+            ],
+        ),
+    ],
+    ids=["2,000 families of one source", "5,000 targets", "a family of many"],
+)
+def test_the_largest_files_are_checked_at_once_each_problem_a_short_line(
+    write_params, edit, problems: list[str]
+) -> None:
+    """The cross-checks are linear in what the file holds (at most 10,000 values): a file of
+    thousands of families or targets takes well under a second, and a problem names a few."""
+    path = write_params(edit)
     start = time.perf_counter()
     with pytest.raises(ParamsError) as caught:
-        load_params(write_params(many_families))
-    assert caught.value.problems == [
-        "families: ede/Point-v0 in point, f0, f1 and 1998 more; expected in one family"
-    ]
+        load_params(path)
+    assert caught.value.problems == problems
     assert time.perf_counter() - start < 10
