@@ -7,9 +7,11 @@ import time
 from pathlib import Path
 
 import pytest
+from click.testing import CliRunner
 
 from ede import config
 from ede.config import Params, ParamsError, load_params, overridden, read_yaml
+from ede_pipeline.cli import main
 from tests.support import HOSTILE_NAMES, REPO
 
 
@@ -499,6 +501,24 @@ def test_a_file_no_params_can_be_is_one_line_naming_it(
     assert len(caught.value.problems) == 1, caught.value.problems
     assert caught.value.problems[0].startswith(expected), caught.value.problems[0]
     assert str(caught.value) == f"{path}: {caught.value.problems[0]}"
+
+
+@pytest.mark.parametrize(
+    "content", [*[c for c, _ in BAD_FILES.values()], None], ids=[*BAD_FILES, "a directory"]
+)
+def test_validate_says_a_bad_file_in_one_line_exit_2(
+    tmp_path: Path, content: bytes | None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "params.yaml"
+    if content is None:
+        path.mkdir()
+    else:
+        path.write_bytes(content)
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(main, ["validate", "--params", "params.yaml"])
+    assert result.exit_code == 2, result.output
+    (line,) = result.stderr.splitlines()
+    assert line.startswith("Error: params.yaml: "), line
 
 
 def test_a_directory_where_the_file_goes_is_one_line(tmp_path: Path, committed_params) -> None:

@@ -8,6 +8,7 @@ The issue's example: a family named ``pt;touch PWNED;echo`` passed ``validate``,
 
 from __future__ import annotations
 
+import codecs
 import shlex
 import subprocess
 from pathlib import Path
@@ -101,6 +102,47 @@ def test_an_experiment_name_that_is_no_name_is_one_line(
     assert result.stderr.startswith(line) and len(result.stderr.splitlines()) == 1, result.stderr
     assert "expected a name: 1 to 64 ASCII letters" in result.stderr
     assert not list(copy.rglob("PWNED")) and made(copy) == before
+
+
+@pytest.mark.parametrize(
+    ("content", "problem"),
+    [
+        (codecs.BOM_UTF16_LE + "td3:\n  lr: 1\n".encode("utf-16-le"), "UTF-16 or UTF-32 text"),
+        (
+            b"a: &a [1, 1, 1, 1]\n"
+            + b"".join(
+                f"{n}: &{n} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n".encode()
+                for p, n in zip("abcde", "bcdef", strict=True)
+            ),
+            "line 4: more than 10000 values",
+        ),
+        (b"", "empty; expected sections of the params"),
+        (None, "a directory; expected a YAML file"),
+    ],
+    ids=["UTF-16", "aliases", "empty", "a directory"],
+)
+def test_a_bad_experiment_file_is_one_line_naming_it(
+    copy: Path, content: bytes | None, problem: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(copy)
+    before = made(copy)
+    path = copy / "experiments" / "bad.yaml"
+    if content is None:
+        path.mkdir()
+    else:
+        path.write_bytes(content)
+    try:
+        result = CliRunner().invoke(main, ["experiment", "run", "bad"])
+        after = made(copy)
+    finally:
+        if path.is_dir():
+            path.rmdir()
+        else:
+            path.unlink()
+    assert result.exit_code == 2, result.output
+    assert result.stderr.startswith(f"Error: experiments/bad.yaml: {problem}"), result.stderr
+    assert len(result.stderr.splitlines()) == 1, result.stderr
+    assert [line for line in after if "bad.yaml" not in line] == before
 
 
 def test_every_value_in_a_stage_command_is_one_shell_word(tmp_path: Path) -> None:
