@@ -166,6 +166,7 @@ Threads = Annotated[
     int,
     Field(
         gt=0,
+        le=1024,  # torch takes a C int, and far fewer are of use
         description="torch threads on CPU: 1 is fastest for networks this small and "
         "lets stages and runs share the cores (more threads than cores slows everything)",
         json_schema_extra=RESULT_NEUTRAL,
@@ -175,11 +176,13 @@ Precision = Literal["fp32", "bf16-matmul", "bf16"]
 
 
 def _repeat(value: Any) -> int | str:
-    if value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and value > 0):
-        if value == "auto" or value <= MAX_INT:
-            return value
+    if value == "auto":
+        return value
+    if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+        raise ValueError("expected a positive integer or 'auto'")
+    if value > MAX_INT:
         raise ValueError(f"expected at most {MAX_INT} (2**63 - 1)")
-    raise ValueError("expected a positive integer or 'auto'")
+    return value
 
 
 Repeat = Annotated[Any, AfterValidator(_repeat)]

@@ -112,6 +112,14 @@ def test_defaults_in_the_model_match_the_committed_file() -> None:
         (lambda p: p["td3"].update(noise_units="percent"), "td3.noise_units: got 'percent'"),
         (lambda p: p["td3"].update(critic_action_repeat=0), "td3.critic_action_repeat: got 0"),
         (
+            lambda p: p["td3"].update(critic_action_repeat=2**63),
+            f"td3.critic_action_repeat: got {2**63}; expected at most {2**63 - 1}",
+        ),
+        (  # torch.set_num_threads takes a C int: past it, a traceback in the stage
+            lambda p: p["td3"].update(threads=2**31),
+            "td3.threads: got 2147483648; expected less than or equal to 1024",
+        ),
+        (
             lambda p: p["td3"].update(critic_action_repeat="twice"),
             "td3.critic_action_repeat: got 'twice'",
         ),
