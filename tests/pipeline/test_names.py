@@ -51,14 +51,14 @@ def made(copy: Path) -> list[str]:
 
 
 @pytest.mark.parametrize("name", HOSTILE_NAMES, ids=repr)
-def test_validate_and_sweep_refuse_a_name_that_is_no_name_in_one_line(
+def test_validate_sweep_and_collect_refuse_a_name_that_is_no_name_in_one_line(
     copy: Path, name: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.chdir(copy)
     before = made(copy)
     write(copy / "params.yaml", family_named, name)
     try:
-        for argv in (["validate"], ["sweep", "task_code*"], ["sweep"]):
+        for argv in (["validate"], ["sweep", "task_code*"], ["collect", "--family", name]):
             result = CliRunner().invoke(main, argv)
             assert result.exit_code == 2, (argv, result.output)
             (line,) = result.stderr.splitlines()
