@@ -8,11 +8,13 @@ committed ``params.yaml`` spells out the paper's configuration in full.
 
 from __future__ import annotations
 
+import codecs
+import collections
 import functools
-import itertools
 import json
 import re
 import typing
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -34,6 +36,8 @@ from ede.errors import first_line
 __all__ = [
     "ALGOS",
     "ALGO_LABELS",
+    "MAX_INT",
+    "NAME_RULE",
     "SEED_MAX",
     "SEED_RANGE",
     "Algo",
@@ -50,8 +54,11 @@ __all__ = [
     "episode_length",
     "is_seed",
     "load_params",
+    "name_problem",
     "overridden",
     "result_neutral",
+    "shown",
+    "task_id_problem",
     "validate_params",
 ]
 
@@ -65,7 +72,9 @@ ALGO_LABELS: dict[str, str] = {"td3": "TD3", "ede-td3": "EDE-TD3"}  # as the pap
 # (``tests/pipeline/test_dvc.py`` holds it to them).
 RESULT_NEUTRAL: JsonDict = {"result_neutral": True}
 
-PositiveInt = Annotated[int, Field(gt=0)]
+MAX_INT = 2**63 - 1
+"""The largest integer parameter: NumPy's and torch's integers hold no more."""
+PositiveInt = Annotated[int, Field(gt=0, le=MAX_INT)]
 
 SEED_MAX = 2**32 - 1
 """The largest seed. NumPy's global generator, which the report seeds for rliable's bootstrap,
@@ -94,6 +103,49 @@ Seed = Annotated[
 ]
 
 
+# Names. A family's name, an experiment's and each part of a task id become path segments
+# (data/families/NAME/, data/runs/TASK/, .dvc/tmp/experiments/NAME/), words of dvc.yaml's stage
+# commands, DVC's stage names and param keys (`families.NAME`: a '.' there would be a key path's
+# separator) and git refs (an experiment's). A name is therefore of the few characters all of these
+# hold as they are: ASCII letters, digits, '-' and '_', the first a letter or digit (a word starting
+# with '-' reads as an option); never a shell's metacharacter, a space, '/', '.' or '..'. Checked
+# before anything uses it, so a name that reaches a path or a command is one of these.
+NAME_LENGTH = 64
+NAME_RULE = (
+    f"1 to {NAME_LENGTH} ASCII letters, digits, '-' and '_', the first a letter or digit "
+    '(docs/parameters.md, "Names")'
+)
+_NAME = re.compile(rf"[A-Za-z0-9][A-Za-z0-9_-]{{0,{NAME_LENGTH - 1}}}")
+
+
+def name_problem(name: str) -> str | None:
+    """Why ``name`` cannot name a family or an experiment (:data:`NAME_RULE`), or None."""
+    return None if _NAME.fullmatch(name) else f"expected a name: {NAME_RULE}"
+
+
+def task_id_problem(task: str) -> str | None:
+    """Why ``task`` cannot be a task id, or None: a name, or a namespace and a name joined by one
+    '/' (gymnasium's ``ede/ReacherVertical-v0``), each part as :func:`name_problem` says."""
+    if all(_NAME.fullmatch(part) for part in task.split("/", 1)):
+        return None
+    return f"expected a task id: a name, or a namespace and a name joined by '/', each {NAME_RULE}"
+
+
+def _check(problem: Callable[[str], str | None]) -> Callable[[str], str]:
+    """A pydantic validator of a string that ``problem`` finds nothing wrong with."""
+
+    def check(value: str) -> str:
+        if (found := problem(value)) is not None:
+            raise ValueError(found)
+        return value
+
+    return check
+
+
+Name = Annotated[str, AfterValidator(_check(name_problem))]
+TaskName = Annotated[str, AfterValidator(_check(task_id_problem))]
+
+
 def _registered(task: str) -> str:
     if task not in _registered_task_ids():
         raise ValueError("a registered gymnasium task id (see `ede-pipeline envs`)")
@@ -105,7 +157,7 @@ def _registered(task: str) -> str:
     return task
 
 
-TaskId = Annotated[str, AfterValidator(_registered)]
+TaskId = Annotated[TaskName, AfterValidator(_registered)]
 Device = Annotated[
     Literal["cpu", "cuda", "auto"],
     Field(description="where torch runs; auto: CUDA if present", json_schema_extra=RESULT_NEUTRAL),
@@ -114,6 +166,7 @@ Threads = Annotated[
     int,
     Field(
         gt=0,
+        le=1024,  # torch takes a C int, and far fewer are of use
         description="torch threads on CPU: 1 is fastest for networks this small and "
         "lets stages and runs share the cores (more threads than cores slows everything)",
         json_schema_extra=RESULT_NEUTRAL,
@@ -123,9 +176,13 @@ Precision = Literal["fp32", "bf16-matmul", "bf16"]
 
 
 def _repeat(value: Any) -> int | str:
-    if value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and value > 0):
+    if value == "auto":
         return value
-    raise ValueError("expected a positive integer or 'auto'")
+    if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+        raise ValueError("expected a positive integer or 'auto'")
+    if value > MAX_INT:
+        raise ValueError(f"expected at most {MAX_INT} (2**63 - 1)")
+    return value
 
 
 Repeat = Annotated[Any, AfterValidator(_repeat)]
@@ -271,6 +328,7 @@ class TD3Config(_Section):
     start_steps: int = Field(
         0,
         ge=0,
+        le=MAX_INT,
         description="uniform random steps before the policy acts and updates start; 0 (the "
         "authors' code): the actor plus exploration noise acts from the first step, and updates "
         "start as soon as a batch can be sampled",
@@ -344,7 +402,7 @@ class EdeTD3Config(_Section):
 class RunsConfig(_Section):
     """Stage 4: which runs make up the experiment."""
 
-    tasks: dict[TaskId, str] = Field(
+    tasks: dict[TaskId, Name] = Field(
         min_length=1,
         description="the tasks to train on, each with its family: the family whose "
         "embedding EDE-TD3 acts in there (its source, or a target it transfers to)",
@@ -375,10 +433,13 @@ class RunsConfig(_Section):
             problems.append(f"runs.budgets: no budget for {', '.join(missing)}")
         if len(set(self.algos)) != len(self.algos):
             problems.append(
-                f"runs.algos: {self.algos} repeats an algorithm; expected distinct algorithms"
+                f"runs.algos: {shown(self.algos)} repeats an algorithm; expected distinct "
+                "algorithms"
             )
         if len(set(self.seeds)) != len(self.seeds):
-            problems.append(f"runs.seeds: {self.seeds} repeats a seed; expected distinct seeds")
+            problems.append(
+                f"runs.seeds: {shown(self.seeds)} repeats a seed; expected distinct seeds"
+            )
         if problems:
             raise ValueError("\n".join(problems))
         return self
@@ -421,7 +482,7 @@ class ReportConfig(_Section):
 
     confidence: float = Field(0.95, gt=0, lt=1)
     bootstrap_samples: PositiveInt = 2_000
-    thresholds: dict[str, Returns] = Field(
+    thresholds: dict[TaskName, Returns] = Field(
         default_factory=dict,
         description="per task, a return that counts as solved, or a list of "
         "them: the report gives the steps each run takes to reach each",
@@ -434,13 +495,13 @@ class ReportConfig(_Section):
         "of each task's budget (the bins of its divergence check too). "
         "The report's curve CSVs (DVC plots) keep every evaluation",
     )
-    effect_space_family: str | None = Field(
+    effect_space_family: Name | None = Field(
         "point",
         description="a family of `families` whose embedding is drawn beside the effect "
         "space on its source task (Figure 6; the task's first two qpos are its position); null: "
         "no Figure 6",
     )
-    exploration_family: str | None = Field(
+    exploration_family: Name | None = Field(
         "pointmass",
         description="a family of `families` whose embedding explores its source task "
         "against uniform random actions (Figure 7; the first two qpos are a position in "
@@ -463,7 +524,7 @@ class Params(_Section):
     episodes (each sub-environment's share of the rollouts holds one).
     """
 
-    families: dict[str, FamilyConfig] = Field(min_length=1)
+    families: dict[Name, FamilyConfig] = Field(min_length=1)
     collect: CollectConfig = CollectConfig()
     embedding: EmbeddingConfig = EmbeddingConfig()
     decoder: DecoderConfig = DecoderConfig()
@@ -486,12 +547,12 @@ class Params(_Section):
             if family not in self.families:
                 problems.append(
                     f"runs.tasks.{task}: got {family!r}; expected a family of "
-                    f"`families` ({', '.join(self.families)})"
+                    f"`families` ({_listed(self.families)})"
                 )
             elif task not in self.families[family].tasks:
                 problems.append(
                     f"runs.tasks.{task}: not a task of the {family} family "
-                    f"({', '.join(self.families[family].tasks)})"
+                    f"({_listed(self.families[family].tasks)})"
                 )
         for task in self.report.thresholds:
             if task not in self.runs.all_tasks:
@@ -501,20 +562,23 @@ class Params(_Section):
             if named is not None and named not in self.families:
                 problems.append(
                     f"report.{key}: got {named!r}; expected a family of `families` "
-                    f"({', '.join(self.families)}) or null"
+                    f"({_listed(self.families)}) or null"
                 )
+        in_families: dict[str, list[str]] = {}  # each task, the families it is in
         for name, config in self.families.items():
-            repeated = [task for task in config.targets if config.tasks.count(task) > 1]
+            counts = collections.Counter(config.tasks)
+            repeated = [task for task in config.targets if counts[task] > 1]
             if repeated:
                 problems.append(
                     f"families.{name}.targets: {', '.join(dict.fromkeys(repeated))} "
                     "given twice in the family (its source counts); expected each "
                     "task once"
                 )
-        for a, b in itertools.combinations(self.families, 2):
-            shared = set(self.families[a].tasks) & set(self.families[b].tasks)
-            if shared:
-                problems.append(f"families: {', '.join(sorted(shared))} in both {a} and {b}")
+            for task in counts:
+                in_families.setdefault(task, []).append(name)
+        for task, names in in_families.items():
+            if len(names) > 1:
+                problems.append(f"families: {task} in {_both(names)}; expected in one family")
         problems += self._action_space_problems()
         return problems
 
@@ -664,13 +728,66 @@ class ParamsError(ValueError):
         super().__init__("\n".join(f"{path}: {problem}" for problem in problems))
 
 
-class _DuplicateKey(yaml.MarkedYAMLError):
-    """A mapping that gives one key twice."""
+# What a params or experiment file may hold, bounded so that reading a bad one ends in a line at
+# once (the committed params.yaml: 6 kB, 4 levels deep, about 250 values): its size, read before
+# anything is parsed; how deep it nests (PyYAML composes recursively: a file nested 100,000 levels
+# would end in a RecursionError); how many values it holds once its aliases are expanded (nine
+# aliases of nine aliases of … of a list, "billion laughs", are a few lines that validation would
+# walk for hours); and how long an integer is (Python converts no more than 4,300 digits; the
+# schema bounds each integer parameter by :data:`MAX_INT`, naming its key).
+MAX_BYTES = 1 << 18
+MAX_DEPTH = 32
+MAX_VALUES = 10_000
+_INT_CHARS = 100  # an integer's longest spelling read at all: 2**63 has 19 digits (64 in binary)
+
+
+class _Refused(yaml.MarkedYAMLError):
+    """What the loader refuses in YAML it can read: a key given twice, too deep a nesting, too
+    many values, too large an integer."""
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
     """PyYAML's safe loader, refusing a key given twice in one mapping (PyYAML keeps the last,
-    silently; DVC refuses such a file)."""
+    silently; DVC refuses such a file) and what exceeds the bounds above."""
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._depth = 0  # how many nodes the node being composed is inside
+        self._values = 0  # how many values composed so far, each alias counted as what it names
+        self._sizes: dict[int, int] = {}  # the values of each node counted (_expanded_size)
+
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node | None:
+        if self._depth == MAX_DEPTH:
+            raise _Refused(
+                problem=f"nested more than {MAX_DEPTH} levels deep; params nest 4",
+                problem_mark=self.peek_event().start_mark,
+            )
+        alias = self.check_event(yaml.AliasEvent)
+        self._depth += 1
+        try:
+            node = super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+        if node is None:
+            return node
+        self._values += _expanded_size(node, self._sizes) if alias else 1  # children counted
+        if self._values > MAX_VALUES:
+            raise _Refused(
+                problem=f"more than {MAX_VALUES} values (each alias, *name, counted as what it "
+                "names); params hold about 250",
+                problem_mark=node.start_mark,
+            )
+        return node
+
+    def construct_yaml_int(self, node: yaml.ScalarNode) -> int:
+        spelled = self.construct_scalar(node)
+        if len(spelled) > _INT_CHARS:  # checked by key once read; this long, it is not read
+            raise _Refused(
+                problem=f"an integer of {len(spelled)} characters ({spelled[:12]}…); no "
+                f"parameter takes more than 2**63 - 1 (19 digits)",
+                problem_mark=node.start_mark,
+            )
+        return super().construct_yaml_int(node)
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
         first: dict[Any, yaml.Mark] = {}
@@ -689,11 +806,27 @@ class _UniqueKeyLoader(yaml.SafeLoader):
                     if again == mark.line
                     else f"on lines {mark.line + 1} and {again + 1}"
                 )
-                raise _DuplicateKey(
-                    problem=f"key {key!r} given twice, {where}; give it once",
+                raise _Refused(
+                    problem=f"key {shown(key)} given twice, {where}; give it once",
                     problem_mark=key_node.start_mark,
                 )
         return super().construct_mapping(node, deep=deep)
+
+
+_UniqueKeyLoader.add_constructor("tag:yaml.org,2002:int", _UniqueKeyLoader.construct_yaml_int)
+
+
+def _expanded_size(node: yaml.Node, sizes: dict[int, int]) -> int:
+    """How many values ``node`` holds, itself included, each alias counted as what it names
+    (``sizes``: those of the nodes counted so far, so that each is counted once)."""
+    if id(node) not in sizes:
+        children: list[yaml.Node] = []
+        if isinstance(node, yaml.SequenceNode):
+            children = node.value
+        elif isinstance(node, yaml.MappingNode):
+            children = [child for pair in node.value for child in pair]
+        sizes[id(node)] = 1 + sum(_expanded_size(child, sizes) for child in children)
+    return sizes[id(node)]
 
 
 # Floats of YAML 1.2 that PyYAML (YAML 1.1) reads as strings: an exponent after no dot, or without
@@ -707,29 +840,55 @@ _UniqueKeyLoader.add_implicit_resolver(
 
 
 def read_yaml(path: Path) -> Any:
-    """A YAML file's content, each key of a mapping given once.
+    """A YAML file's content, each key of a mapping given once, within the bounds above.
 
     Raises:
         ParamsError: one line saying where the file cannot be read, and why.
     """
     try:
-        text = path.read_text()
+        with path.open("rb") as handle:
+            data = handle.read(MAX_BYTES + 1)
     except FileNotFoundError:
         raise ParamsError(path, ["no such file"]) from None
-    except (OSError, UnicodeDecodeError) as error:
-        raise ParamsError(path, [f"not readable YAML ({first_line(error)})"]) from None
-    return parse_yaml(text, path)
+    except IsADirectoryError:
+        raise ParamsError(path, ["a directory; expected a YAML file"]) from None
+    except OSError as error:
+        raise ParamsError(path, [f"not readable ({first_line(error)})"]) from None
+    if len(data) > MAX_BYTES:
+        raise ParamsError(path, [_TOO_LARGE])
+    return parse_yaml(_utf8(data, path), path)
+
+
+_TOO_LARGE = (
+    f"larger than {MAX_BYTES >> 10} KiB; expected a file of a few kilobytes, as params.yaml"
+)
+
+
+def _utf8(data: bytes, path: Path) -> str:
+    """A file's bytes as UTF-8 text (YAML's and DVC's encoding), or one line saying why not."""
+    if data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):  # UTF-32's LE mark too
+        problem = "UTF-16 or UTF-32 text (it starts with their byte order mark)"
+        raise ParamsError(path, [f"{problem}; expected UTF-8: save it as UTF-8"])
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        line = data[: error.start].count(b"\n") + 1
+        problem = f"not UTF-8 text (byte {data[error.start]:#04x} on line {line})"
+        raise ParamsError(path, [f"{problem}; expected UTF-8: save it as UTF-8"]) from None
 
 
 def parse_yaml(text: str, path: Path) -> Any:
-    """YAML text's content, each key of a mapping given once; ``path`` names it in errors.
+    """YAML text's content, each key of a mapping given once, within the bounds above; ``path``
+    names it in errors.
 
     Raises:
         ParamsError: one line saying where the text cannot be read, and why.
     """
+    if len(text) > MAX_BYTES:
+        raise ParamsError(path, [_TOO_LARGE])
     try:
         return yaml.load(text, Loader=_UniqueKeyLoader)
-    except _DuplicateKey as error:
+    except _Refused as error:
         where = f"line {error.problem_mark.line + 1}: " if error.problem_mark else ""
         raise ParamsError(path, [f"{where}{error.problem}"]) from None
     except yaml.YAMLError as error:
@@ -757,13 +916,20 @@ def overridden(params: dict[str, Any], overrides: Path) -> tuple[dict[str, Any],
         ParamsError: the file cannot be read, is not sections of keys, or its result is not
             valid params (naming ``overrides`` and the key).
     """
-    changes = read_yaml(overrides) or {}
-    if not isinstance(changes, dict):
-        raise ParamsError(overrides, ["expected a mapping of params sections"])
+    changes = read_yaml(overrides)
+    if not isinstance(changes, dict) or not changes:
+        found = _found(changes)
+        expected = "sections of the params with the keys to change"
+        raise ParamsError(overrides, [f"{found}; expected {expected}, as experiments/quick.yaml"])
     merged = dict(params)
     for section, values in changes.items():
-        if not isinstance(values, dict) or not isinstance(merged.get(section), dict):
-            raise ParamsError(overrides, [f"{section}: expected a section of the params with keys"])
+        if not isinstance(merged.get(section), dict):
+            known = ", ".join(key for key, value in params.items() if isinstance(value, dict))
+            raise ParamsError(
+                overrides, [f"{_key(section)}: not a section of the params ({known})"]
+            )
+        if not isinstance(values, dict):
+            raise ParamsError(overrides, [f"{_key(section)}: {_found(values)}; expected its keys"])
         merged[section] = {**merged[section], **values}
     validate_params(merged, overrides)
     return merged, changes
@@ -775,8 +941,10 @@ def validate_params(raw: Any, path: Path) -> Params:
     Raises:
         ParamsError: naming ``path``, and each bad key, its value and what is expected.
     """
-    if not isinstance(raw, dict):
-        raise ParamsError(path, [f"expected a mapping of sections, found {type(raw).__name__}"])
+    if not isinstance(raw, dict) or not raw:
+        raise ParamsError(
+            path, [f"{_found(raw)}; expected a mapping of sections (families, runs, …)"]
+        )
     try:
         return Params.model_validate(raw)
     except ValidationError as error:
@@ -786,7 +954,7 @@ def validate_params(raw: Any, path: Path) -> Params:
 
 def _describe(error: Any) -> str:
     loc = error["loc"][:-1] if error["loc"][-1:] == ("[key]",) else error["loc"]  # a bad key
-    where = ".".join(str(part) for part in loc) or "(top level)"
+    where = ".".join(_key(part) for part in loc) or "(top level)"
     message = error["msg"].removeprefix("Value error, ")
     if error["type"] == "extra_forbidden":
         return f"{where}: unknown key"
@@ -797,12 +965,12 @@ def _describe(error: Any) -> str:
     if error["type"] in _EXPECTED:  # a value of another type: say which, in YAML's words
         value = error.get("input")
         kind = "" if value is None else f", {_KINDS.get(type(value), 'a ' + type(value).__name__)}"
-        return f"{where}: got {_short(value)}{kind}; expected {_EXPECTED[error['type']]}"
+        return f"{where}: got {shown(value)}{kind}; expected {_EXPECTED[error['type']]}"
     if message.startswith("Input should be "):
         message = "expected " + message.removeprefix("Input should be ")
     elif message.startswith("a registered"):
         message = "expected " + message
-    return f"{where}: got {_short(error.get('input'))}; {message}"
+    return f"{where}: got {shown(error.get('input'))}; {message}"
 
 
 # A YAML value's type, and what each of pydantic's errors for a value of another type expects.
@@ -825,7 +993,39 @@ _EXPECTED = {
 }
 
 
-def _short(value: Any) -> str:
+def _key(part: str | int) -> str:
+    """A key of a key path as written, or quoted and escaped where it is no plain key (a space, a
+    line break, a name too long): a problem stays one line."""
+    text = str(part)
+    return text if _PLAIN_KEY.fullmatch(text) else shown(text)
+
+
+_PLAIN_KEY = re.compile(r"[A-Za-z0-9_./-]{1,100}")
+
+
+def _both(names: list[str]) -> str:
+    """``both a and b``, ``a, b, c``, or ``a, b, c and 7 more``."""
+    return f"both {names[0]} and {names[1]}" if len(names) == 2 else _listed(names, most=3)
+
+
+def _listed(names: Iterable[str], most: int = 8) -> str:
+    """``a, b, c``, each once; past ``most`` of them, the first ``most`` and how many more (a
+    problem stays a line however many families the params hold)."""
+    distinct = list(dict.fromkeys(names))
+    if len(distinct) <= most:
+        return ", ".join(distinct)
+    return f"{', '.join(distinct[:most])} and {len(distinct) - most} more"
+
+
+def _found(content: Any) -> str:
+    """What a file or section holds instead of the mapping expected, in YAML's words."""
+    if content is None or content == {}:
+        return "empty"
+    return f"{_KINDS.get(type(content), 'a ' + type(content).__name__)}, not a mapping"
+
+
+def shown(value: Any) -> str:
+    """A value as one short line: its repr (JSON's null, true, false), cut at 60 characters."""
     text = json.dumps(value) if value is None or isinstance(value, bool) else repr(value)
     return text if len(text) <= 60 else text[:57] + "..."
 
@@ -836,6 +1036,9 @@ def _describe_yaml_error(error: yaml.YAMLError, text: str) -> str:
     A problem found at the end of the stream (an unclosed bracket or quote) is placed where its
     context began, the line to fix, rather than past the last line.
     """
+    if isinstance(error, yaml.reader.ReaderError):  # a character YAML refuses (a NUL byte)
+        number = text.count("\n", 0, error.position) + 1
+        return f"line {number}: not readable YAML ({first_line(error)})"
     if not (isinstance(error, yaml.MarkedYAMLError) and error.problem_mark and error.problem):
         return f"not readable YAML ({first_line(error)})"
     mark, problem = error.problem_mark, error.problem

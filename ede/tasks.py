@@ -4,6 +4,7 @@ use one at all."""
 from __future__ import annotations
 
 import functools
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -46,8 +47,10 @@ def unusable(task_id: str) -> str | None:
     networks, so both spaces must be rank-1 Boxes. Builds the task once to read its spaces.
     """
     try:
-        env = make(task_id)
-    except gymnasium.error.Error as error:  # e.g. DependencyNotInstalled
+        with warnings.catch_warnings():  # an old version's deprecation: the answer says enough
+            warnings.simplefilter("ignore")
+            env = make(task_id)
+    except (gymnasium.error.Error, ImportError) as error:  # DependencyNotInstalled, Ant-v2 (moved)
         return f"it cannot be made ({type(error).__name__}: {first_line(error)})"
     try:
         action, observation = env.action_space, env.observation_space

@@ -66,7 +66,7 @@ def params_option(command: Callable[..., Any]) -> Callable[..., Any]:
     @click.option(
         "--params",
         "params_path",
-        type=click.Path(dir_okay=False, path_type=Path),
+        type=click.Path(path_type=Path),  # a directory is refused in one line as it is read
         default=DEFAULT_PARAMS,
         show_default=True,
         help="The parameters file.",

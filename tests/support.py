@@ -91,6 +91,26 @@ def dvc(copy: Path, *args: str) -> subprocess.CompletedProcess[str]:
     return run(copy, BIN / "dvc", *args)
 
 
+# Names that are no names (docs/parameters.md, "Names"): each is a shell's words, another folder,
+# an option, or more than one line wherever a family, task or experiment name goes.
+HOSTILE_NAMES = [
+    "pt;touch PWNED;echo",
+    "$(touch PWNED)",
+    "`touch PWNED`",
+    "a'b",
+    "..",
+    ".",
+    "../x",
+    "a/b",
+    "a.b",
+    "my family",
+    "",
+    "x" * 65,
+    "ünïcode",
+    "-rf",
+    "a\nb",
+]
+
 # A run's files that hold wall times, and run.json, which holds their SHA-256s.
 WALL_TIMES = {"metrics.json", "eval.csv", "run.json"}
 

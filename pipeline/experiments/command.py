@@ -35,8 +35,10 @@ def experiment() -> None:
 def list_experiments() -> None:
     """The experiment files, each with the first sentence of its description (its opening
     comment)."""
-    for path in sorted(EXPERIMENTS.glob("*.yaml")):
-        lines = path.read_text().splitlines()
+    # A file `run` refuses (another encoding, too large) is listed all the same: `run` says why.
+    for path in sorted(p for p in EXPERIMENTS.glob("*.yaml") if p.is_file()):
+        with path.open(errors="replace") as handle:
+            lines = handle.read(4096).splitlines()  # its opening comment, and more
         comment = " ".join(
             line.lstrip("#").strip()
             for line in lines[

@@ -17,9 +17,11 @@ import yaml
 from ede.atomic import write_text
 from ede.config import (
     ParamsError,
+    name_problem,
     overridden,
     parse_yaml,
     read_yaml,
+    shown,
     validate_params,
 )
 from ede.errors import first_line
@@ -31,19 +33,14 @@ WORKSPACES = Path(".dvc") / "tmp" / "experiments"  # each one's working copy (gi
 
 
 def experiment_file(name: str) -> Path:
-    """``experiments/NAME.yaml``; one line naming the experiments there when it is not one."""
+    """``experiments/NAME.yaml``; one line when NAME is no name (:data:`ede.config.NAME_RULE`:
+    it becomes a path, a git ref and a word of commands) or names no experiment there."""
+    if (problem := name_problem(name)) is not None:
+        raise BadInput(f"experiment {shown(name)}: {problem}")
     path = EXPERIMENTS / f"{name}.yaml"
-    if "/" in name or not path.is_file():
-        known = ", ".join(sorted(p.stem for p in EXPERIMENTS.glob("*.yaml"))) or "none"
-        raise BadInput(f"experiment {name!r}: no {path}; the experiments are: {known}")
-    # DVC saves an experiment as a git ref of its name: one git refuses would fail only at the
-    # end, after all its runs (`dvc exp save`).
-    ref = subprocess.run(["git", "check-ref-format", f"refs/exps/{name}"], capture_output=True)
-    if ref.returncode:
-        raise BadInput(
-            f"experiment {name!r}: not a name git takes for a ref (no spaces, '..', '~', '^', "
-            f"':', '?', '*', '[', '\\', and no '.' at either end): rename {path}"
-        )
+    if not path.exists():  # one that is no file is refused as it is read (ede.config.read_yaml)
+        known = ", ".join(sorted(p.stem for p in EXPERIMENTS.glob("*.yaml") if p.is_file()))
+        raise BadInput(f"experiment {name!r}: no {path}; the experiments are: {known or 'none'}")
     return path
 
 

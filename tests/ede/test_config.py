@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import codecs
+import time
 from pathlib import Path
 
 import pytest
+from click.testing import CliRunner
 
 from ede import config
-from ede.config import Params, ParamsError, load_params, read_yaml
-from tests.support import REPO
+from ede.config import Params, ParamsError, load_params, overridden, read_yaml
+from ede_pipeline.cli import main
+from tests.support import HOSTILE_NAMES, REPO
 
 
 def test_committed_params_hold_the_papers_configuration() -> None:
@@ -107,6 +111,14 @@ def test_defaults_in_the_model_match_the_committed_file() -> None:
         (lambda p: p["decoder"].update(z_source="posterior"), "decoder.z_source: got 'posterior'"),
         (lambda p: p["td3"].update(noise_units="percent"), "td3.noise_units: got 'percent'"),
         (lambda p: p["td3"].update(critic_action_repeat=0), "td3.critic_action_repeat: got 0"),
+        (
+            lambda p: p["td3"].update(critic_action_repeat=2**63),
+            f"td3.critic_action_repeat: got {2**63}; expected at most {2**63 - 1}",
+        ),
+        (  # torch.set_num_threads takes a C int: past it, a traceback in the stage
+            lambda p: p["td3"].update(threads=2**31),
+            "td3.threads: got 2147483648; expected less than or equal to 1024",
+        ),
         (
             lambda p: p["td3"].update(critic_action_repeat="twice"),
             "td3.critic_action_repeat: got 'twice'",
@@ -336,12 +348,13 @@ def test_every_problem_is_reported_not_just_the_first(write_params) -> None:
             "'<block mapping start>' (while parsing a block mapping from line 1, column 1); "
             'the line reads: " bad: 2"',
         ),
-        # PyYAML's reader marks no line: the message stays PyYAML's first line.
+        # PyYAML's reader gives a position: the line is counted from it.
         (
-            "a: \x07\n",
-            "not readable YAML (unacceptable character #x0007: special characters are not allowed)",
+            "a: 1\nb: \x07\n",
+            "line 2: not readable YAML (unacceptable character #x0007: special characters are not "
+            "allowed)",
         ),
-        ("- a list\n", "expected a mapping of sections, found list"),
+        ("- a list\n", "a list, not a mapping; expected a mapping of sections (families, runs, …)"),
         # A key given twice: PyYAML would keep the last, silently.
         (
             "td3:\n  lr: 0.001\n  batch_size: 100\n  lr: 5.0\n",
@@ -379,3 +392,212 @@ def test_the_same_key_in_different_mappings_and_merge_keys_are_fine(tmp_path: Pa
 def test_a_missing_file_is_named(tmp_path: Path) -> None:
     with pytest.raises(ParamsError, match="no such file"):
         load_params(tmp_path / "absent.yaml")
+
+
+def _family_named(name: str):
+    return lambda p: p["families"].update({name: {"source": "Pendulum-v1"}})
+
+
+@pytest.mark.parametrize("name", HOSTILE_NAMES, ids=repr)
+@pytest.mark.parametrize(
+    ("edit", "key"),
+    [
+        (_family_named, "families."),
+        (lambda name: lambda p: p["runs"]["tasks"].update({"ede/Pusher-v0": name}), "runs.tasks."),
+        (
+            lambda name: lambda p: p["report"].update(effect_space_family=name),
+            "report.effect_space_family: ",
+        ),
+        (lambda name: lambda p: p["runs"]["budgets"].update({name: 1000}), "runs.budgets."),
+        (lambda name: lambda p: p["families"]["point"].update(source=name), "families.point."),
+        (
+            lambda name: lambda p: p["report"]["thresholds"].update({name: -10}),
+            "report.thresholds.",
+        ),
+    ],
+    ids=["family", "task's family", "figure's family", "budget's task", "source", "threshold"],
+)
+def test_a_name_that_is_no_name_is_one_line_naming_its_key(
+    write_params, name: str, edit, key: str
+) -> None:
+    with pytest.raises(ParamsError) as caught:
+        load_params(write_params(edit(name)))
+    assert len(caught.value.problems) == 1, caught.value.problems
+    (problem,) = caught.value.problems
+    assert problem.startswith(key), problem
+    assert "expected a name" in problem or "expected a task id" in problem or name == "a/b"
+    assert "\n" not in str(caught.value) and len(problem) < 400
+
+
+@pytest.mark.parametrize("name", ["a", "reacher-v5", "half_cheetah", "A1", "x" * 64])
+def test_names_of_letters_digits_dashes_and_underscores_are_names(write_params, name) -> None:
+    assert name in load_params(write_params(_family_named(name))).families
+
+
+def test_every_registered_task_id_and_committed_name_is_a_name(committed_params) -> None:
+    import gymnasium
+
+    import ede_envs
+
+    ede_envs.register_envs()
+    assert [task for task in gymnasium.registry if config.task_id_problem(task)] == []
+    experiments = [read_yaml(path) for path in sorted((REPO / "experiments").glob("*.yaml"))]
+    families = [*committed_params["families"]]
+    families += [name for changes in experiments for name in changes.get("families", {})]
+    experiment_names = [path.stem for path in (REPO / "experiments").glob("*.yaml")]
+    assert [n for n in families + experiment_names if config.name_problem(n)] == []
+
+
+def _laughs() -> bytes:
+    """Nine aliases of nine aliases of … a list of nine strings: 9**9 strings expanded."""
+    text = 'a: &a ["lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol"]\n'
+    for previous, name in zip("abcdefgh", "bcdefghi", strict=True):
+        text += f"{name}: &{name} [{', '.join([f'*{previous}'] * 9)}]\n"
+    return text.encode()
+
+
+# Files no params can be, each with what its one line says (for a params file and an experiment's).
+BAD_FILES = {
+    "nested 100,000 levels": (
+        b"a: " + b"[" * 100_000 + b"]" * 100_000 + b"\n",
+        "line 1: nested more than 32 levels deep; params nest 4",
+    ),
+    "nested in blocks": (
+        "".join(" " * i + "k:\n" for i in range(200)).encode(),
+        "line 32: nested more than 32 levels deep",
+    ),
+    "billion laughs": (_laughs(), "line 4: more than 10000 values (each alias, *name, counted"),
+    "a long list": (b"a: [" + b"0, " * 20_000 + b"0]\n", "line 1: more than 10000 values"),
+    "an integer of 5000 digits": (
+        b"collect:\n  steps: " + b"9" * 5000 + b"\n",
+        "line 2: an integer of 5000 characters (999999999999…); no parameter takes more than "
+        "2**63 - 1 (19 digits)",
+    ),
+    "UTF-16 with its byte order mark": (
+        codecs.BOM_UTF16_LE + "collect:\n  steps: 10\n".encode("utf-16-le"),
+        "UTF-16 or UTF-32 text (it starts with their byte order mark); expected UTF-8",
+    ),
+    "Latin-1": (
+        "# Évaluation\ncollect:\n  steps: 10\n".encode("latin-1"),
+        "not UTF-8 text (byte 0xc9 on line 1); expected UTF-8: save it as UTF-8",
+    ),
+    "a NUL byte": (
+        b"collect:\n  steps: 10\x00\n",
+        "line 2: not readable YAML (unacceptable character #x0000",
+    ),
+    "empty": (b"", "empty; expected"),
+    "comments alone": (b"# nothing yet\n", "empty; expected"),
+    "a list": (b"- collect\n- runs\n", "a list, not a mapping; expected"),
+    "a scalar": (b"42\n", "an integer, not a mapping; expected"),
+    "larger than 256 KiB": (b"#" + b"x" * (1 << 18) + b"\n", "larger than 256 KiB; expected"),
+}
+
+
+@pytest.mark.timeout(60)  # each in seconds, not minutes (PyYAML reads about 100 kB a second)
+@pytest.mark.parametrize("as_experiment", [False, True], ids=["params", "experiment"])
+@pytest.mark.parametrize(("content", "expected"), BAD_FILES.values(), ids=BAD_FILES)
+def test_a_file_no_params_can_be_is_one_line_naming_it(
+    tmp_path: Path, committed_params, content: bytes, expected: str, as_experiment: bool
+) -> None:
+    path = tmp_path / "file.yaml"
+    path.write_bytes(content)
+    with pytest.raises(ParamsError) as caught:
+        if as_experiment:
+            overridden(committed_params, path)
+        else:
+            load_params(path)
+    assert len(caught.value.problems) == 1, caught.value.problems
+    assert caught.value.problems[0].startswith(expected), caught.value.problems[0]
+    assert str(caught.value) == f"{path}: {caught.value.problems[0]}"
+
+
+@pytest.mark.parametrize(
+    "content", [*[c for c, _ in BAD_FILES.values()], None], ids=[*BAD_FILES, "a directory"]
+)
+def test_validate_says_a_bad_file_in_one_line_exit_2(
+    tmp_path: Path, content: bytes | None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "params.yaml"
+    if content is None:
+        path.mkdir()
+    else:
+        path.write_bytes(content)
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(main, ["validate", "--params", "params.yaml"])
+    assert result.exit_code == 2, result.output
+    (line,) = result.stderr.splitlines()
+    assert line.startswith("Error: params.yaml: "), line
+
+
+def test_a_directory_where_the_file_goes_is_one_line(tmp_path: Path, committed_params) -> None:
+    for read in (load_params, lambda path: overridden(committed_params, path)):
+        with pytest.raises(ParamsError) as caught:
+            read(tmp_path)
+        assert caught.value.problems == ["a directory; expected a YAML file"]
+
+
+def test_an_experiments_section_that_is_none_is_named(tmp_path: Path, committed_params) -> None:
+    path = tmp_path / "experiment.yaml"
+    for text, problem in [
+        ("td3: 5\n", "td3: an integer, not a mapping; expected its keys"),
+        ("tdd3: {lr: 1}\n", "tdd3: not a section of the params (families, collect, embedding,"),
+        ('"a\\nb": {}\n', "'a\\nb': not a section of the params"),  # a line break: one line
+    ]:
+        path.write_text(text)
+        with pytest.raises(ParamsError) as caught:
+            overridden(committed_params, path)
+        assert caught.value.problems[0].startswith(problem), caught.value.problems
+
+
+def test_an_integer_past_what_a_stage_takes_is_named_by_its_key(write_params) -> None:
+    with pytest.raises(ParamsError) as caught:
+        load_params(write_params(lambda p: p["td3"].update(buffer_size=2**63)))
+    assert caught.value.problems == [
+        f"td3.buffer_size: got {2**63}; expected less than or equal to {2**63 - 1}"
+    ]
+
+
+@pytest.mark.parametrize(
+    ("edit", "problems"),
+    [
+        (
+            lambda p: p["families"].update(
+                {f"f{i}": {"source": "ede/Point-v0"} for i in range(2_000)}
+            ),
+            ["families: ede/Point-v0 in point, f0, f1 and 1998 more; expected in one family"],
+        ),
+        (
+            lambda p: p["families"]["reacher"].update(targets=["ede/ReacherTurn-v0"] * 5_000),
+            [
+                "runs.tasks.ede/ReacherPush-v0: not a task of the reacher family "
+                "(ede/ReacherVertical-v0, ede/ReacherTurn-v0)",
+                "families.reacher.targets: ede/ReacherTurn-v0 given twice in the family (its "
+                "source counts); expected each task once",
+            ],
+        ),
+        (
+            lambda p: (
+                p["families"].update(f0={"source": "Pendulum-v1"}),
+                p["families"].update({f"g{i}": {"source": "ede/Point-v0"} for i in range(9)}),
+                p["runs"]["tasks"].update({"ede/Pusher-v0": "moon"}),
+            ),
+            [
+                "runs.tasks.ede/Pusher-v0: got 'moon'; expected a family of `families` (reacher, "
+                "sevendof, point, pointmass, f0, g0, g1, g2 and 6 more)",
+                "families: ede/Point-v0 in point, g0, g1 and 7 more; expected in one family",
+            ],
+        ),
+    ],
+    ids=["2,000 families of one source", "5,000 targets", "a family of many"],
+)
+def test_the_largest_files_are_checked_at_once_each_problem_a_short_line(
+    write_params, edit, problems: list[str]
+) -> None:
+    """The cross-checks are linear in what the file holds (at most 10,000 values): a file of
+    thousands of families or targets takes well under a second, and a problem names a few."""
+    path = write_params(edit)
+    start = time.perf_counter()
+    with pytest.raises(ParamsError) as caught:
+        load_params(path)
+    assert caught.value.problems == problems
+    assert time.perf_counter() - start < 10

@@ -75,7 +75,7 @@ def bad_experiment(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, text: str):
     [
         ("td3:\n  lr: 0.001\n  lr: 5.0\n", "line 3: key 'lr' given twice, on lines 2 and 3"),
         ("td3:\n  noise_clip: .inf\n", "td3.noise_clip"),
-        ("- td3\n", "expected a mapping of params sections"),
+        ("- td3\n", "a list, not a mapping; expected sections of the params"),
     ],
 )
 def test_an_experiment_file_that_means_two_things_is_refused(

@@ -54,7 +54,7 @@ def repo(tmp_path_factory: pytest.TempPathFactory) -> Path:
     (copy / "experiments" / "two-seeds.yaml").write_text(EXPERIMENT)
     (copy / "experiments" / "two-seeds-lr.yaml").write_text(EXPERIMENT + "td3:\n  lr: 0.002\n")
     (copy / "experiments" / "bad.yaml").write_text("td3:\n  batch_size: 0\n")
-    for name in ("x..y", "my exp"):  # names git refuses for a ref
+    for name in ("x..y", "my exp"):  # no names (a path, a git ref, a shell word)
         (copy / "experiments" / f"{name}.yaml").write_text(EXPERIMENT)
     commit(copy)
     return copy
@@ -80,8 +80,8 @@ def experiment(repo: Path, *args: str) -> subprocess.CompletedProcess[str]:
             "experiment runs all of experiments/two-seeds.yaml's runs",
         ),
         (["export", "two-seeds-lr"], "experiment two-seeds-lr: not run here yet"),
-        (["run", "x..y"], "experiment 'x..y': not a name git takes for a ref"),
-        (["run", "my exp"], "experiment 'my exp': not a name git takes for a ref"),
+        (["run", "x..y"], "experiment 'x..y': expected a name: 1 to 64 ASCII letters"),
+        (["run", "my exp"], "experiment 'my exp': expected a name: 1 to 64 ASCII letters"),
     ],
 )
 def test_bad_input_is_one_line_and_makes_nothing(repo: Path, args: list[str], line: str) -> None:
