@@ -15,7 +15,15 @@ from pathlib import Path
 
 from ede.config import ALGOS
 from ede.provenance import INSTRUCTION_SETS
-from ede.runs import Curve, Run, RunRejected, read_run, recorded_task, unshared_params
+from ede.runs import (
+    Curve,
+    Run,
+    RunRejected,
+    read_run,
+    recorded_task,
+    same_files,
+    unshared_params,
+)
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput
 
@@ -105,10 +113,12 @@ SEED_FOLDER = re.compile(r"seed(0|[1-9][0-9]*)")  # seed<N>, as layout.run names
 
 def published_runs(root: Path, task: str) -> list[tuple[Path, Run]]:
     """A task's finished runs under ``root`` (:func:`ede_pipeline.layout.run`), per algorithm by
-    seed, each checked (:func:`ede.runs.read_run`: the task, algorithm and seed of its folder,
-    its files those its ``run.json`` records). Every folder of an algorithm's is a run, named
-    ``seed<N>`` as ``layout.run`` names it, so that no seed is read twice (``seed00`` beside
-    ``seed0``); each run's ``run.json`` names its folder's seed."""
+    seed, each checked as a published run (:func:`ede.runs.read_run`: the task, algorithm and
+    seed of its folder, its files those its ``run.json`` records). Every folder of an
+    algorithm's is a run, named ``seed<N>`` as ``layout.run`` names it, so that no seed is read
+    twice (``seed00`` beside ``seed0``); each run's ``run.json`` names its folder's seed, a seed
+    its task's ``source.json`` names; and no two runs are one (:func:`ede.runs.same_files`: a
+    copy of a run is refused whatever its folder and its ``run.json`` say)."""
     found = []
     for algo in ALGOS:
         seeds = []
@@ -124,11 +134,23 @@ def published_runs(root: Path, task: str) -> list[tuple[Path, Run]]:
         for seed in sorted(seeds):
             run = layout.run(task, algo, seed, root)
             try:
-                record = read_run(run, {"task": task, "algo": algo, "seed": seed})
+                record = read_run(run, {"task": task, "algo": algo, "seed": seed}, published=True)
             except RunRejected as error:
                 raise BadInput(str(error)) from None
             if record is not None:
                 found.append((run, record))
+    if (copy := same_files(found)) is not None:
+        raise BadInput(copy)
+    if found:
+        folder = layout.task_runs(task, root)
+        named = read_source(folder).seeds
+        for run, record in found:
+            if record.curve.seed not in named:
+                raise BadInput(
+                    f"{run}: a run of seed {record.curve.seed}, which {folder / 'source.json'} "
+                    f"does not name (it names {seed_list(named) if named else 'none'}); a "
+                    "task's runs are the seeds its experiments made, as each export names them"
+                )
     return found
 
 

@@ -14,6 +14,7 @@ from click.testing import CliRunner
 
 from ede.atomic import sha256
 from ede.config import Algo
+from ede.runs import POLICY
 from ede_pipeline.cli import main
 from ede_pipeline.experiments.show import WIDTH, experiment_blocks
 from tests.support import REPO, tool_env
@@ -215,13 +216,16 @@ def finished_workspace(
     finished: tuple[str, ...] = ("ede/ReacherVertical-v0",),
     embedding: str = "e0" * 32,
     td3: dict[str, Any] | None = None,
+    policies: bool = False,
 ) -> Path:
     """``experiments/NAME.yaml`` and its working copy as ``experiment run`` leaves it: the runs
     of ``seeds`` finished on the ``finished`` tasks (none yet on the rest of ``tasks``), their
     EDE-TD3 runs made with the embedding of checksum ``embedding``, whose metrics are the reacher
-    family's, and the params.yaml's td3 keys changed as ``td3`` says."""
+    family's, and the params.yaml's td3 keys changed as ``td3`` says; with ``policies``, each
+    run's policy/ (its policy.safetensors ``<algo> <seed>``), marked as a run writes it."""
     import torch
 
+    from ede.atomic import write_atomically
     from ede.config import load_params
     from ede.runs import RunSpec, write_curves, write_finished
     from ede_pipeline import layout
@@ -254,7 +258,7 @@ def finished_workspace(
                     "episode": 0,
                     "mean_return": -9.0,
                     "std_return": 0.0,
-                    "wall_seconds": 0.0,
+                    "wall_seconds": s + seed + (algo == "ede-td3") / 2,  # each run's own
                 }
                 for s in (0, budget)
             ],
@@ -269,6 +273,12 @@ def finished_workspace(
             loaded.ede_td3,
             embedding if algo == "ede-td3" else "",
         )
+        if policies:
+            write_atomically(
+                out / POLICY,
+                lambda tmp, a=algo, s=seed: (tmp / "policy.safetensors").write_text(f"{a} {s}"),
+                kind="policy",
+            )
         write_finished(out, spec, {"final_return": -9.0}, torch.device("cpu"))
     return workspace
 
@@ -400,7 +410,6 @@ def test_an_export_publishes_the_policies_of_the_seeds_it_is_given(
     experiment has not, a value that is no seed, a seed whose runs have not finished, and a
     decoder that is not the one the runs trained with: one line each, nothing written."""
     from ede.artifacts import ActionSpaceMeta, DecoderMeta, WhiteningMeta
-    from ede.runs import POLICY
     from ede_pipeline import layout
 
     decoder_meta = DecoderMeta(
@@ -411,12 +420,8 @@ def test_an_export_publishes_the_policies_of_the_seeds_it_is_given(
     )  # fmt: skip
     monkeypatch.chdir(tmp_path)
     workspace = finished_workspace(
-        tmp_path, "pair", [0, 1], ["td3", "ede-td3"], embedding=decoder_meta.identity
+        tmp_path, "pair", [0, 1], ["td3", "ede-td3"], embedding=decoder_meta.identity, policies=True
     )
-    for algo, seed in ((a, s) for a in ("td3", "ede-td3") for s in (0, 1)):
-        policy = workspace / layout.run(TASK, algo, seed) / POLICY
-        policy.mkdir()
-        (policy / "policy.safetensors").write_text(f"{algo} {seed}")
     decoder = workspace / layout.embedding("reacher") / layout.DECODER
     decoder.mkdir()
     (decoder / "meta.json").write_text(decoder_meta.model_dump_json())
@@ -593,18 +598,20 @@ def test_an_export_beside_a_seed_published_twice_is_refused(first_published: Pat
     refused("more", f"{PUBLISHED_TASK / 'td3' / 'seed2' / 'run.json'}: seed is 0, expected 2")
 
 
-def test_an_export_of_seeds_published_by_no_part_of_source_json_is_refused(
-    first_published: Path,
+@pytest.mark.parametrize("name", ["first", "more"])
+def test_an_export_beside_seeds_source_json_does_not_name_is_refused(
+    first_published: Path, name: str
 ) -> None:
     """A task's source.json from before parts named their seeds: the runs of seed 0 there are
-    not the experiment's own to replace."""
+    no experiment's, neither the one that would replace them nor one beside them."""
     (PUBLISHED_TASK / "source.json").write_text(
         json.dumps({"commit": "0" * 40, "command": "experiment.py --seeds 0"})
     )
     refused(
-        "first",
-        f"{PUBLISHED_TASK}: seeds [0] have runs there that no earlier export of "
-        "experiments/first.yaml made; an experiment adds seeds the task has not",
+        name,
+        f"{PUBLISHED_TASK / 'td3' / 'seed0'}: a run of seed 0, which "
+        f"{PUBLISHED_TASK / 'source.json'} does not name (it names none); a task's runs are the "
+        "seeds its experiments made, as each export names them",
     )
 
 
