@@ -449,9 +449,9 @@ def _check_files(run_dir: Path, made: dict[str, Any], published: bool) -> dict[s
             if name in PUBLISHED:
                 raise RunRejected(f"{path}: missing, though run.json records its SHA-256")
             continue
-        if (found := sha256(path)) != digest:
+        if (actual := sha256(path)) != digest:
             raise RunRejected(
-                f"{path}: not the file its run wrote (SHA-256 {found[:12]}…, run.json "
+                f"{path}: not the file its run wrote (SHA-256 {actual[:12]}…, run.json "
                 f"records {digest[:12]}…)"
             )
     return {name: digest for name, digest in recorded.items() if (run_dir / name).is_file()}

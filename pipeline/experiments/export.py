@@ -33,7 +33,7 @@ from ede_pipeline.common import (
     _overlap,
     read_params,
 )
-from ede_pipeline.experiments.workspace import WORKSPACES, experiment_file
+from ede_pipeline.experiments.workspace import EXPERIMENTS, WORKSPACES, experiment_file
 
 EVERY_SEED = "all"  # --policies given alone: every finished run's policy
 EMBEDDING_METRICS = ("encoder_metrics.json", "decoder_metrics.json")  # as pretrain writes them
@@ -95,19 +95,19 @@ def export(name: str, to: Path, policies: str | None) -> None:
     then all or nothing: each task's folder is built beside the old one and takes its place
     once every one is whole (a full disk leaves TO as it was).
     """
-    experiment = experiment_file(name)
     workspace = WORKSPACES / name
+    if problem := (
+        unwritable(to, directory=True)
+        or _above_working_directory(to)
+        or _overlap(to, (workspace, EXPERIMENTS / f"{name}.yaml"))
+    ):
+        raise BadInput(problem)
+    experiment = experiment_file(name)
     if not (workspace / DEFAULT_PARAMS).is_file():
         raise BadInput(
             f"experiment {name}: not run here yet (no {workspace}); "
             f"`ede-pipeline experiment run {name}` first"
         )
-    if problem := (
-        unwritable(to, directory=True)
-        or _above_working_directory(to)
-        or _overlap(to, (workspace, experiment))
-    ):
-        raise BadInput(problem)
     params = read_params(workspace / DEFAULT_PARAMS)
     playable = _policy_seeds(policies, name, params.runs.seeds)  # None: no --policies
     listed = policies != EVERY_SEED  # seeds named, not every one whose runs finished
@@ -174,6 +174,7 @@ def _plan(
     folder = layout.task_runs(task, to)
     if problem := _links(folder, to):
         raise BadInput(problem)
+    _refuse_in_the_way([(folder, True), (folder / "source.json", False)])
     published = _published_beside(task, runs, to)
     commits = sorted(
         {run.made["code"]["commit"] for *_, run in runs} | _earlier_commits(params, runs, published)
@@ -235,7 +236,6 @@ def _plan(
                 f"out of {kept}"
             )
         removed.append((entry, "no published run acts through it now"))
-    _refuse_in_the_way([(folder / "source.json", False)])
     embedding = workspace / layout.embedding(params.runs.tasks[task])
     return _TaskExport(task, runs, playable, embeddings, embedding, removed, source)
 
@@ -261,8 +261,9 @@ def _write(plans: list[_TaskExport], to: Path) -> list[str]:
         shutil.rmtree(stage, ignore_errors=True)
         if created:
             shutil.rmtree(root, ignore_errors=True)
-        if isinstance(error, OSError):
-            reason = error.strerror or first_line(error)
+        cause = error.error if isinstance(error, _CopyFailed) else error
+        if isinstance(cause, OSError):
+            reason = cause.strerror or first_line(cause)
             raise Failed(f"{to}: nothing exported ({reason}); it is as it was") from None
         raise
     for plan in plans:  # renames alone: no byte to write, so none to fail for want of room
@@ -283,7 +284,7 @@ def _build(plan: _TaskExport, to: Path, root: Path, new: Path) -> list[str]:
     task = plan.task
     folder, built = layout.task_runs(task, root), layout.task_runs(task, new)
     if folder.is_dir():
-        shutil.copytree(folder, built, symlinks=True)
+        shutil.copytree(folder, built, symlinks=True, copy_function=_copy)
     built.mkdir(parents=True, exist_ok=True)
     said = []
     for algo, seed, made, _ in plan.runs:
@@ -294,7 +295,7 @@ def _build(plan: _TaskExport, to: Path, root: Path, new: Path) -> list[str]:
                 shutil.copy2(made / file, target / file)
         if plan.playable is not None and seed in plan.playable:
             shutil.rmtree(target / POLICY, ignore_errors=True)
-            shutil.copytree(made / POLICY, target / POLICY)
+            shutil.copytree(made / POLICY, target / POLICY, copy_function=_copy)
     for checksum, with_decoder in plan.embeddings.items():
         kept = built / layout.PUBLISHED_EMBEDDINGS / checksum
         claim(kept, EMBEDDING_KIND, EMBEDDING_OWNS)
@@ -302,13 +303,31 @@ def _build(plan: _TaskExport, to: Path, root: Path, new: Path) -> list[str]:
             shutil.copy2(plan.embedding / file, kept / file)
         if with_decoder:  # the decoder a published EDE-TD3 policy acts through
             shutil.rmtree(kept / layout.DECODER, ignore_errors=True)
-            shutil.copytree(plan.embedding / layout.DECODER, kept / layout.DECODER)
+            shutil.copytree(
+                plan.embedding / layout.DECODER, kept / layout.DECODER, copy_function=_copy
+            )
     for gone, why in plan.removed:
         shutil.rmtree(new / gone.relative_to(to))
         said.append(f"{gone}: removed ({why})")
     write_json(built / "source.json", plan.source)
     said.append(f"{task}: {len(plan.runs)} runs to {layout.task_runs(task, to)}")
     return said
+
+
+class _CopyFailed(Exception):
+    """A file :func:`shutil.copytree` could not copy (a full disk): raised through it whole,
+    where it would gather each file's error as text."""
+
+    def __init__(self, error: OSError) -> None:
+        super().__init__(str(error))
+        self.error = error
+
+
+def _copy(source: str, target: str) -> object:
+    try:
+        return shutil.copy2(source, target)
+    except OSError as error:
+        raise _CopyFailed(error) from None
 
 
 def _policy_seeds(policies: str | None, name: str, seeds: list[int]) -> set[int] | None:

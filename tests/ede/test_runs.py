@@ -272,7 +272,11 @@ def test_two_runs_of_the_same_files_are_one_whatever_their_run_json_says(tmp_pat
     shutil.copytree(tmp_path / "seed3", tmp_path / "seed4")
     made = json.loads((tmp_path / "seed4" / "run.json").read_text())
     (tmp_path / "seed4" / "run.json").write_text(json.dumps({**made, "seed": 4}))
-    runs = [(tmp_path / f"seed{s}", read_run(tmp_path / f"seed{s}", {"seed": s})) for s in (3, 4)]
+    runs = []
+    for seed in (3, 4):
+        run = read_run(tmp_path / f"seed{seed}", {"seed": seed})
+        assert run is not None
+        runs.append((tmp_path / f"seed{seed}", run))
     assert same_files(runs[:1]) is None
     digest = sha256(tmp_path / "seed3" / "eval.csv")
     assert same_files(runs) == (

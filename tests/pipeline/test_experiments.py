@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -274,13 +275,14 @@ def finished_workspace(
             embedding if algo == "ede-td3" else "",
         )
         if policies:
-            write_atomically(
-                out / POLICY,
-                lambda tmp, a=algo, s=seed: (tmp / "policy.safetensors").write_text(f"{a} {s}"),
-                kind="policy",
-            )
+            write_atomically(out / POLICY, policy_of(f"{algo} {seed}"), "policy")
         write_finished(out, spec, {"final_return": -9.0}, torch.device("cpu"))
     return workspace
+
+
+def policy_of(text: str) -> Callable[[Path], object]:
+    """What writes a policy/ holding ``text`` as its policy.safetensors (for ``write_atomically``)."""
+    return lambda tmp: (tmp / "policy.safetensors").write_text(text)
 
 
 def export(name: str) -> Any:
@@ -653,3 +655,150 @@ def test_an_export_of_a_file_its_run_did_not_write_is_refused(first_published: P
         f"{path}: not the file its run wrote (SHA-256 {sha256(path)[:12]}…, run.json records "
         f"{recorded[:12]}…)",
     )
+
+
+def test_an_export_refuses_to_remove_a_folder_among_the_embeddings_it_did_not_write(
+    first_published: Path,
+) -> None:
+    """The issue's example: a user's folder beside the published embeddings, which no run acts
+    through, was removed as an export's; and an export's own, with a user's file added."""
+    from ede_pipeline import layout
+
+    kept = PUBLISHED_TASK / layout.PUBLISHED_EMBEDDINGS
+    (kept / "my-notes").mkdir(parents=True)
+    (kept / "my-notes" / "NOTES.txt").write_text("mine\n")
+    line = (
+        "no published run acts through it, but no export wrote it (it holds what an export's "
+        f"mark does not own); an export removes only its own: move it out of {kept}"
+    )
+    refused("more", f"{kept / 'my-notes'}: {line}")
+    (kept / "my-notes" / "NOTES.txt").unlink()
+    result = export("more")  # an empty folder holds nothing of anyone's
+    assert result.exit_code == 0, result.output
+    finished_workspace(first_published, "ede", [2], ["ede-td3"], embedding="a0" * 32)
+    assert export("ede").exit_code == 0
+    shutil.rmtree(Path(".dvc/tmp/experiments/ede"))  # made again with another embedding
+    finished_workspace(first_published, "ede", [2], ["ede-td3"], embedding="b1" * 32)
+    (kept / ("a0" * 6) / "NOTES.txt").write_text("mine\n")
+    refused("ede", f"{kept / ('a0' * 6)}: {line}")
+
+
+@pytest.mark.parametrize(
+    ("to", "line"),
+    [
+        (".", ".: the working directory; expected a folder of the output's own, e.g. one inside it"),
+        ("..", "..: the working directory or a folder above it; expected a folder of the output's "
+               "own, e.g. one inside it"),
+        ("notes.txt", "notes.txt: a file is in the way; expected a directory there, or nothing"),
+        (".dvc/tmp/experiments/more/data", ".dvc/tmp/experiments/more/data: lies inside the "
+                                           "stage's input .dvc/tmp/experiments/more; expected a "
+                                           "place apart from it"),
+    ],
+)  # fmt: skip
+def test_an_export_to_the_working_directory_its_input_or_a_file_is_refused(
+    first_published: Path, to: str, line: str
+) -> None:
+    (first_published / "notes.txt").write_text("mine\n")
+    before = {p: p.read_bytes() for p in first_published.rglob("*") if p.is_file()}
+    result = CliRunner().invoke(main, ["experiment", "export", "more", "--to", to])
+    assert (result.exit_code, result.stderr) == (2, f"Error: {line}\n"), result.output
+    assert {p: p.read_bytes() for p in first_published.rglob("*") if p.is_file()} == before
+
+
+def test_an_export_refuses_what_is_in_the_way_of_what_it_writes(first_published: Path) -> None:
+    """A file where a folder of the task goes, a folder where its source.json goes, and a seed
+    folder of the user's where a run goes: one line each, nothing written."""
+    algo = PUBLISHED_TASK / "td3"
+    (PUBLISHED_TASK / "source.json").rename("source.json")
+    (PUBLISHED_TASK / "source.json").mkdir()
+    refused("more", f"{PUBLISHED_TASK / 'source.json'}: a folder is in the way; expected a file "
+                    "there, or nothing")  # fmt: skip
+    (PUBLISHED_TASK / "source.json").rmdir()
+    Path("source.json").rename(PUBLISHED_TASK / "source.json")
+    (algo / "seed1").mkdir()
+    (algo / "seed1" / "NOTES.txt").write_text("mine\n")
+    refused("more", f"{algo / 'seed1'}: holds NOTES.txt, and no finished run an export "
+                    "published; move them out first")  # fmt: skip
+    shutil.rmtree(algo / "seed1")
+    (algo / "seed1").write_text("mine\n")
+    refused("more", f"{algo / 'seed1'}: a file is in the way; expected a folder there, or nothing")
+
+
+@pytest.mark.parametrize("link", ["seed folder", "task folder"])
+def test_an_export_never_writes_through_a_link_in_a_published_folder(
+    first_published: Path, link: str
+) -> None:
+    """A seed folder, or the folder above a task's, that leads outside the published folder."""
+    elsewhere = first_published / "elsewhere"
+    linked = PUBLISHED_TASK / "td3" / "seed1" if link == "seed folder" else PUBLISHED_TASK.parent
+    if link == "task folder":
+        shutil.move(linked, elsewhere)
+    else:
+        elsewhere.mkdir()
+    linked.symlink_to(elsewhere)
+    refused(
+        "more",
+        f"{linked}: a symbolic link (to {elsewhere}); a published folder holds its own files, so "
+        "that an export writes nothing outside it: put what it names there instead",
+    )
+    assert sorted(p.name for p in elsewhere.rglob("*")) == (
+        [] if link == "seed folder" else sorted(p.name for p in elsewhere.rglob("*"))
+    )
+
+
+def test_an_export_refuses_to_remove_a_policy_it_did_not_write(first_published: Path) -> None:
+    finished_workspace(first_published, "pair", [0, 1], ["td3"], policies=True)
+    (PUBLISHED_TASK / "source.json").unlink()
+    shutil.rmtree(PUBLISHED_TASK / "td3")
+    assert export("pair").exit_code == 0
+    policy = PUBLISHED_TASK / "td3" / "seed0" / POLICY
+    policy.mkdir()
+    (policy / "NOTES.txt").write_text("mine\n")
+    before = published()
+    result = CliRunner().invoke(
+        main, ["experiment", "export", "pair", "--to", "published", "--policies", "1"]
+    )
+    assert (result.exit_code, result.stderr) == (
+        2,
+        f"Error: {policy}: holds NOTES.txt, which no export wrote there (no "
+        ".ede-output.json of one); move it out first\n",
+    ), result.output
+    assert published() == before
+
+
+def test_an_export_waits_for_no_other_export_to_the_same_place(first_published: Path) -> None:
+    from ede.locks import exclusive
+
+    with exclusive(Path("published")):
+        before = published()
+        result = export("more")
+        assert result.exit_code == 2 and "published: being written by process" in result.stderr
+        assert published() == before
+
+
+def test_an_export_that_fails_midway_leaves_the_published_folder_as_it_was(
+    first_published: Path,
+) -> None:
+    """A full disk (each write past RLIMIT_FSIZE fails, as one on a full disk does): one line,
+    exit 1, no traceback, and the published folder as it was, with no temporary left."""
+    import sys
+
+    from tests.pipeline.test_outputs import LIMITED
+
+    finished_workspace(first_published, "both", [0, 1], ["td3"], policies=True)
+    (PUBLISHED_TASK / "source.json").unlink()
+    shutil.rmtree(PUBLISHED_TASK / "td3")
+    assert export("both").exit_code == 0
+    before = {p: p.read_bytes() for p in first_published.rglob("*") if p.is_file()}
+    names = sorted(p.relative_to(first_published) for p in first_published.rglob("*"))
+    done = subprocess.run(
+        [sys.executable, "-c", LIMITED.format(limit=1_000), "experiment", "export", "both",
+         "--to", "published", "--policies"],
+        capture_output=True, text=True, timeout=600, env=tool_env(),
+    )  # fmt: skip
+    assert (done.returncode, done.stderr) == (
+        1,
+        "Error: published: nothing exported (File too large); it is as it was\n",
+    ), done.stderr
+    assert {p: p.read_bytes() for p in first_published.rglob("*") if p.is_file()} == before
+    assert sorted(p.relative_to(first_published) for p in first_published.rglob("*")) == names
