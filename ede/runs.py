@@ -419,8 +419,8 @@ def _run_json(path: Path) -> dict[str, Any]:
 
 def _check_files(run_dir: Path, made: dict[str, Any], published: bool) -> dict[str, str]:
     """The SHA-256 of each of a run's files there, checked: those ``run.json`` records
-    (``sha256``) are the run's, every file of :data:`CHECKSUMMED` there is recorded, and those
-    published (:data:`PUBLISHED`) are there. A ``run.json`` without ``sha256`` (a run finished
+    (``sha256``) are the run's, every file of :data:`CHECKSUMMED` there and every one published
+    (:data:`PUBLISHED`) is recorded, and those published are there. A ``run.json`` without ``sha256`` (a run finished
     before runs recorded it) is read as it is, unless ``published`` (:func:`read_run`)."""
     where = run_dir / "run.json"
     if "sha256" not in made:
@@ -438,7 +438,12 @@ def _check_files(run_dir: Path, made: dict[str, Any], published: bool) -> dict[s
         raise RunRejected(
             f"{where}: 'sha256' is not a SHA-256 by file name ({', '.join(CHECKSUMMED)})"
         )
-    if unrecorded := [n for n in CHECKSUMMED if n not in recorded and (run_dir / n).is_file()]:
+    unrecorded = [
+        name
+        for name in CHECKSUMMED
+        if name not in recorded and (name in PUBLISHED or (run_dir / name).is_file())
+    ]
+    if unrecorded:
         raise RunRejected(
             f"{where}: 'sha256' records no SHA-256 of {', '.join(unrecorded)}; a run records "
             "one for each of its files"

@@ -106,6 +106,7 @@ class TaskRuns:
     source: Source
     embedding: str | None  # the held-out figures of the embeddings EDE-TD3 used, where kept
     cpus: dict[str | None, int]  # runs per CPU (with its instruction sets); None: unrecorded
+    runs: list[tuple[Path, Run]]  # each run's folder and what was read of it
 
 
 SEED_FOLDER = re.compile(r"seed(0|[1-9][0-9]*)")  # seed<N>, as layout.run names it
@@ -185,6 +186,7 @@ def read_folder(root: Path, task: str) -> TaskRuns | None:
         read_source(folder),
         embedding_figures(root, task, embeddings),
         dict(cpus),
+        found,
     )
 
 
@@ -338,7 +340,8 @@ def task_folders(root: Path) -> list[str]:
 def read_runs(runs: Path, params) -> dict[str, list[TaskRuns]]:
     """Each family with finished runs, and its tasks': ``params.yaml``'s tasks in its order, then
     every other task kept under ``runs``, as its own family (as an experiment file runs
-    such a task: its embedding learned on its own random data)."""
+    such a task: its embedding learned on its own random data). No run is another task's too
+    (:func:`ede.runs.same_files`)."""
     kept = task_folders(runs) if runs.is_dir() else []
     tasks = {
         **{t: f for t, f in params.runs.tasks.items() if t in kept},
@@ -348,13 +351,17 @@ def read_runs(runs: Path, params) -> dict[str, list[TaskRuns]]:
     for task, family in tasks.items():
         if found := read_folder(runs, task):
             families.setdefault(family, []).append(found)
+    every = [run for found in families.values() for task_runs in found for run in task_runs.runs]
+    if (copy := same_files(every)) is not None:  # one task's run copied as another's
+        raise BadInput(copy)
     return families
 
 
 def read_ablations(ablations: Path, runs: Path) -> list[tuple[str, TaskRuns, TaskRuns]]:
     """Each variant under ``ablations`` (``<variant>/<task>/<algorithm>/seed<N>/``, a ``source.json``
     per task) with the default's runs of the same task under ``runs``, which must hold every seed
-    of every algorithm the variant ran: (variant, its runs, the default's of those seeds)."""
+    of every algorithm the variant ran: (variant, its runs, the default's of those seeds); no run
+    of a variant is the default's or another variant's (:func:`ede.runs.same_files`)."""
     found = []
     for variant in sorted(p for p in ablations.glob("*") if p.is_dir()):
         if variant.name == "default":
@@ -386,4 +393,7 @@ def read_ablations(ablations: Path, runs: Path) -> list[tuple[str, TaskRuns, Tas
                     )
             theirs.curves = chosen
             found.append((variant.name, ours, theirs))
+    every = [run for _, ours, theirs in found for run in (*theirs.runs, *ours.runs)]
+    if (copy := same_files(every)) is not None:  # a variant's run that is the default's
+        raise BadInput(copy)
     return found

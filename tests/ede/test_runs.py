@@ -194,12 +194,15 @@ def test_a_run_that_records_no_checksums_reads_as_it_is(tmp_path: Path) -> None:
 
 def without_checksums(folder: Path, how: str) -> None:
     """``folder``'s run.json with its checksums turned off ``how``: the key removed, set null, an
-    empty record, or eval.csv's entry alone removed."""
+    empty record, eval.csv's entry alone removed, or diagnostics.csv's with the file."""
     made = json.loads((folder / "run.json").read_text())
     if how == "removed":
         del made["sha256"]
     elif how == "eval.csv's removed":
         del made["sha256"]["eval.csv"]
+    elif how == "diagnostics.csv removed with its":
+        del made["sha256"]["diagnostics.csv"]
+        (folder / "diagnostics.csv").unlink()
     else:
         made["sha256"] = {"null": None, "empty": {}}[how]
     (folder / "run.json").write_text(json.dumps(made))
@@ -216,6 +219,8 @@ def without_checksums(folder: Path, how: str) -> None:
                   "records one for each of its files"),
         ("eval.csv's removed", "'sha256' records no SHA-256 of eval.csv; a run records one for "
                                "each of its files"),
+        ("diagnostics.csv removed with its", "'sha256' records no SHA-256 of diagnostics.csv; a "
+                                             "run records one for each of its files"),
     ],
 )  # fmt: skip
 def test_a_published_run_whose_checksums_are_turned_off_is_rejected(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
@@ -17,7 +18,7 @@ from click.testing import CliRunner
 
 from ede.atomic import sha256
 from ede.config import Algo, EdeTD3Config, TD3Config
-from ede.runs import RunSpec, write_curves, write_finished
+from ede.runs import PUBLISHED, RunSpec, write_curves, write_finished
 from ede_pipeline import layout
 from ede_pipeline.cli import main
 from tests.support import REPO
@@ -48,7 +49,7 @@ def write_run(
     folder.mkdir(parents=True)
     name_seed(runs, task, seed)
     steps = np.linspace(0, budget, len(returns))
-    wall = seed + (algo == "ede-td3") / 2  # no two runs' curves are the same file
+    wall = zlib.crc32(f"{task} {algo} {seed}".encode()) / 1e6  # no two runs' curves one file
     rows = [
         f"{int(s)},{i},{r},1.0,{i + wall}"
         for i, (s, r) in enumerate(zip(steps, returns, strict=True))
@@ -57,13 +58,14 @@ def write_run(
         "step,episode,mean_return,std_return,wall_seconds\n" + "\n".join(rows) + "\n"
     )
     (folder / "metrics.json").write_text(json.dumps({"final_return": float(returns[-1])}))
+    (folder / "diagnostics.csv").write_text("step,updates,critic_loss,actor_loss,mean_q\n")
     made = {
         "task": task,
         "algo": algo,
         "seed": seed,
         "budget": budget,
         "embedding": embedding if algo == "ede-td3" else "",
-        "sha256": {name: sha256(folder / name) for name in ("eval.csv", "metrics.json")},
+        "sha256": {name: sha256(folder / name) for name in PUBLISHED if name != "run.json"},
     }
     if machine is not None:  # as run.json records it since 2026-12; the committed runs have none
         made["machine"] = machine
@@ -817,6 +819,29 @@ def test_a_run_copied_as_another_seed_is_refused_whatever_its_run_json_says(
     made = json.loads((copy / "run.json").read_text())
     (copy / "run.json").write_text(json.dumps({**made, "seed": 2}))
     name_seed(runs, TASK, 2)
+    refused(
+        tmp_path,
+        runs,
+        f"{copy}: the same run as {original} (their eval.csv's SHA-256 are both "
+        f"{sha256(original / 'eval.csv')[:12]}…); a run is published once, in the folder of its "
+        "own seed",
+    )
+
+
+@pytest.mark.parametrize("where", ["another task", "an ablation"])
+def test_a_run_copied_as_another_tasks_or_a_variants_is_refused(tmp_path: Path, where: str) -> None:
+    """td3/seed0 copied to another task's folder (its run.json saying that task), or to an
+    ablation's variant, where it would stand for what it is not."""
+    runs = tmp_path / "runs"
+    four_runs(runs)
+    original = layout.run(TASK, "td3", 0, runs)
+    other = "ede/ReacherPush-v0" if where == "another task" else TASK
+    root = runs if where == "another task" else tmp_path / "ablations" / "copied"
+    copy = layout.run(other, "td3", 0, root)
+    shutil.copytree(original, copy)
+    made = json.loads((copy / "run.json").read_text())
+    (copy / "run.json").write_text(json.dumps({**made, "task": other}))
+    name_seed(root, other, 0)
     refused(
         tmp_path,
         runs,
