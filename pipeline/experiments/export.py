@@ -17,6 +17,7 @@ from ede.atomic import (
     ownership_problem,
     place,
     remove_stale_temporaries,
+    sha256,
     unwritable,
     write_json,
 )
@@ -189,7 +190,7 @@ def _plan(
     source = _merged_source(folder, part)
     replaced = {run for run, _ in published}
     removed = []
-    for algo, seed, _, _ in runs:
+    for algo, seed, _, run in runs:
         target = layout.run(task, algo, seed, to)
         _refuse_in_the_way(
             [(folder, True), (target.parent, True), (target, True)]
@@ -200,11 +201,16 @@ def _plan(
                 f"{target}: holds {entries}, and no finished run an export published; move "
                 "them out first"
             )
-        if playable is not None and (target / POLICY).exists():
-            if problem := _not_ours(target / POLICY, "policy"):
-                raise BadInput(problem)
-            if seed not in playable:
-                removed.append((target / POLICY, f"--policies {policies}"))
+        policy = target / POLICY
+        if not policy.exists():
+            continue
+        stale = playable is None and not _recorded(policy, run)
+        if (playable is not None or stale) and (problem := _not_ours(policy, "policy")):
+            raise BadInput(problem)
+        if playable is not None and seed not in playable:
+            removed.append((policy, f"--policies {policies}"))
+        elif stale:  # an earlier run's, which the run exported over it does not record
+            removed.append((policy, "not the policy of the run exported over it"))
     acting = {seed: run.made["embedding"] for algo, seed, _, run in runs if algo == "ede-td3"}
     embeddings = {
         checksum[:12]: any(s in (playable or ()) for s, c in acting.items() if c == checksum)
@@ -492,6 +498,17 @@ def _finished_runs(workspace: Path, params: Params) -> tuple[dict, list[str]]:
         elif run is not None:
             finished[(task, algo, seed)] = (out, run)
     return finished, problems
+
+
+def _recorded(policy: Path, run: Run) -> bool:
+    """Whether the files of ``policy`` (a published policy/) are those ``run``'s run.json
+    records, no more and no fewer."""
+    recorded = run.made.get("sha256") or {}
+    for name in ("policy.safetensors", "policy.json"):
+        path, digest = policy / name, recorded.get(f"{POLICY}/{name}")
+        if path.is_file() != (digest is not None) or (digest and sha256(path) != digest):
+            return False
+    return True
 
 
 def _links(folder: Path, to: Path) -> str | None:

@@ -403,6 +403,29 @@ def test_an_experiment_made_again_exports_without_its_earlier_embedding(
     assert f"{kept / earlier[:12]}: removed" in result.stderr
 
 
+def test_an_experiment_made_again_exports_without_the_policy_its_runs_no_longer_record(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Exported with --policies, then made again (here keeping no policy) and exported without:
+    the earlier run's policy, which the new run.json does not record, goes, so that the folder
+    reads as ``results`` reads it."""
+    from ede_pipeline import layout
+    from ede_pipeline.published import published_runs
+
+    monkeypatch.chdir(tmp_path)
+    workspace = finished_workspace(tmp_path, "clip", [0], ["td3"], policies=True)
+    args = ["experiment", "export", "clip", "--to", "published"]
+    assert CliRunner().invoke(main, [*args, "--policies"]).exit_code == 0
+    policy = layout.run(TASK, "td3", 0, Path("published")) / POLICY
+    assert policy.is_dir()
+    shutil.rmtree(workspace)
+    finished_workspace(tmp_path, "clip", [0], ["td3"])
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    assert f"{policy}: removed (not the policy of the run exported over it)" in result.stderr
+    assert not policy.exists() and len(published_runs(Path("published"), TASK)) == 1
+
+
 def test_an_export_publishes_the_policies_of_the_seeds_it_is_given(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
