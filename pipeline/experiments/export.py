@@ -16,7 +16,6 @@ from ede.atomic import (
     claim,
     ownership_problem,
     place,
-    remove_stale_temporaries,
     sha256,
     unwritable,
     write_json,
@@ -43,7 +42,8 @@ EMBEDDING_METRICS = ("encoder_metrics.json", "decoder_metrics.json")  # as pretr
 EMBEDDING_KIND = "published embedding"
 EMBEDDING_OWNS = (*EMBEDDING_METRICS, layout.DECODER)
 # <to>/.export.tmp-<pid>: where an export builds its task folders (new/), and puts the old ones
-# (old/) as the new ones take their place; gone when it ends, and a killed export's with the next.
+# (old/) as the new ones take their place; gone when it ends, and a killed export's with the next
+# (an old folder put back where its place is empty).
 STAGING = ".export"
 
 
@@ -119,6 +119,7 @@ def export(name: str, to: Path, policies: str | None) -> None:
         raise BadInput(f"experiment {name}: no run has finished yet")
     try:
         with exclusive(to):  # one export to a place at a time
+            _put_back(place(to))
             plans = []  # each task's, all checked before any is written
             for task in params.runs.tasks:
                 runs = [
@@ -258,7 +259,6 @@ def _write(plans: list[_TaskExport], to: Path) -> list[str]:
     said = []
     try:
         root.mkdir(parents=True, exist_ok=True)
-        remove_stale_temporaries(root / STAGING)
         for plan in plans:
             said += _build(plan, to, root, stage / "new")
             for tree in (root, stage / "old"):
@@ -281,6 +281,19 @@ def _write(plans: list[_TaskExport], to: Path) -> list[str]:
         os.rename(new, final)
     shutil.rmtree(stage)
     return said
+
+
+def _put_back(root: Path) -> None:
+    """Undo what an export killed midway left in ``root``: a task folder it had moved aside to
+    put its new one in its place goes back where that place is empty, and the rest of what it
+    left goes (whoever left it is gone: this export holds the place's lock)."""
+    for stage in sorted(root.glob(f"{STAGING}.tmp-*")):
+        for source in sorted((stage / "old").rglob("source.json")):
+            final = root / source.parent.relative_to(stage / "old")
+            if not final.exists():
+                final.parent.mkdir(parents=True, exist_ok=True)
+                os.rename(source.parent, final)
+        shutil.rmtree(stage)
 
 
 def _build(plan: _TaskExport, to: Path, root: Path, new: Path) -> list[str]:

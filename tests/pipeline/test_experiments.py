@@ -825,3 +825,23 @@ def test_an_export_that_fails_midway_leaves_the_published_folder_as_it_was(
     ), done.stderr
     assert {p: p.read_bytes() for p in first_published.rglob("*") if p.is_file()} == before
     assert sorted(p.relative_to(first_published) for p in first_published.rglob("*")) == names
+
+
+def test_an_export_puts_back_what_an_export_killed_midway_left(first_published: Path) -> None:
+    """Killed between taking a task's folder away and putting its new one in its place: the old
+    folder goes back before the next export, which then writes beside it; a killed export's
+    half-built folders go."""
+    killed = Path("published/.export.tmp-4194304")
+    aside = killed / "old" / TASK
+    aside.parent.mkdir(parents=True)
+    PUBLISHED_TASK.rename(aside)
+    (killed / "new" / TASK).mkdir(parents=True)
+    result = export("more")
+    assert result.exit_code == 0, result.output
+    assert not killed.exists()
+    assert sorted(p.name for p in (PUBLISHED_TASK / "td3").iterdir()) == ["seed0", "seed1"]
+    parts = json.loads((PUBLISHED_TASK / "source.json").read_text())
+    assert [(p["experiment"], p["seeds"]) for p in parts] == [
+        ("experiments/first.yaml", [0]),
+        ("experiments/more.yaml", [1]),
+    ]
