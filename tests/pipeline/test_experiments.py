@@ -845,3 +845,19 @@ def test_an_export_puts_back_what_an_export_killed_midway_left(first_published: 
         ("experiments/first.yaml", [0]),
         ("experiments/more.yaml", [1]),
     ]
+
+
+def test_an_export_of_a_run_copied_from_a_published_one_is_refused(first_published: Path) -> None:
+    """Experiment ``more``'s seed 1 replaced by a copy of the published seed 0, its run.json
+    saying seed 1: the same run, whatever its folder and run.json say."""
+    run = Path(".dvc/tmp/experiments/more/data/runs") / TASK / "td3" / "seed1"
+    shutil.rmtree(run)
+    shutil.copytree(PUBLISHED_TASK / "td3" / "seed0", run)
+    made = json.loads((run / "run.json").read_text())
+    (run / "run.json").write_text(json.dumps({**made, "seed": 1}))
+    refused(
+        "more",
+        f"{run}: the same run as {PUBLISHED_TASK / 'td3' / 'seed0'} (their eval.csv's SHA-256 "
+        f"are both {sha256(run / 'eval.csv')[:12]}…); a run is published once, in the folder of "
+        "its own seed",
+    )
