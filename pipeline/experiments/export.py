@@ -172,7 +172,8 @@ def _plan(
 ) -> _TaskExport:
     """What exporting ``runs`` (one task's) to ``to`` writes and removes, every place checked:
     the runs there and its source.json as ``results`` reads them, and nothing in the way that an
-    export did not write (:func:`_in_the_way`). Raises :class:`BadInput` naming the first."""
+    export did not write (:func:`_refuse_in_the_way`, :func:`_not_ours`). Raises
+    :class:`BadInput` naming the first."""
     folder = layout.task_runs(task, to)
     if problem := _links(folder, to):
         raise BadInput(problem)
@@ -194,8 +195,7 @@ def _plan(
     for algo, seed, _, run in runs:
         target = layout.run(task, algo, seed, to)
         _refuse_in_the_way(
-            [(folder, True), (target.parent, True), (target, True)]
-            + [(target / file, False) for file in PUBLISHED]
+            [(target.parent, True), (target, True), *((target / f, False) for f in PUBLISHED)]
         )
         if target.is_dir() and target not in replaced and (entries := _entries(target)):
             raise BadInput(
@@ -244,6 +244,12 @@ def _plan(
             )
         removed.append((entry, "no published run acts through it now"))
     embedding = workspace / layout.embedding(params.runs.tasks[task])
+    for file in EMBEDDING_METRICS if embeddings else ():
+        if not (embedding / file).is_file():
+            raise BadInput(
+                f"{embedding / file}: missing; the EDE-TD3 runs' embedding is published with "
+                "its metrics, as pretrain writes them"
+            )
     return _TaskExport(task, runs, playable, embeddings, embedding, removed, source)
 
 
