@@ -10,7 +10,8 @@ module is the one place that knows the folder's files:
   seed, budget, the params that change its result, the embedding's checksum), the versions of
   the software, the code (commit, and whether the tree differed from it) and the machine (CPU
   model, the instruction sets that change results, torch's threads), and the SHA-256 of each of
-  its result files (:data:`CHECKSUMMED`; older runs record none) as it wrote them;
+  its result files (:data:`CHECKSUMMED`) as it wrote them (the runs published before it recorded
+  them record none: :data:`ede.early_runs.EARLY_RUNS` names each by its files);
 * ``metrics.json``: final and best return, area under the curve, steps per second, episodes;
   written last, so a run with ``metrics.json`` is finished;
 * ``policy/``: the final actor (``policy.safetensors`` beside ``policy.json``);
@@ -19,7 +20,7 @@ module is the one place that knows the folder's files:
 :func:`read_run` reads a finished run back for the report and the results page, checked against
 the identity it must have (:func:`identity_difference`, which the checkpoint uses too) and against
 the checksums its ``run.json`` records; :func:`unshared_params` finds the run of a task made with
-other params than its others.
+other params than its others, :func:`same_files` two runs that are one.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import csv
 import hashlib
 import io
 import json
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +42,7 @@ from safetensors.torch import load_file
 
 from ede.atomic import save_tensors, sha256, write_atomically, write_json, write_text
 from ede.config import Algo, EdeTD3Config, TD3Config, result_neutral
+from ede.early_runs import EARLY_RUNS
 from ede.errors import first_line
 from ede.provenance import code_version, machine, software_versions
 
@@ -58,6 +61,7 @@ __all__ = [
     "identity_difference",
     "read_policy",
     "read_run",
+    "same_files",
     "unshared_params",
     "write_curves",
     "write_finished",
@@ -179,6 +183,22 @@ def unshared_params(runs: Sequence[tuple[Path, Mapping[str, Any]]]) -> str | Non
     return None
 
 
+def same_files(runs: Sequence[tuple[Path, Run]]) -> str | None:
+    """The first of ``runs`` (each its folder and its :func:`read_run`) whose ``eval.csv`` is
+    byte for byte a run's before it, in one line naming both: one run copied under another
+    folder, whatever its folder or its ``run.json`` says (a run's curve holds its wall times, so
+    no two runs write the same one); None where every run's is its own."""
+    first: dict[str, Path] = {}
+    for folder, run in runs:
+        digest = run.sha256["eval.csv"]
+        if (earlier := first.setdefault(digest, folder)) != folder:
+            return (
+                f"{folder}: the same run as {earlier} (their eval.csv's SHA-256 are both "
+                f"{digest[:12]}…); a run is published once, in the folder of its own seed"
+            )
+    return None
+
+
 def _result_params(made: Mapping[str, Any], sections: tuple[str, ...]) -> dict[str, Any]:
     """The params ``sections`` of a ``run.json`` that change a result, as an identity's."""
     params = made.get("params")
@@ -247,7 +267,9 @@ def read_policy(run_dir: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]
             made = json.loads((run_dir / "run.json").read_text())
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
             raise RunRejected(f"{run_dir / 'run.json'}: not JSON ({first_line(error)})") from None
-        _check_files(run_dir, made.get("sha256") if isinstance(made, dict) else None)
+        if not isinstance(made, dict):
+            raise RunRejected(f"{run_dir / 'run.json'}: expected a JSON object")
+        _check_files(run_dir, made, published=False)
     try:
         meta = json.loads((policy / "policy.json").read_text())
         tensors = load_file(policy / "policy.safetensors")
@@ -310,22 +332,28 @@ class Run:
     diagnostics: dict[str, np.ndarray] | None  # None: the run has no diagnostics.csv
     # run.json: identity, software, code, machine, sha256 (the last three since 2026-12)
     made: dict[str, Any]
+    sha256: dict[str, str]  # of each of its files there, as checked (eval.csv's at least)
 
     @property
     def software(self) -> dict[str, Any] | None:
         return self.made.get("software")
 
 
-def read_run(run_dir: Path, expected: dict[str, Any]) -> Run | None:
+def read_run(run_dir: Path, expected: dict[str, Any], published: bool = False) -> Run | None:
     """A finished run, checked against ``expected``; None when it is not finished.
 
     A run is finished when its ``metrics.json`` exists: ``train`` writes it (atomically) last.
     ``expected`` holds what the run must be, any of :meth:`RunSpec.identity`'s keys (task, algo,
     seed, budget, params, embedding): each must equal its value in ``run.json``. Each file whose
-    SHA-256 ``run.json`` records must be the one the run wrote (a published copy holds no policy;
-    runs finished before it recorded any are read as they are). ``eval.csv`` must hold its
-    columns, finite numbers, and steps that start at 0, rise, and end at the run's budget;
+    SHA-256 ``run.json`` records must be the one the run wrote (a published copy holds no policy),
+    and every one of :data:`CHECKSUMMED` there has its SHA-256 recorded. ``eval.csv`` must hold
+    its columns, finite numbers, and steps that start at 0, rise, and end at the run's budget;
     ``diagnostics.csv``, where there is one, its columns and numbers.
+
+    A run read to be ``published`` (``experiment export``, ``results``) must record its
+    checksums too, unless it is one of the runs published before runs recorded any
+    (:data:`ede.early_runs.EARLY_RUNS`), every byte as published; an EDE-TD3 run's embedding
+    must be a SHA-256 (a published folder keeps the embedding under its first characters).
 
     Raises:
         RunRejected: the first problem found, naming the file.
@@ -336,7 +364,13 @@ def read_run(run_dir: Path, expected: dict[str, Any]) -> Run | None:
     difference = identity_difference(made, expected)
     if difference is not None:
         raise RunRejected(f"{run_dir / 'run.json'}: {difference}")
-    _check_files(run_dir, made.get("sha256"))
+    checksums = _check_files(run_dir, made, published)
+    embedding = made.get("embedding")
+    if published and made.get("algo") == "ede-td3" and not _is_sha256(embedding):
+        raise RunRejected(
+            f"{run_dir / 'run.json'}: 'embedding' is {json.dumps(embedding)}; expected the "
+            "SHA-256 of the decoder the run acted through (64 hexadecimal digits)"
+        )
     table = _numbers(run_dir / "eval.csv", ("step", "mean_return"), finite=True)
     steps, returns = table["step"], table["mean_return"]
     where = run_dir / "eval.csv"
@@ -356,7 +390,7 @@ def read_run(run_dir: Path, expected: dict[str, Any]) -> Run | None:
             finite=False,
             allow_empty=True,
         )
-    return Run(Curve(int(made["seed"]), steps, returns), diagnostics, made)
+    return Run(Curve(int(made["seed"]), steps, returns), diagnostics, made, checksums)
 
 
 def recorded_task(run_dir: Path) -> str:
@@ -383,17 +417,36 @@ def _run_json(path: Path) -> dict[str, Any]:
     return made
 
 
-def _check_files(run_dir: Path, recorded: Any) -> None:
-    """Each file of ``recorded`` (``run.json``'s ``sha256``; None: recorded none) has its SHA-256,
-    those published (:data:`PUBLISHED`) are there, the policy where it is kept."""
-    if recorded is None:
-        return
+def _check_files(run_dir: Path, made: dict[str, Any], published: bool) -> dict[str, str]:
+    """The SHA-256 of each of a run's files there, checked: those ``run.json`` records
+    (``sha256``) are the run's, every file of :data:`CHECKSUMMED` there and every one published
+    (:data:`PUBLISHED`) is recorded, and those published are there. A ``run.json`` without ``sha256`` (a run finished
+    before runs recorded it) is read as it is, unless ``published`` (:func:`read_run`)."""
+    where = run_dir / "run.json"
+    if "sha256" not in made:
+        found = {name: sha256(run_dir / name) for name in PUBLISHED if (run_dir / name).is_file()}
+        if published and early_run(found) not in EARLY_RUNS:
+            raise RunRejected(
+                f"{where}: records no 'sha256' of the run's files; every run made since runs "
+                "recorded them does, and those published before are kept unchanged (ede/early_runs.py)"
+            )
+        return found
+    recorded = made["sha256"]
     if not isinstance(recorded, dict) or not all(
-        name in CHECKSUMMED and isinstance(digest, str) for name, digest in recorded.items()
+        name in CHECKSUMMED and _is_sha256(digest) for name, digest in recorded.items()
     ):
         raise RunRejected(
-            f"{run_dir / 'run.json'}: 'sha256' is not a SHA-256 by file name "
-            f"({', '.join(CHECKSUMMED)})"
+            f"{where}: 'sha256' is not a SHA-256 by file name ({', '.join(CHECKSUMMED)})"
+        )
+    unrecorded = [
+        name
+        for name in CHECKSUMMED
+        if name not in recorded and (name in PUBLISHED or (run_dir / name).is_file())
+    ]
+    if unrecorded:
+        raise RunRejected(
+            f"{where}: 'sha256' records no SHA-256 of {', '.join(unrecorded)}; a run records "
+            "one for each of its files"
         )
     for name, digest in recorded.items():
         path = run_dir / name
@@ -401,11 +454,22 @@ def _check_files(run_dir: Path, recorded: Any) -> None:
             if name in PUBLISHED:
                 raise RunRejected(f"{path}: missing, though run.json records its SHA-256")
             continue
-        if (found := sha256(path)) != digest:
+        if (actual := sha256(path)) != digest:
             raise RunRejected(
-                f"{path}: not the file its run wrote (SHA-256 {found[:12]}…, run.json "
+                f"{path}: not the file its run wrote (SHA-256 {actual[:12]}…, run.json "
                 f"records {digest[:12]}…)"
             )
+    return {name: digest for name, digest in recorded.items() if (run_dir / name).is_file()}
+
+
+def early_run(checksums: Mapping[str, str]) -> str:
+    """What :data:`ede.early_runs.EARLY_RUNS` knows a run by: the SHA-256 of the SHA-256 of each
+    of its published files (:data:`PUBLISHED`, ``run.json`` included) there, by name."""
+    return hashlib.sha256(json.dumps(dict(checksums), sort_keys=True).encode()).hexdigest()
+
+
+def _is_sha256(value: Any) -> bool:
+    return isinstance(value, str) and re.fullmatch("[0-9a-f]{64}", value) is not None
 
 
 def _short(values: np.ndarray) -> str:

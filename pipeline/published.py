@@ -15,7 +15,15 @@ from pathlib import Path
 
 from ede.config import ALGOS
 from ede.provenance import INSTRUCTION_SETS
-from ede.runs import Curve, Run, RunRejected, read_run, recorded_task, unshared_params
+from ede.runs import (
+    Curve,
+    Run,
+    RunRejected,
+    read_run,
+    recorded_task,
+    same_files,
+    unshared_params,
+)
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput
 
@@ -98,6 +106,7 @@ class TaskRuns:
     source: Source
     embedding: str | None  # the held-out figures of the embeddings EDE-TD3 used, where kept
     cpus: dict[str | None, int]  # runs per CPU (with its instruction sets); None: unrecorded
+    runs: list[tuple[Path, Run]]  # each run's folder and what was read of it
 
 
 SEED_FOLDER = re.compile(r"seed(0|[1-9][0-9]*)")  # seed<N>, as layout.run names it
@@ -105,10 +114,12 @@ SEED_FOLDER = re.compile(r"seed(0|[1-9][0-9]*)")  # seed<N>, as layout.run names
 
 def published_runs(root: Path, task: str) -> list[tuple[Path, Run]]:
     """A task's finished runs under ``root`` (:func:`ede_pipeline.layout.run`), per algorithm by
-    seed, each checked (:func:`ede.runs.read_run`: the task, algorithm and seed of its folder,
-    its files those its ``run.json`` records). Every folder of an algorithm's is a run, named
-    ``seed<N>`` as ``layout.run`` names it, so that no seed is read twice (``seed00`` beside
-    ``seed0``); each run's ``run.json`` names its folder's seed."""
+    seed, each checked as a published run (:func:`ede.runs.read_run`: the task, algorithm and
+    seed of its folder, its files those its ``run.json`` records). Every folder of an
+    algorithm's is a run, named ``seed<N>`` as ``layout.run`` names it, so that no seed is read
+    twice (``seed00`` beside ``seed0``); each run's ``run.json`` names its folder's seed, a seed
+    its task's ``source.json`` names; and no two runs are one (:func:`ede.runs.same_files`: a
+    copy of a run is refused whatever its folder and its ``run.json`` say)."""
     found = []
     for algo in ALGOS:
         seeds = []
@@ -124,11 +135,23 @@ def published_runs(root: Path, task: str) -> list[tuple[Path, Run]]:
         for seed in sorted(seeds):
             run = layout.run(task, algo, seed, root)
             try:
-                record = read_run(run, {"task": task, "algo": algo, "seed": seed})
+                record = read_run(run, {"task": task, "algo": algo, "seed": seed}, published=True)
             except RunRejected as error:
                 raise BadInput(str(error)) from None
             if record is not None:
                 found.append((run, record))
+    if (copy := same_files(found)) is not None:
+        raise BadInput(copy)
+    if found:
+        folder = layout.task_runs(task, root)
+        named = read_source(folder).seeds
+        for run, record in found:
+            if record.curve.seed not in named:
+                raise BadInput(
+                    f"{run}: a run of seed {record.curve.seed}, which {folder / 'source.json'} "
+                    f"does not name (it names {seed_list(named) if named else 'none'}); a "
+                    "task's runs are the seeds its experiments made, as each export names them"
+                )
     return found
 
 
@@ -163,6 +186,7 @@ def read_folder(root: Path, task: str) -> TaskRuns | None:
         read_source(folder),
         embedding_figures(root, task, embeddings),
         dict(cpus),
+        found,
     )
 
 
@@ -316,7 +340,8 @@ def task_folders(root: Path) -> list[str]:
 def read_runs(runs: Path, params) -> dict[str, list[TaskRuns]]:
     """Each family with finished runs, and its tasks': ``params.yaml``'s tasks in its order, then
     every other task kept under ``runs``, as its own family (as an experiment file runs
-    such a task: its embedding learned on its own random data)."""
+    such a task: its embedding learned on its own random data). No run is another task's too
+    (:func:`ede.runs.same_files`)."""
     kept = task_folders(runs) if runs.is_dir() else []
     tasks = {
         **{t: f for t, f in params.runs.tasks.items() if t in kept},
@@ -326,13 +351,17 @@ def read_runs(runs: Path, params) -> dict[str, list[TaskRuns]]:
     for task, family in tasks.items():
         if found := read_folder(runs, task):
             families.setdefault(family, []).append(found)
+    every = [run for found in families.values() for task_runs in found for run in task_runs.runs]
+    if (copy := same_files(every)) is not None:  # one task's run copied as another's
+        raise BadInput(copy)
     return families
 
 
 def read_ablations(ablations: Path, runs: Path) -> list[tuple[str, TaskRuns, TaskRuns]]:
     """Each variant under ``ablations`` (``<variant>/<task>/<algorithm>/seed<N>/``, a ``source.json``
     per task) with the default's runs of the same task under ``runs``, which must hold every seed
-    of every algorithm the variant ran: (variant, its runs, the default's of those seeds)."""
+    of every algorithm the variant ran: (variant, its runs, the default's of those seeds); no run
+    of a variant is the default's or another variant's (:func:`ede.runs.same_files`)."""
     found = []
     for variant in sorted(p for p in ablations.glob("*") if p.is_dir()):
         if variant.name == "default":
@@ -364,4 +393,7 @@ def read_ablations(ablations: Path, runs: Path) -> list[tuple[str, TaskRuns, Tas
                     )
             theirs.curves = chosen
             found.append((variant.name, ours, theirs))
+    every = [run for _, ours, theirs in found for run in (*theirs.runs, *ours.runs)]
+    if (copy := same_files(every)) is not None:  # a variant's run that is the default's
+        raise BadInput(copy)
     return found

@@ -20,11 +20,13 @@ from ede.runs import (
     RunSpec,
     identity_difference,
     read_run,
+    same_files,
     unshared_params,
     write_curves,
     write_finished,
     write_policy,
 )
+from tests.support import REPO
 
 SPEC = RunSpec("ede/Point-v0", "td3", 3, 2_000, TD3Config(), EdeTD3Config())
 
@@ -188,6 +190,104 @@ def test_a_run_that_records_no_checksums_reads_as_it_is(tmp_path: Path) -> None:
     (tmp_path / "run.json").write_text(json.dumps({**made, "sha256": ["eval.csv"]}))
     with pytest.raises(RunRejected, match=r"run.json: 'sha256' is not a SHA-256 by file name"):
         read_run(tmp_path, SPEC.identity())
+
+
+def without_checksums(folder: Path, how: str) -> None:
+    """``folder``'s run.json with its checksums turned off ``how``: the key removed, set null, an
+    empty record, eval.csv's entry alone removed, or diagnostics.csv's with the file."""
+    made = json.loads((folder / "run.json").read_text())
+    if how == "removed":
+        del made["sha256"]
+    elif how == "eval.csv's removed":
+        del made["sha256"]["eval.csv"]
+    elif how == "diagnostics.csv removed with its":
+        del made["sha256"]["diagnostics.csv"]
+        (folder / "diagnostics.csv").unlink()
+    else:
+        made["sha256"] = {"null": None, "empty": {}}[how]
+    (folder / "run.json").write_text(json.dumps(made))
+
+
+@pytest.mark.parametrize(
+    ("how", "line"),
+    [
+        ("removed", "records no 'sha256' of the run's files; every run made since runs recorded "
+                    "them does, and those published before are kept unchanged (ede/early_runs.py)"),
+        ("null", "'sha256' is not a SHA-256 by file name (eval.csv, diagnostics.csv, "
+                 "metrics.json, policy/policy.safetensors, policy/policy.json)"),
+        ("empty", "'sha256' records no SHA-256 of eval.csv, diagnostics.csv, metrics.json; a run "
+                  "records one for each of its files"),
+        ("eval.csv's removed", "'sha256' records no SHA-256 of eval.csv; a run records one for "
+                               "each of its files"),
+        ("diagnostics.csv removed with its", "'sha256' records no SHA-256 of diagnostics.csv; a "
+                                             "run records one for each of its files"),
+    ],
+)  # fmt: skip
+def test_a_published_run_whose_checksums_are_turned_off_is_rejected(
+    tmp_path: Path, how: str, line: str
+) -> None:
+    """Every run made since run.json recorded checksums has them: one published without them is
+    refused however they went (a run read for the report alone, made before, reads without)."""
+    finished(tmp_path)
+    without_checksums(tmp_path, how)
+    with pytest.raises(RunRejected) as rejected:
+        read_run(tmp_path, SPEC.identity(), published=True)
+    assert str(rejected.value) == f"{tmp_path / 'run.json'}: {line}"
+
+
+def test_the_runs_published_before_checksums_are_read_byte_for_byte_as_published(
+    tmp_path: Path,
+) -> None:
+    """A committed run without checksums reads as published; one of its files changed does not."""
+    from ede.early_runs import EARLY_RUNS
+
+    early = [
+        made.parent
+        for made in sorted((REPO / "docs" / "results").rglob("run.json"))
+        if "sha256" not in json.loads(made.read_text())
+    ]
+    assert len(early) == len(EARLY_RUNS)
+    copy = tmp_path / "run"
+    shutil.copytree(early[0], copy)
+    identity = {k: json.loads((copy / "run.json").read_text())[k] for k in ("task", "seed")}
+    assert read_run(copy, identity, published=True) is not None
+    change(copy / "eval.csv")
+    with pytest.raises(RunRejected, match="records no 'sha256' of the run's files"):
+        read_run(copy, identity, published=True)
+
+
+@pytest.mark.parametrize("embedding", ["", "../../../elsewhere", "A" * 64, "ab" * 33])
+def test_a_published_ede_td3_run_names_its_embedding_by_a_sha256(
+    tmp_path: Path, embedding: str
+) -> None:
+    """A published folder keeps an embedding under the first characters of its checksum."""
+    finished(tmp_path, RunSpec("ede/Point-v0", "ede-td3", 3, 2_000, TD3Config(), EdeTD3Config()))
+    made = json.loads((tmp_path / "run.json").read_text())
+    (tmp_path / "run.json").write_text(json.dumps({**made, "embedding": embedding}))
+    with pytest.raises(RunRejected) as rejected:
+        read_run(tmp_path, {}, published=True)
+    assert str(rejected.value) == (
+        f"{tmp_path / 'run.json'}: 'embedding' is {json.dumps(embedding)}; expected the SHA-256 "
+        "of the decoder the run acted through (64 hexadecimal digits)"
+    )
+
+
+def test_two_runs_of_the_same_files_are_one_whatever_their_run_json_says(tmp_path: Path) -> None:
+    finished(tmp_path / "seed3")
+    shutil.copytree(tmp_path / "seed3", tmp_path / "seed4")
+    made = json.loads((tmp_path / "seed4" / "run.json").read_text())
+    (tmp_path / "seed4" / "run.json").write_text(json.dumps({**made, "seed": 4}))
+    runs = []
+    for seed in (3, 4):
+        run = read_run(tmp_path / f"seed{seed}", {"seed": seed})
+        assert run is not None
+        runs.append((tmp_path / f"seed{seed}", run))
+    assert same_files(runs[:1]) is None
+    digest = sha256(tmp_path / "seed3" / "eval.csv")
+    assert same_files(runs) == (
+        f"{tmp_path / 'seed4'}: the same run as {tmp_path / 'seed3'} (their eval.csv's SHA-256 "
+        f"are both {digest[:12]}…); a run is published once, in the folder of its own seed"
+    )
 
 
 def made_with(algo: Algo, td3: TD3Config | None = None) -> dict:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +15,7 @@ from click.testing import CliRunner
 
 from ede.atomic import sha256
 from ede.config import Algo
+from ede.runs import POLICY
 from ede_pipeline.cli import main
 from ede_pipeline.experiments.show import WIDTH, experiment_blocks
 from tests.support import REPO, tool_env
@@ -215,13 +217,16 @@ def finished_workspace(
     finished: tuple[str, ...] = ("ede/ReacherVertical-v0",),
     embedding: str = "e0" * 32,
     td3: dict[str, Any] | None = None,
+    policies: bool = False,
 ) -> Path:
     """``experiments/NAME.yaml`` and its working copy as ``experiment run`` leaves it: the runs
     of ``seeds`` finished on the ``finished`` tasks (none yet on the rest of ``tasks``), their
     EDE-TD3 runs made with the embedding of checksum ``embedding``, whose metrics are the reacher
-    family's, and the params.yaml's td3 keys changed as ``td3`` says."""
+    family's, and the params.yaml's td3 keys changed as ``td3`` says; with ``policies``, each
+    run's policy/ (its policy.safetensors ``<algo> <seed>``), marked as a run writes it."""
     import torch
 
+    from ede.atomic import write_atomically
     from ede.config import load_params
     from ede.runs import RunSpec, write_curves, write_finished
     from ede_pipeline import layout
@@ -254,7 +259,7 @@ def finished_workspace(
                     "episode": 0,
                     "mean_return": -9.0,
                     "std_return": 0.0,
-                    "wall_seconds": 0.0,
+                    "wall_seconds": s + seed + (algo == "ede-td3") / 2,  # each run's own
                 }
                 for s in (0, budget)
             ],
@@ -269,8 +274,15 @@ def finished_workspace(
             loaded.ede_td3,
             embedding if algo == "ede-td3" else "",
         )
+        if policies:
+            write_atomically(out / POLICY, policy_of(f"{algo} {seed}"), "policy")
         write_finished(out, spec, {"final_return": -9.0}, torch.device("cpu"))
     return workspace
+
+
+def policy_of(text: str) -> Callable[[Path], object]:
+    """What writes a policy/ holding ``text`` as its policy.safetensors (for ``write_atomically``)."""
+    return lambda tmp: (tmp / "policy.safetensors").write_text(text)
 
 
 def export(name: str) -> Any:
@@ -391,6 +403,29 @@ def test_an_experiment_made_again_exports_without_its_earlier_embedding(
     assert f"{kept / earlier[:12]}: removed" in result.stderr
 
 
+def test_an_experiment_made_again_exports_without_the_policy_its_runs_no_longer_record(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Exported with --policies, then made again (here keeping no policy) and exported without:
+    the earlier run's policy, which the new run.json does not record, goes, so that the folder
+    reads as ``results`` reads it."""
+    from ede_pipeline import layout
+    from ede_pipeline.published import published_runs
+
+    monkeypatch.chdir(tmp_path)
+    workspace = finished_workspace(tmp_path, "clip", [0], ["td3"], policies=True)
+    args = ["experiment", "export", "clip", "--to", "published"]
+    assert CliRunner().invoke(main, [*args, "--policies"]).exit_code == 0
+    policy = layout.run(TASK, "td3", 0, Path("published")) / POLICY
+    assert policy.is_dir()
+    shutil.rmtree(workspace)
+    finished_workspace(tmp_path, "clip", [0], ["td3"])
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    assert f"{policy}: removed (not the policy of the run exported over it)" in result.stderr
+    assert not policy.exists() and len(published_runs(Path("published"), TASK)) == 1
+
+
 def test_an_export_publishes_the_policies_of_the_seeds_it_is_given(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -400,7 +435,6 @@ def test_an_export_publishes_the_policies_of_the_seeds_it_is_given(
     experiment has not, a value that is no seed, a seed whose runs have not finished, and a
     decoder that is not the one the runs trained with: one line each, nothing written."""
     from ede.artifacts import ActionSpaceMeta, DecoderMeta, WhiteningMeta
-    from ede.runs import POLICY
     from ede_pipeline import layout
 
     decoder_meta = DecoderMeta(
@@ -411,12 +445,8 @@ def test_an_export_publishes_the_policies_of_the_seeds_it_is_given(
     )  # fmt: skip
     monkeypatch.chdir(tmp_path)
     workspace = finished_workspace(
-        tmp_path, "pair", [0, 1], ["td3", "ede-td3"], embedding=decoder_meta.identity
+        tmp_path, "pair", [0, 1], ["td3", "ede-td3"], embedding=decoder_meta.identity, policies=True
     )
-    for algo, seed in ((a, s) for a in ("td3", "ede-td3") for s in (0, 1)):
-        policy = workspace / layout.run(TASK, algo, seed) / POLICY
-        policy.mkdir()
-        (policy / "policy.safetensors").write_text(f"{algo} {seed}")
     decoder = workspace / layout.embedding("reacher") / layout.DECODER
     decoder.mkdir()
     (decoder / "meta.json").write_text(decoder_meta.model_dump_json())
@@ -593,18 +623,20 @@ def test_an_export_beside_a_seed_published_twice_is_refused(first_published: Pat
     refused("more", f"{PUBLISHED_TASK / 'td3' / 'seed2' / 'run.json'}: seed is 0, expected 2")
 
 
-def test_an_export_of_seeds_published_by_no_part_of_source_json_is_refused(
-    first_published: Path,
+@pytest.mark.parametrize("name", ["first", "more"])
+def test_an_export_beside_seeds_source_json_does_not_name_is_refused(
+    first_published: Path, name: str
 ) -> None:
     """A task's source.json from before parts named their seeds: the runs of seed 0 there are
-    not the experiment's own to replace."""
+    no experiment's, neither the one that would replace them nor one beside them."""
     (PUBLISHED_TASK / "source.json").write_text(
         json.dumps({"commit": "0" * 40, "command": "experiment.py --seeds 0"})
     )
     refused(
-        "first",
-        f"{PUBLISHED_TASK}: seeds [0] have runs there that no earlier export of "
-        "experiments/first.yaml made; an experiment adds seeds the task has not",
+        name,
+        f"{PUBLISHED_TASK / 'td3' / 'seed0'}: a run of seed 0, which "
+        f"{PUBLISHED_TASK / 'source.json'} does not name (it names none); a task's runs are the "
+        "seeds its experiments made, as each export names them",
     )
 
 
@@ -645,4 +677,187 @@ def test_an_export_of_a_file_its_run_did_not_write_is_refused(first_published: P
         "more",
         f"{path}: not the file its run wrote (SHA-256 {sha256(path)[:12]}…, run.json records "
         f"{recorded[:12]}…)",
+    )
+
+
+def test_an_export_refuses_to_remove_a_folder_among_the_embeddings_it_did_not_write(
+    first_published: Path,
+) -> None:
+    """The issue's example: a user's folder beside the published embeddings, which no run acts
+    through, was removed as an export's; and an export's own, with a user's file added."""
+    from ede_pipeline import layout
+
+    kept = PUBLISHED_TASK / layout.PUBLISHED_EMBEDDINGS
+    (kept / "my-notes").mkdir(parents=True)
+    (kept / "my-notes" / "NOTES.txt").write_text("mine\n")
+    line = (
+        "no published run acts through it, but no export wrote it (it holds what an export's "
+        f"mark does not own); an export removes only its own: move it out of {kept}"
+    )
+    refused("more", f"{kept / 'my-notes'}: {line}")
+    (kept / "my-notes" / "NOTES.txt").unlink()
+    result = export("more")  # an empty folder holds nothing of anyone's
+    assert result.exit_code == 0, result.output
+    finished_workspace(first_published, "ede", [2], ["ede-td3"], embedding="a0" * 32)
+    assert export("ede").exit_code == 0
+    shutil.rmtree(Path(".dvc/tmp/experiments/ede"))  # made again with another embedding
+    finished_workspace(first_published, "ede", [2], ["ede-td3"], embedding="b1" * 32)
+    (kept / ("a0" * 6) / "NOTES.txt").write_text("mine\n")
+    refused("ede", f"{kept / ('a0' * 6)}: {line}")
+
+
+@pytest.mark.parametrize(
+    ("to", "line"),
+    [
+        (".", ".: the working directory; expected a folder of the output's own, e.g. one inside it"),
+        ("..", "..: the working directory or a folder above it; expected a folder of the output's "
+               "own, e.g. one inside it"),
+        ("notes.txt", "notes.txt: a file is in the way; expected a directory there, or nothing"),
+        (".dvc/tmp/experiments/more/data", ".dvc/tmp/experiments/more/data: lies inside the "
+                                           "stage's input .dvc/tmp/experiments/more; expected a "
+                                           "place apart from it"),
+    ],
+)  # fmt: skip
+def test_an_export_to_the_working_directory_its_input_or_a_file_is_refused(
+    first_published: Path, to: str, line: str
+) -> None:
+    (first_published / "notes.txt").write_text("mine\n")
+    before = {p: p.read_bytes() for p in first_published.rglob("*") if p.is_file()}
+    result = CliRunner().invoke(main, ["experiment", "export", "more", "--to", to])
+    assert (result.exit_code, result.stderr) == (2, f"Error: {line}\n"), result.output
+    assert {p: p.read_bytes() for p in first_published.rglob("*") if p.is_file()} == before
+
+
+def test_an_export_refuses_what_is_in_the_way_of_what_it_writes(first_published: Path) -> None:
+    """A file where a folder of the task goes, a folder where its source.json goes, and a seed
+    folder of the user's where a run goes: one line each, nothing written."""
+    algo = PUBLISHED_TASK / "td3"
+    (PUBLISHED_TASK / "source.json").rename("source.json")
+    (PUBLISHED_TASK / "source.json").mkdir()
+    refused("more", f"{PUBLISHED_TASK / 'source.json'}: a folder is in the way; expected a file "
+                    "there, or nothing")  # fmt: skip
+    (PUBLISHED_TASK / "source.json").rmdir()
+    Path("source.json").rename(PUBLISHED_TASK / "source.json")
+    (algo / "seed1").mkdir()
+    (algo / "seed1" / "NOTES.txt").write_text("mine\n")
+    refused("more", f"{algo / 'seed1'}: holds NOTES.txt, and no finished run an export "
+                    "published; move them out first")  # fmt: skip
+    shutil.rmtree(algo / "seed1")
+    (algo / "seed1").write_text("mine\n")
+    refused("more", f"{algo / 'seed1'}: a file is in the way; expected a folder there, or nothing")
+
+
+@pytest.mark.parametrize("link", ["seed folder", "task folder"])
+def test_an_export_never_writes_through_a_link_in_a_published_folder(
+    first_published: Path, link: str
+) -> None:
+    """A seed folder, or the folder above a task's, that leads outside the published folder."""
+    elsewhere = first_published / "elsewhere"
+    linked = PUBLISHED_TASK / "td3" / "seed1" if link == "seed folder" else PUBLISHED_TASK.parent
+    if link == "task folder":
+        shutil.move(linked, elsewhere)
+    else:
+        elsewhere.mkdir()
+    linked.symlink_to(elsewhere)
+    refused(
+        "more",
+        f"{linked}: a symbolic link (to {elsewhere}); a published folder holds its own files, so "
+        "that an export writes nothing outside it: put what it names there instead",
+    )
+    assert sorted(p.name for p in elsewhere.rglob("*")) == (
+        [] if link == "seed folder" else sorted(p.name for p in elsewhere.rglob("*"))
+    )
+
+
+def test_an_export_refuses_to_remove_a_policy_it_did_not_write(first_published: Path) -> None:
+    finished_workspace(first_published, "pair", [0, 1], ["td3"], policies=True)
+    (PUBLISHED_TASK / "source.json").unlink()
+    shutil.rmtree(PUBLISHED_TASK / "td3")
+    assert export("pair").exit_code == 0
+    policy = PUBLISHED_TASK / "td3" / "seed0" / POLICY
+    policy.mkdir()
+    (policy / "NOTES.txt").write_text("mine\n")
+    before = published()
+    result = CliRunner().invoke(
+        main, ["experiment", "export", "pair", "--to", "published", "--policies", "1"]
+    )
+    assert (result.exit_code, result.stderr) == (
+        2,
+        f"Error: {policy}: holds NOTES.txt, which no export wrote there (no "
+        ".ede-output.json of one); move it out first\n",
+    ), result.output
+    assert published() == before
+
+
+def test_an_export_waits_for_no_other_export_to_the_same_place(first_published: Path) -> None:
+    from ede.locks import exclusive
+
+    with exclusive(Path("published")):
+        before = published()
+        result = export("more")
+        assert result.exit_code == 2 and "published: being written by process" in result.stderr
+        assert published() == before
+
+
+def test_an_export_that_fails_midway_leaves_the_published_folder_as_it_was(
+    first_published: Path,
+) -> None:
+    """A full disk (each write past RLIMIT_FSIZE fails, as one on a full disk does): one line,
+    exit 1, no traceback, and the published folder as it was, with no temporary left."""
+    import sys
+
+    from tests.pipeline.test_outputs import LIMITED
+
+    finished_workspace(first_published, "both", [0, 1], ["td3"], policies=True)
+    (PUBLISHED_TASK / "source.json").unlink()
+    shutil.rmtree(PUBLISHED_TASK / "td3")
+    assert export("both").exit_code == 0
+    before = {p: p.read_bytes() for p in first_published.rglob("*") if p.is_file()}
+    names = sorted(p.relative_to(first_published) for p in first_published.rglob("*"))
+    done = subprocess.run(
+        [sys.executable, "-c", LIMITED.format(limit=1_000), "experiment", "export", "both",
+         "--to", "published", "--policies"],
+        capture_output=True, text=True, timeout=600, env=tool_env(),
+    )  # fmt: skip
+    assert (done.returncode, done.stderr) == (
+        1,
+        "Error: published: nothing exported (File too large); it is as it was\n",
+    ), done.stderr
+    assert {p: p.read_bytes() for p in first_published.rglob("*") if p.is_file()} == before
+    assert sorted(p.relative_to(first_published) for p in first_published.rglob("*")) == names
+
+
+def test_an_export_puts_back_what_an_export_killed_midway_left(first_published: Path) -> None:
+    """Killed between taking a task's folder away and putting its new one in its place: the old
+    folder goes back before the next export, which then writes beside it; a killed export's
+    half-built folders go."""
+    killed = Path("published/.export.tmp-4194304")
+    aside = killed / "old" / TASK
+    aside.parent.mkdir(parents=True)
+    PUBLISHED_TASK.rename(aside)
+    (killed / "new" / TASK).mkdir(parents=True)
+    result = export("more")
+    assert result.exit_code == 0, result.output
+    assert not killed.exists()
+    assert sorted(p.name for p in (PUBLISHED_TASK / "td3").iterdir()) == ["seed0", "seed1"]
+    parts = json.loads((PUBLISHED_TASK / "source.json").read_text())
+    assert [(p["experiment"], p["seeds"]) for p in parts] == [
+        ("experiments/first.yaml", [0]),
+        ("experiments/more.yaml", [1]),
+    ]
+
+
+def test_an_export_of_a_run_copied_from_a_published_one_is_refused(first_published: Path) -> None:
+    """Experiment ``more``'s seed 1 replaced by a copy of the published seed 0, its run.json
+    saying seed 1: the same run, whatever its folder and run.json say."""
+    run = Path(".dvc/tmp/experiments/more/data/runs") / TASK / "td3" / "seed1"
+    shutil.rmtree(run)
+    shutil.copytree(PUBLISHED_TASK / "td3" / "seed0", run)
+    made = json.loads((run / "run.json").read_text())
+    (run / "run.json").write_text(json.dumps({**made, "seed": 1}))
+    refused(
+        "more",
+        f"{run}: the same run as {PUBLISHED_TASK / 'td3' / 'seed0'} (their eval.csv's SHA-256 "
+        f"are both {sha256(run / 'eval.csv')[:12]}…); a run is published once, in the folder of "
+        "its own seed",
     )

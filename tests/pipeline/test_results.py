@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
@@ -17,7 +18,7 @@ from click.testing import CliRunner
 
 from ede.atomic import sha256
 from ede.config import Algo, EdeTD3Config, TD3Config
-from ede.runs import RunSpec, write_curves, write_finished
+from ede.runs import PUBLISHED, RunSpec, write_curves, write_finished
 from ede_pipeline import layout
 from ede_pipeline.cli import main
 from tests.support import REPO
@@ -41,30 +42,45 @@ def write_run(
     machine: dict | None = None,
     embedding: str = EMBEDDING,
 ) -> None:
-    """A finished run in the pipeline's layout (``runs/<task id>/<algo>/seed<N>/``), and its task's
-    ``source.json`` where it has none yet."""
+    """A finished run in the pipeline's layout (``runs/<task id>/<algo>/seed<N>/``), its run.json
+    recording the SHA-256 of its files, as every run made since 2026-12 does (its wall times its
+    own), and its seed named by its task's ``source.json`` (written where there is none yet)."""
     folder = layout.run(task, algo, seed, runs)
     folder.mkdir(parents=True)
-    if not (folder.parents[1] / "source.json").exists():
-        write_source(runs, task)
+    name_seed(runs, task, seed)
     steps = np.linspace(0, budget, len(returns))
+    wall = zlib.crc32(f"{task} {algo} {seed}".encode()) / 1e6  # no two runs' curves one file
     rows = [
-        f"{int(s)},{i},{r},1.0,{i}" for i, (s, r) in enumerate(zip(steps, returns, strict=True))
+        f"{int(s)},{i},{r},1.0,{i + wall}"
+        for i, (s, r) in enumerate(zip(steps, returns, strict=True))
     ]
     (folder / "eval.csv").write_text(
         "step,episode,mean_return,std_return,wall_seconds\n" + "\n".join(rows) + "\n"
     )
+    (folder / "metrics.json").write_text(json.dumps({"final_return": float(returns[-1])}))
+    (folder / "diagnostics.csv").write_text("step,updates,critic_loss,actor_loss,mean_q\n")
     made = {
         "task": task,
         "algo": algo,
         "seed": seed,
         "budget": budget,
         "embedding": embedding if algo == "ede-td3" else "",
+        "sha256": {name: sha256(folder / name) for name in PUBLISHED if name != "run.json"},
     }
     if machine is not None:  # as run.json records it since 2026-12; the committed runs have none
         made["machine"] = machine
     (folder / "run.json").write_text(json.dumps(made))
-    (folder / "metrics.json").write_text(json.dumps({"final_return": float(returns[-1])}))
+
+
+def name_seed(runs: Path, task: str, seed: int) -> None:
+    """``seed`` among those the task's ``source.json`` names (:data:`SOURCE`, where it has none
+    yet; a list of parts is left as it is)."""
+    path = layout.task_runs(task, runs) / "source.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    made = json.loads(path.read_text()) if path.is_file() else dict(SOURCE)
+    if isinstance(made, dict):
+        made["seeds"] = sorted({*made.get("seeds", []), seed})
+        path.write_text(json.dumps(made))
 
 
 class Done(NamedTuple):
@@ -74,8 +90,11 @@ class Done(NamedTuple):
 
 
 def write_source(runs: Path, task: str = TASK, **made: object) -> None:
-    """``runs/<task>/source.json``: :data:`SOURCE` with ``made``'s keys."""
-    (layout.task_runs(task, runs) / "source.json").write_text(json.dumps({**SOURCE, **made}))
+    """``runs/<task>/source.json``: :data:`SOURCE` with ``made``'s keys, its seeds those of the
+    runs there unless ``made`` names them."""
+    folder = layout.task_runs(task, runs)
+    seeds = sorted({int(run.name.removeprefix("seed")) for run in folder.glob("*/seed*")})
+    (folder / "source.json").write_text(json.dumps({**SOURCE, "seeds": seeds, **made}))
 
 
 BOOTSTRAP_SAMPLES = 200  # of params.yaml's 2,000: these tests check what the page says, and where
@@ -702,16 +721,14 @@ def finished_run(
     run.json records its params and the SHA-256 of its files), with a published copy's files
     (no policy), and its task's ``source.json`` where it has none yet."""
     folder = layout.run(TASK, algo, seed, runs)
-    if not (folder.parents[1] / "source.json").exists():
-        folder.parents[1].mkdir(parents=True, exist_ok=True)
-        write_source(runs)
+    name_seed(runs, TASK, seed)
     history = [
         {
             "step": step,
             "episode": i,
             "mean_return": -200.0 + 5 * i + seed,
             "std_return": 1.0,
-            "wall_seconds": float(i),
+            "wall_seconds": i + (algo == "ede-td3") / 2,  # each run's own
         }
         for i, step in enumerate(range(0, BUDGET + 1, BUDGET // 20))
     ]
@@ -788,6 +805,94 @@ def test_the_same_seed_twice_is_refused(tmp_path: Path) -> None:
     copy = layout.run(TASK, "td3", 2, runs)
     shutil.copytree(layout.run(TASK, "td3", 0, runs), copy)
     refused(tmp_path, runs, f"{copy / 'run.json'}: seed is 0, expected 2")
+
+
+def test_a_run_copied_as_another_seed_is_refused_whatever_its_run_json_says(
+    tmp_path: Path,
+) -> None:
+    """The copy of td3/seed0 as td3/seed2, its run.json saying seed 2 and source.json naming it,
+    was once averaged as a third seed: its files are seed 0's, byte for byte."""
+    runs = tmp_path / "runs"
+    four_runs(runs)
+    original, copy = (layout.run(TASK, "td3", seed, runs) for seed in (0, 2))
+    shutil.copytree(original, copy)
+    made = json.loads((copy / "run.json").read_text())
+    (copy / "run.json").write_text(json.dumps({**made, "seed": 2}))
+    name_seed(runs, TASK, 2)
+    refused(
+        tmp_path,
+        runs,
+        f"{copy}: the same run as {original} (their eval.csv's SHA-256 are both "
+        f"{sha256(original / 'eval.csv')[:12]}…); a run is published once, in the folder of its "
+        "own seed",
+    )
+
+
+@pytest.mark.parametrize("where", ["another task", "an ablation"])
+def test_a_run_copied_as_another_tasks_or_a_variants_is_refused(tmp_path: Path, where: str) -> None:
+    """td3/seed0 copied to another task's folder (its run.json saying that task), or to an
+    ablation's variant, where it would stand for what it is not."""
+    runs = tmp_path / "runs"
+    four_runs(runs)
+    original = layout.run(TASK, "td3", 0, runs)
+    other = "ede/ReacherPush-v0" if where == "another task" else TASK
+    root = runs if where == "another task" else tmp_path / "ablations" / "copied"
+    copy = layout.run(other, "td3", 0, root)
+    shutil.copytree(original, copy)
+    made = json.loads((copy / "run.json").read_text())
+    (copy / "run.json").write_text(json.dumps({**made, "task": other}))
+    name_seed(root, other, 0)
+    refused(
+        tmp_path,
+        runs,
+        f"{copy}: the same run as {original} (their eval.csv's SHA-256 are both "
+        f"{sha256(original / 'eval.csv')[:12]}…); a run is published once, in the folder of its "
+        "own seed",
+    )
+
+
+def test_a_run_of_a_seed_source_json_does_not_name_is_refused(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    four_runs(runs)
+    write_source(runs, seeds=[0])
+    refused(
+        tmp_path,
+        runs,
+        f"{layout.run(TASK, 'td3', 1, runs)}: a run of seed 1, which "
+        f"{layout.task_runs(TASK, runs) / 'source.json'} does not name (it names 0); a task's "
+        "runs are the seeds its experiments made, as each export names them",
+    )
+
+
+@pytest.mark.parametrize(
+    ("sha256s", "line"),
+    [
+        (None, "'sha256' is not a SHA-256 by file name"),
+        ({}, "'sha256' records no SHA-256 of eval.csv, diagnostics.csv, metrics.json"),
+        ("eval.csv", "'sha256' records no SHA-256 of eval.csv"),
+        ("removed", "records no 'sha256' of the run's files"),
+    ],
+)
+def test_a_run_whose_checksums_are_turned_off_is_refused(
+    tmp_path: Path, sha256s: object, line: str
+) -> None:
+    """Its run.json's sha256 set null or empty, an entry or the key removed: a run made since
+    run.json recorded checksums is not one of the runs published before (ede/early_runs.py)."""
+    runs = tmp_path / "runs"
+    four_runs(runs)
+    record = layout.run(TASK, "td3", 1, runs) / "run.json"
+    made = json.loads(record.read_text())
+    if sha256s == "removed":
+        del made["sha256"]
+    elif sha256s == "eval.csv":
+        del made["sha256"]["eval.csv"]
+    else:
+        made["sha256"] = sha256s
+    record.write_text(json.dumps(made))
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 2 and done.stderr.startswith(f"Error: {record}: {line}")
+    assert done.stderr.count("\n") == 1 and done.stdout == ""
+    assert not (tmp_path / "figures").exists()
 
 
 @pytest.mark.parametrize(
