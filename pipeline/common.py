@@ -129,21 +129,21 @@ def check_outputs(
             continue
         problem = (
             unwritable(where, folder)
-            or (folder and _above_working_directory(where))
-            or _overlap(where, sources)
+            or (folder and above_working_directory(where))
+            or overlap(where, sources)
             or (ownership_problem(where, kind) if folder else file_problem(where, kind))
         )
         if problem:
             raise BadInput(problem)
     for where in written:  # each apart from the others, once each is a place of its own
-        if problem := _overlap(where, _others(written, where), "output"):
+        if problem := overlap(where, _others(written, where), "output"):
             raise BadInput(problem)
     if progress_file := os.environ.get(PROGRESS_ENV):
         where = Path(progress_file)
         problem = (
             unwritable(where, directory=False)
-            or _overlap(where, sources)
-            or _overlap(where, written, "output")
+            or overlap(where, sources)
+            or overlap(where, written, "output")
             or file_problem(where, PROGRESS_KIND)
         )
         if problem:
@@ -157,7 +157,8 @@ def _params_file() -> Path:
     return Path(given or DEFAULT_PARAMS)
 
 
-def _above_working_directory(folder: Path) -> str | None:
+def above_working_directory(folder: Path) -> str | None:
+    """Why ``folder`` may not be an output: it is the working directory or a folder above it."""
     here, there = Path.cwd().resolve(), folder.resolve()
     if there == here or there in here.parents:
         return (
@@ -175,7 +176,7 @@ def _others(places: list[Path], one: Path) -> list[Path]:
     return others
 
 
-def _overlap(output: Path, places: Iterable[Path], role: str = "input") -> str | None:
+def overlap(output: Path, places: Iterable[Path], role: str = "input") -> str | None:
     """Why ``output`` may not be written: it is, holds or lies inside one of ``places``, the
     stage's ``role`` (its inputs, or its other outputs); None where it is apart from them."""
     there = output.resolve()

@@ -29,8 +29,8 @@ from ede_pipeline.common import (
     DEFAULT_PARAMS,
     BadInput,
     Failed,
-    _above_working_directory,
-    _overlap,
+    above_working_directory,
+    overlap,
     read_params,
 )
 from ede_pipeline.experiments.workspace import EXPERIMENTS, WORKSPACES, experiment_file
@@ -99,8 +99,8 @@ def export(name: str, to: Path, policies: str | None) -> None:
     workspace = WORKSPACES / name
     if problem := (
         unwritable(to, directory=True)
-        or _above_working_directory(to)
-        or _overlap(to, (workspace, EXPERIMENTS / f"{name}.yaml"))
+        or above_working_directory(to)
+        or overlap(to, (workspace, EXPERIMENTS / f"{name}.yaml"))
     ):
         raise BadInput(problem)
     experiment = experiment_file(name)
