@@ -403,6 +403,11 @@ def test_make_quick_runs_the_quick_look_as_an_experiment_with_no_warning(tmp_pat
     made = ok(run(repo, "make", "quick", f"VENV={installed}", timeout=900))
     warned = [line for line in made.splitlines() if "warn" in line.lower()]
     assert warned == [], warned[:5]
+    # No traceback either (the sweep's progress thread once printed one): neither its header
+    # nor an exception's line.
+    assert "Traceback (most recent call last)" not in made, made[-3000:]
+    raised = re.findall(r"^\s*(?:\w+\.)*\w+(?:Error|Exception)\b.*$", made, re.MULTILINE)
+    assert raised == [], raised[:5]
     assert "experiment run quick --update-code" in made  # one way to run an experiment
     for algo in ("td3", "ede-td3"):
         assert (repo / ".dvc/tmp/experiments/quick/data/runs" / TASK / algo / "seed0").is_dir()
