@@ -4,8 +4,10 @@ An experiment is a committed file, ``experiments/NAME.yaml``: the params section
 keys it changes against ``params.yaml`` (``experiments/quick.yaml``, which ``make quick`` runs, among them), each key replacing its value
 whole. ``experiment run NAME`` runs it in a working copy of its own,
 ``.dvc/tmp/experiments/NAME/`` (a git worktree sharing this checkout's DVC cache): this
-checkout's files (the code that runs, committed or not), the experiment's params, and its
-outputs, so that experiments neither touch this workspace nor each other, and a killed one
+checkout's files (the code that runs, committed or not), the experiment's params (its file
+applied to the ``params.yaml`` of this checkout's commit: the workspace's, where an edit or
+``dvc exp apply`` made it differ, is said in one line and not used unless
+``--workspace-params`` asks for it), and its outputs, so that experiments neither touch this workspace nor each other, and a killed one
 resumes there. Running it again brings the copy's code up to this checkout's, but not over
 finished runs made with other code (DVC would run them again): that is refused unless
 ``--keep-code`` (finish with the copy's code and the params.yaml of its commit) or ``--update-code`` (run them again) says which.

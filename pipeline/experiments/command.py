@@ -18,12 +18,16 @@ from ede_pipeline.experiments.workspace import (
     EXPERIMENTS,
     WORKSPACES,
     check_code_keeps_runs,
-    copy_params,
+    committed_params,
     experiment_params,
     git_identity,
+    mend_records,
     prepare_workspace,
     run_tool,
+    uncommitted_params,
+    workspace_params,
 )
+from ede_pipeline.sweep.plan import pipeline_repo
 
 
 @click.group()
@@ -65,21 +69,39 @@ def list_experiments() -> None:
     "its finished runs again. Without either, a change to the code the runs depend on is "
     "refused while the experiment has finished runs.",
 )
+@click.option(
+    "--workspace-params",
+    "from_workspace",
+    is_flag=True,
+    help="Apply experiments/NAME.yaml to this checkout's params.yaml as it is, uncommitted "
+    "edits (or the params `dvc exp apply` brought) included, rather than to its commit's.",
+)
 @click.argument("sweep_args", nargs=-1, type=click.UNPROCESSED)
 def run_experiment(
-    name: str, push: bool, keep_code: bool | None, sweep_args: tuple[str, ...]
+    name: str,
+    push: bool,
+    keep_code: bool | None,
+    from_workspace: bool,
+    sweep_args: tuple[str, ...],
 ) -> None:
     """Run experiments/NAME.yaml in its working copy and record it as the DVC experiment NAME.
 
     SWEEP_ARGS go to `ede-pipeline sweep` as they are (e.g. `--jobs 2`, `--executor ray`).
-    Run it again after a kill or a failure: finished runs are kept, the others resume from their
-    checkpoints. The copy's code is brought up to this checkout's each time, unless that would
-    run finished runs again (see --keep-code).
+    The experiment's file is applied to the params.yaml of this checkout's commit: an edit of
+    the workspace's params.yaml, or the params `dvc exp apply` left there, is said in one line
+    and not used (see --workspace-params). Run it again after a kill or a failure: finished runs
+    are kept, the others resume from their checkpoints. The copy's code is brought up to this
+    checkout's each time, unless that would run finished runs again (see --keep-code).
     """
     from ede_pipeline.sweep.command import sweep
 
-    if not Path("dvc.yaml").is_file() or not (Path(".dvc")).is_dir():
+    if not Path("dvc.yaml").exists() or not (Path(".dvc")).is_dir():
         raise BadInput(f"run from the repository root (no dvc.yaml and .dvc/ in {Path.cwd()})")
+    if from_workspace and keep_code:
+        raise BadInput(
+            "--workspace-params and --keep-code: the code the working copy keeps runs with the "
+            "params.yaml of its own commit"
+        )
     try:  # bad sweep options end here, before anything is made
         targets = sweep.make_context("sweep", list(sweep_args)).params["targets"]
     except click.UsageError as error:
@@ -90,30 +112,55 @@ def run_experiment(
             f"all of experiments/{name}.yaml's runs (its runs.seeds and runs.algos choose them)"
         )
     workspace = WORKSPACES / name
-    if keep_code and (workspace / ".git").exists():  # the copy's code reads the copy's params
-        params = experiment_params(name, copy_params(workspace))
-    else:  # an unknown name, one git refuses, and bad params end here, before the lock
-        params = experiment_params(name)
+    # An unknown name, one git refuses, and bad params end here, before the lock.
+    params, applied_to, ignored = _params(name, workspace, keep_code, from_workspace)
+    with pipeline_repo():  # and a dvc.yaml or dvc.lock DVC cannot read
+        pass
     with ExitStack() as held:
         try:  # one writer per experiment: a second run of it is refused before it changes anything
             held.enter_context(exclusive(workspace))
         except OutputBusy as error:
             raise BadInput(f"experiment {name}: {error}") from None
-        _run_held(name, workspace, params, push, keep_code, sweep_args)
+        if keep_code is None:
+            check_code_keeps_runs(name, workspace)
+        prepare_workspace(name, params, update_code=not keep_code, applied_to=applied_to)
+        mend_records(name, workspace)
+        if ignored:
+            click.echo(f"experiment {name}: {ignored}", err=True)
+        _run_held(name, workspace, push, keep_code, sweep_args)
+
+
+def _params(
+    name: str, workspace: Path, keep_code: bool | None, from_workspace: bool
+) -> tuple[dict[str, Any], str, str | None]:
+    """The experiment's params: its file applied to the ``params.yaml`` of this checkout's
+    commit (with --keep-code, of its working copy's: the keys that copy's code knows), or to the
+    workspace's with --workspace-params; to which, in words; and the line that says the
+    workspace's ``params.yaml`` differs from its commit's and is not used (``None`` where it does
+    not, or is used)."""
+    if from_workspace:
+        return experiment_params(name, workspace_params()), "this checkout's", None
+    committed = committed_params()
+    edited = uncommitted_params(committed)
+    ignored = None
+    if edited:
+        listed = ", ".join(edited[:3]) + (f" and {len(edited) - 3} more" if len(edited) > 3 else "")
+        ignored = (
+            f"this checkout's params.yaml differs from its commit's ({listed}) and is not used: "
+            "the experiment runs with the commit's (--workspace-params: with this one)"
+        )
+    if keep_code and (workspace / ".git").exists():
+        committed = committed_params(workspace)
+    try:
+        return experiment_params(name, committed), "its commit's", ignored
+    except BadInput as error:  # the workspace's edit may be what the checkout's code needs
+        raise BadInput(f"{error.format_message()}{f' ({ignored})' if ignored else ''}") from None
 
 
 def _run_held(
-    name: str,
-    workspace: Path,
-    params: dict[str, Any],
-    push: bool,
-    keep_code: bool | None,
-    sweep_args: tuple[str, ...],
+    name: str, workspace: Path, push: bool, keep_code: bool | None, sweep_args: tuple[str, ...]
 ) -> None:
-    """:func:`run_experiment`'s work, its working copy's lock held."""
-    if keep_code is None:
-        check_code_keeps_runs(name, workspace)
-    prepare_workspace(name, params, update_code=not keep_code)
+    """:func:`run_experiment`'s work once its working copy is ready, its lock held."""
     kept = " with the code it started with" if keep_code else ""
     click.echo(f"experiment {name}: in {workspace}{kept}", err=True)
     if code := run_tool(workspace, "ede-pipeline", "sweep", *sweep_args):

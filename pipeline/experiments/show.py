@@ -21,12 +21,12 @@ WIDTH = 80
 PARAMS_FILE = "params.yaml"
 
 
-def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+def flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     """Dotted keys to leaves; lists are leaves."""
     flat: dict[str, Any] = {}
     for key, value in tree.items():
         if isinstance(value, dict) and value:
-            flat.update(_flatten(value, f"{prefix}{key}."))
+            flat.update(flatten(value, f"{prefix}{key}."))
         else:
             flat[f"{prefix}{key}"] = value
     return flat
@@ -34,7 +34,7 @@ def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 def _params(entry: dict[str, Any]) -> dict[str, Any]:
     files = (entry.get("data") or {}).get("params") or {}
-    return _flatten((files.get(PARAMS_FILE) or {}).get("data") or {})
+    return flatten((files.get(PARAMS_FILE) or {}).get("data") or {})
 
 
 def _headline(entry: dict[str, Any]) -> dict[str, dict[str, dict[str, Any]]]:

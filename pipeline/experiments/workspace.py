@@ -27,6 +27,8 @@ from ede.config import (
 from ede.errors import first_line
 from ede_pipeline import layout
 from ede_pipeline.common import DEFAULT_PARAMS, PARENT_ENV, BadInput, Failed
+from ede_pipeline.experiments.show import flatten
+from ede_pipeline.sweep.plan import DamagedPipeline, pipeline_repo
 
 EXPERIMENTS = Path("experiments")  # the committed experiment files
 WORKSPACES = Path(".dvc") / "tmp" / "experiments"  # each one's working copy (git-ignored by DVC)
@@ -45,12 +47,13 @@ def experiment_file(name: str) -> Path:
 
 
 def experiment_params(name: str, base: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The experiment's params: ``base`` (``params.yaml``'s content by default) with
+    """The experiment's params: ``base`` (by default the ``params.yaml`` of this checkout's
+    commit, :func:`committed_params`, whatever the workspace's holds) with
     ``experiments/NAME.yaml`` applied (:func:`ede.config.overridden`), less the families that
     none of its tasks uses and no figure draws. Bad params end here: one line naming the file
     and the key."""
+    base = committed_params() if base is None else base
     try:
-        base = read_yaml(DEFAULT_PARAMS) if base is None else base
         merged, _ = overridden(base, experiment_file(name))
     except ParamsError as error:
         raise BadInput(first_line(error)) from None
@@ -74,27 +77,23 @@ def _checkout_files() -> list[str]:
     return [name for name in listed if name and Path(name).is_file()]
 
 
-def prepare_workspace(name: str, params: dict[str, Any], update_code: bool = True) -> Path:
+def prepare_workspace(
+    name: str, params: dict[str, Any], update_code: bool = True, applied_to: str = "its commit's"
+) -> Path:
     """The experiment's working copy, made or brought up to date: a git worktree at this
     checkout's commit holding this checkout's files as they are (the code that runs there,
-    :func:`run_tool`) and the experiment's params, its DVC cache this checkout's. Its ``data/``
-    (outputs and checkpoints) and ``dvc.lock`` are kept. With ``update_code`` false, a working
-    copy that exists keeps its files as they are and gets only the params."""
+    :func:`run_tool`) and the experiment's params (``applied_to`` says, in the copy's
+    ``params.yaml``, to which ``params.yaml`` its file was applied), its DVC cache this
+    checkout's. Its ``data/`` (outputs and checkpoints) and ``dvc.lock`` are kept (one DVC
+    cannot read: :func:`mend_records`). With ``update_code`` false, a working copy that exists
+    keeps its files as they are and gets only the params."""
     workspace = WORKSPACES / name
     head = _git("rev-parse", "HEAD").strip()
     # The copy's record of its finished runs. DVC's autostage (.dvc/config) adds it to the
     # copy's git index, so the checkout below would delete it, and DVC then restore every
     # finished run from its run cache, or run it again where the run cache lacks it.
     lock = workspace / "dvc.lock"
-    records = lock.read_text() if lock.is_file() else None
-    if records is not None and not _records_readable(records):  # a kill while DVC wrote it
-        records = None
-        lock.unlink()
-        click.echo(
-            f"experiment {name}: its working copy's dvc.lock was damaged (empty, or not DVC's "
-            "YAML) and is removed; DVC restores the finished runs from its run cache",
-            err=True,
-        )
+    records = lock.read_bytes() if lock.is_file() else None
     if not (workspace / ".git").exists():
         _git("worktree", "prune")  # a working copy deleted by hand leaves its registration
         workspace.parent.mkdir(parents=True, exist_ok=True)
@@ -113,11 +112,11 @@ def prepare_workspace(name: str, params: dict[str, Any], update_code: bool = Tru
         for file in _git("ls-files", "-z", cwd=workspace).split("\0"):
             if file and file not in present:  # deleted here, not yet committed
                 (workspace / file).unlink(missing_ok=True)
-    if records is not None:
-        write_text(lock, records)
+    if records is not None:  # text that is not UTF-8 comes back as text DVC cannot read
+        write_text(lock, records.decode(errors="replace"))
     write_text(
         workspace / DEFAULT_PARAMS,
-        f"# experiments/{name}.yaml applied to params.yaml "
+        f"# experiments/{name}.yaml applied to {applied_to} {DEFAULT_PARAMS} "
         f"(ede-pipeline experiment run {name})\n" + yaml.safe_dump(params, sort_keys=False),
     )
     write_text(workspace / ".dvc" / "config.local", _shared_config())
@@ -125,23 +124,74 @@ def prepare_workspace(name: str, params: dict[str, Any], update_code: bool = Tru
     return workspace
 
 
-def _records_readable(text: str) -> bool:
-    """Whether ``text`` is a ``dvc.lock`` DVC reads: YAML, a mapping of its stages."""
+def mend_records(name: str, workspace: Path) -> None:
+    """Read a working copy's pipeline as DVC will (:func:`pipeline_repo`). A ``dvc.lock``
+    DVC cannot read (left empty by a kill while DVC wrote it, or edited) is removed, said in one
+    line: DVC restores the finished runs it recorded from its run cache. Anything else DVC
+    cannot read is refused (:class:`DamagedPipeline`)."""
     try:
-        records = yaml.safe_load(text)
-    except yaml.YAMLError:
-        return False
-    return isinstance(records, dict) and isinstance(records.get("stages"), dict)
+        with pipeline_repo(workspace):
+            return
+    except DamagedPipeline as damage:
+        if damage.file.name != "dvc.lock" or not damage.file.is_file():
+            raise
+        damage.file.unlink()
+        click.echo(
+            f"experiment {name}: its working copy's dvc.lock was damaged ({damage.problem}) and "
+            "is removed; DVC restores the finished runs from its run cache",
+            err=True,
+        )
+    with pipeline_repo(workspace):  # its dvc.yaml, which DVC read no further than that lock
+        pass
 
 
-def copy_params(workspace: Path) -> dict[str, Any]:
-    """The params of the commit a working copy holds (before its experiment's were applied):
-    the base an experiment keeping the copy's code runs on, whose keys that code knows."""
-    committed = Path(f"{workspace}@HEAD") / DEFAULT_PARAMS  # a name for errors only
+def committed_params(checkout: Path = Path(".")) -> dict[str, Any]:
+    """The ``params.yaml`` of the commit ``checkout`` (this one, or an experiment's working
+    copy) is at: what every experiment's file is applied to, so that what runs is what is
+    committed (a copy's commit is the base an experiment keeping the copy's code runs on, whose
+    keys that code knows)."""
+    committed = checkout / f"HEAD:{DEFAULT_PARAMS}"  # git's name for it, in errors
+    shown = subprocess.run(
+        ["git", "show", f"HEAD:{DEFAULT_PARAMS}"], cwd=checkout, capture_output=True, text=True
+    )
+    if shown.returncode:
+        raise BadInput(
+            f"{committed}: {first_line(shown.stderr)}; commit {DEFAULT_PARAMS} (an experiment "
+            "applies its file to the committed one), or --workspace-params applies it to yours"
+        )
     try:
-        return parse_yaml(_git("show", f"HEAD:{DEFAULT_PARAMS}", cwd=workspace), committed)
+        return _sections(parse_yaml(shown.stdout, committed), committed)
     except ParamsError as error:
         raise BadInput(first_line(error)) from None
+
+
+def workspace_params() -> dict[str, Any]:
+    """This checkout's ``params.yaml`` as it is, uncommitted edits included
+    (``experiment run --workspace-params``)."""
+    try:
+        return _sections(read_yaml(DEFAULT_PARAMS), DEFAULT_PARAMS)
+    except ParamsError as error:
+        raise BadInput(first_line(error)) from None
+
+
+def _sections(params: Any, path: Path) -> dict[str, Any]:
+    """``params``, a params file's content, where it is a mapping (of sections)."""
+    if not isinstance(params, dict):
+        raise ParamsError(path, [f"expected a mapping of sections, found {type(params).__name__}"])
+    return params
+
+
+def uncommitted_params(committed: dict[str, Any]) -> list[str]:
+    """The keys (``td3.lr``) in which this checkout's ``params.yaml`` differs from
+    ``committed``, its commit's; the file's name where it cannot be read."""
+    try:
+        here = flatten(_sections(read_yaml(DEFAULT_PARAMS), DEFAULT_PARAMS))
+    except ParamsError:
+        return [str(DEFAULT_PARAMS)]
+    there = flatten(committed)
+    keys = list(here) + [key for key in there if key not in here]
+    missing = object()
+    return [key for key in keys if here.get(key, missing) != there.get(key, missing)]
 
 
 def _contents(path: Path) -> bytes | None:

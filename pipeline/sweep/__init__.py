@@ -35,7 +35,11 @@ On Ray, every node runs the command in this very checkout, which must be at the 
 node (a shared filesystem); only this process touches DVC. A cluster without a shared filesystem
 runs each stage as a batch job instead (``scripts/batch-job.sh``: pull, run, push; README.md).
 
-The package, one job a module: :mod:`.plan` (what to run: the runs, their commands, groups),
+A ``dvc.yaml`` or ``dvc.lock`` that DVC cannot read (not YAML, not what DVC expects, empty, a
+folder) is one line naming it and how to mend it, exit code 2, before anything runs.
+
+The package, one job a module: :mod:`.plan` (what to run: the pipeline DVC reads, the runs,
+their commands, groups),
 :mod:`.stages` (DVC: which stages, their waves, which are out of date, recording),
 :mod:`.execute` (running a job's commands; the local executor), :mod:`.on_ray` (the Ray
 executor and its address check), :mod:`.tally` (progress) and :mod:`.command` (the CLI).

@@ -27,6 +27,7 @@ from ede_pipeline.sweep.plan import (
     RunId,
     default_group_size,
     group_jobs,
+    pipeline_repo,
     seed_by_seed,
     train_runs,
 )
@@ -148,10 +149,7 @@ def sweep(
     Exits 1 if any stage failed (what depends on it is not run); what succeeded is recorded all
     the same, and running the sweep again runs only the rest.
     """
-    from dvc.exceptions import NotDvcRepoError
-    from dvc.repo import Repo
-
-    if not Path("dvc.yaml").is_file():
+    if not Path("dvc.yaml").exists():
         raise BadInput(f"run from the repository root (no dvc.yaml in {Path.cwd()})")
     if executor == "local" and address:
         raise BadInput("--address is for --executor ray")
@@ -179,15 +177,8 @@ def sweep(
             raise BadInput(problem)
     except BadInput as error:
         raise BadInput(f"--logs {error.format_message()}") from None
-    try:
-        Repo(".").close()
-    except NotDvcRepoError:
-        raise BadInput(
-            f"{Path.cwd()}: dvc.yaml but no DVC repository; run `dvc init` (in a git "
-            "repository) first"
-        ) from None
 
-    with Repo(".") as repo, repo_lock(repo):
+    with pipeline_repo() as repo, repo_lock(repo):  # a damaged dvc.yaml or dvc.lock ends here
         waves = in_waves(repo, collect_stages(repo, targets))
         stale, downstream = out_of_date(repo, waves)
         count = sum(map(len, waves))

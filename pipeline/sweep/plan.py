@@ -1,14 +1,105 @@
-"""What a sweep runs: the train runs of ``dvc.yaml``'s matrix, their commands, and the jobs that
-run them — one stage each, or one process for several seeds of a task and algorithm (a group)."""
+"""What a sweep runs: the pipeline DVC reads (``dvc.yaml``, ``dvc.lock``), the train runs of
+``dvc.yaml``'s matrix, their commands, and the jobs that run them — one stage each, or one process
+for several seeds of a task and algorithm (a group)."""
 
 from __future__ import annotations
 
 import shlex
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ede.config import Params
+from ede.errors import first_line
 from ede_pipeline import layout
+from ede_pipeline.common import BadInput
+
+if TYPE_CHECKING:
+    from dvc.exceptions import DvcException
+    from dvc.repo import Repo
+
+# What each file of the pipeline is, and how to mend it when DVC cannot read it.
+PIPELINE_FILES = {
+    "dvc.yaml": "mend it (`git diff dvc.yaml` shows your edits; `git checkout dvc.yaml` restores "
+    "the committed one)",
+    "dvc.lock": "remove it: DVC then restores the stages it recorded from its run cache (or runs "
+    "them again where the cache lacks them)",
+}
+
+
+class DamagedPipeline(BadInput):
+    """``dvc.yaml`` or ``dvc.lock`` that DVC cannot read: one line naming the file, what is
+    wrong and how to mend it; ``file`` is the file's path, ``problem`` what is wrong."""
+
+    def __init__(self, file: Path, problem: str) -> None:
+        self.file, self.problem = file, problem
+        super().__init__(f"{file}: {problem}; {PIPELINE_FILES[file.name]}")
+
+
+@contextmanager
+def pipeline_repo(root: Path = Path(".")) -> Iterator[Repo]:
+    """The DVC repository at ``root`` with its pipeline read: ``dvc.yaml``'s stages and what
+    ``dvc.lock`` records of them, the one place a command reads them, so that a damaged file is
+    one line rather than DVC's traceback. DVC's lock on the repository is not taken.
+
+    Raises:
+        BadInput: ``root`` is no DVC repository, or DVC cannot open it.
+        DamagedPipeline: DVC cannot read ``dvc.yaml`` or ``dvc.lock``, or ``dvc.yaml`` has no
+            stages.
+    """
+    from dvc.exceptions import DvcException, NotDvcRepoError
+    from dvc.repo import Repo
+
+    # A folder in a file's place: DVC skips it, or says "not a .dvc file".
+    for name in PIPELINE_FILES:
+        if (root / name).exists() and not (root / name).is_file():
+            raise DamagedPipeline(root / name, "not a file")
+    try:
+        repo = Repo(str(root))
+    except NotDvcRepoError:
+        raise BadInput(
+            f"{root.resolve()}: dvc.yaml but no DVC repository; run `dvc init` (in a git "
+            "repository) first"
+        ) from None
+    except DvcException as error:  # its .dvc/config, say
+        raise BadInput(f"{root.resolve()}: DVC cannot open it: {first_line(error)}") from None
+    with repo:
+        try:
+            stages = repo.stage.collect()
+            repo.index.graph  # noqa: B018 (built here: a cycle, or two stages with one output)
+        except DvcException as error:
+            raise DamagedPipeline(*_damage(root, error)) from None
+        if not stages:
+            raise DamagedPipeline(root / "dvc.yaml", "no stages")
+        yield repo
+
+
+def _damage(root: Path, error: DvcException) -> tuple[Path, str]:
+    """Which file of the pipeline DVC could not read, and what is wrong with it, in one line."""
+    from dvc.utils.serialize import EncodingError
+    from dvc.utils.strictyaml import YAMLSyntaxError, YAMLValidationError
+
+    named = getattr(error, "path", None) or getattr(error, "relpath", None) or "dvc.yaml"
+    file = root / ("dvc.lock" if Path(str(named)).name == "dvc.lock" else "dvc.yaml")
+    if file.is_file() and not file.read_bytes().strip():
+        return file, "empty"
+    if isinstance(error, YAMLValidationError):
+        problems = [
+            f"{'.'.join(map(str, invalid.path)) or '(top level)'}: {invalid.error_message}"
+            for invalid in error.exc.errors
+        ]
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        return file, f"not what DVC expects: {problems[0]}{more}"
+    if isinstance(error, YAMLSyntaxError):
+        cause = error.exc.__cause__
+        mark = getattr(cause, "problem_mark", None)
+        where = f"line {mark.line + 1}: " if mark is not None else ""
+        return file, f"not YAML ({where}{getattr(cause, 'problem', None) or first_line(error)})"
+    if isinstance(error, EncodingError):
+        return file, "not UTF-8 text"
+    return file, " ".join(str(error).split())  # DVC's own words, some of several lines
 
 
 @dataclass(frozen=True)

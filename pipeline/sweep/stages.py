@@ -46,15 +46,11 @@ def collect_stages(repo: Repo, targets: tuple[str, ...]) -> list[Stage]:
     """The stages the targets name (``*`` a wildcard), or every stage of ``dvc.yaml``.
 
     Raises:
-        BadInput: a target that names no stage; ``dvc.yaml`` or ``dvc.lock`` that DVC cannot
-            read (damaged YAML, an entry not DVC's, two stages with one output), in DVC's words.
+        BadInput: a target that names no stage (a damaged ``dvc.yaml`` or ``dvc.lock`` ends
+            earlier, where the repository is opened: :func:`ede_pipeline.sweep.plan.pipeline_repo`).
     """
     from dvc.exceptions import DvcException
 
-    try:
-        repo.index.graph  # noqa: B018 — every stage read now, so that a damaged file is said here
-    except DvcException as error:
-        raise BadInput(str(error)) from None
     if not targets:
         return list(repo.stage.collect())
     stages: dict[str, Stage] = {}

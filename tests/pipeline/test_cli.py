@@ -57,11 +57,15 @@ def test_envs_lists_every_task_with_its_family_and_shapes() -> None:
 
 
 def bad_experiment(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, text: str):
-    """``experiment run bad`` in a folder holding the committed params and ``experiments/bad.yaml``
-    with ``text``: refused before anything is made."""
+    """``experiment run bad`` in a folder holding the committed params (committed there: an
+    experiment applies its file to the commit's) and ``experiments/bad.yaml`` with ``text``:
+    refused before anything is made."""
     (tmp_path / "experiments").mkdir()
     (tmp_path / "experiments" / "bad.yaml").write_text(text)
     (tmp_path / "params.yaml").write_bytes((REPO / "params.yaml").read_bytes())
+    for git in (["init", "-q"], ["add", "params.yaml"], ["commit", "-qm", "params"]):
+        subprocess.run(["git", "-c", "user.email=t@example.org", "-c", "user.name=t", *git],
+                       cwd=tmp_path, check=True)  # fmt: skip
     (tmp_path / "dvc.yaml").write_text("stages: {}\n")
     (tmp_path / ".dvc").mkdir()
     monkeypatch.chdir(tmp_path)

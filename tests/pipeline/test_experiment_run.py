@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import time
@@ -82,6 +83,11 @@ def experiment(repo: Path, *args: str) -> subprocess.CompletedProcess[str]:
         (["export", "two-seeds-lr"], "experiment two-seeds-lr: not run here yet"),
         (["run", "x..y"], "experiment 'x..y': expected a name: 1 to 64 ASCII letters"),
         (["run", "my exp"], "experiment 'my exp': expected a name: 1 to 64 ASCII letters"),
+        (
+            ["run", "two-seeds-lr", "--workspace-params", "--keep-code"],
+            "--workspace-params and --keep-code: the code the working copy keeps runs with the "
+            "params.yaml of its own commit",
+        ),
     ],
 )
 def test_bad_input_is_one_line_and_makes_nothing(repo: Path, args: list[str], line: str) -> None:
@@ -92,6 +98,20 @@ def test_bad_input_is_one_line_and_makes_nothing(repo: Path, args: list[str], li
     assert len(result.stderr.strip().splitlines()) == 1, result.stderr
     assert not (repo / ".dvc" / "tmp" / "experiments" / args[1]).exists()
     assert sorted(p.name for p in (repo / ".dvc").iterdir()) == before
+
+
+def test_a_params_yaml_never_committed_is_one_line(tmp_path: Path) -> None:
+    """An experiment's file is applied to the committed params.yaml: where there is none (no
+    commit yet), one line says so and what to do, and nothing is made."""
+    repo = scratch_copy(tmp_path / "repo", tiny)  # every file added, none committed
+    result = experiment(repo, "run", "quick")
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.startswith("Error: HEAD:params.yaml: fatal: "), result.stderr
+    assert "; commit params.yaml (an experiment applies its file to the committed one), or " in (
+        result.stderr
+    )
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert not (repo / ".dvc" / "tmp").exists()
 
 
 def test_a_killed_experiment_resumes_is_recorded_and_exports_its_runs(repo: Path) -> None:
@@ -170,6 +190,38 @@ def test_a_killed_experiment_resumes_is_recorded_and_exports_its_runs(repo: Path
     assert (repo / "figures" / "point.png").is_file()
 
 
+def test_an_experiment_runs_the_commits_params_whatever_the_workspaces_hold(repo: Path) -> None:
+    """The README's path, `make quick` then `dvc exp apply quick` then another experiment, leaves
+    other params in the workspace's params.yaml: an experiment applies its file to the commit's
+    params.yaml all the same, says in one line that the workspace's differs and is not used, and
+    `experiment show` shows it changed what its file changes, against that commit."""
+    ok(experiment(repo, "run", "two-seeds", "--jobs", "2"))  # made here or by a test before
+    params = repo / "params.yaml"
+    committed = params.read_text()
+    edited = yaml.safe_load(committed)
+    edited["td3"].update(lr=0.005, hidden=[32, 32])  # as `dvc exp apply` of another leaves it
+    params.write_text(yaml.safe_dump(edited))
+    try:
+        again = experiment(repo, "run", "two-seeds", "--jobs", "2")
+    finally:
+        params.write_text(committed)
+    ok(again)
+    said = [line for line in again.stderr.splitlines() if "params.yaml" in line]
+    assert said == [
+        "experiment two-seeds: this checkout's params.yaml differs from its commit's (td3.hidden, "
+        "td3.lr) and is not used: the experiment runs with the commit's (--workspace-params: "
+        "with this one)"
+    ], said
+    assert re.search(r"sweep: 0 of \d+ stages out of date", again.stderr), again.stderr[-3000:]
+    workspace = repo / ".dvc" / "tmp" / "experiments" / "two-seeds"
+    ran = (workspace / "params.yaml").read_text()
+    assert ran.startswith("# experiments/two-seeds.yaml applied to its commit's params.yaml")
+    assert yaml.safe_load(ran)["td3"] == yaml.safe_load(committed)["td3"]
+    blocks = ok(experiment(repo, "show")).split("\n\n")
+    (shown,) = [block for block in blocks if block.startswith("two-seeds  (")]
+    assert "runs.seeds: " in shown and "td3." not in shown, shown
+
+
 def test_experiments_of_one_family_share_its_embedding(repo: Path) -> None:
     store = repo.parent / "ede-store"  # .dvc/config's remote, ../ede-store from the checkout
     # Made here, or by a test before on this worker (the repository is the module's): either
@@ -190,7 +242,8 @@ def test_a_changed_code_keeps_finished_runs_unless_told(tmp_path: Path) -> None:
     """Running an experiment again after its runs' code changed is refused while runs have
     finished (DVC would run them again); --keep-code finishes it with the code they were made
     with and the params of that code's commit (a key added here since is one that code does not
-    know), --update-code runs them again with the checkout's."""
+    know), --update-code runs them again with the checkout's (and --workspace-params with the
+    workspace's uncommitted params)."""
     repo = scratch_copy(tmp_path / "repo", tiny)
     (repo / "experiments").mkdir(exist_ok=True)
     (repo / "experiments" / "one-seed.yaml").write_text(
@@ -220,10 +273,14 @@ def test_a_changed_code_keeps_finished_runs_unless_told(tmp_path: Path) -> None:
 
     kept = ok(experiment(repo, "run", "one-seed", "--keep-code", "--jobs", "1"))
     assert re.search(r"sweep: 0 of \d+ stages out of date", kept), kept[-3000:]
+    assert "this checkout's params.yaml differs from its commit's (td3.lr) and is not used" in kept
     assert (workspace / "ede" / "td3.py").read_bytes() == original
     assert (finished / "metrics.json").read_bytes() == made
 
-    again = ok(experiment(repo, "run", "one-seed", "--update-code", "--jobs", "1"))
+    again = ok(
+        experiment(repo, "run", "one-seed", "--update-code", "--workspace-params", "--jobs", "1")
+    )
+    assert "is not used" not in again
     # The run, and the report made from it.
     assert re.search(r"sweep: 2 of \d+ stages out of date", again), again[-3000:]
     assert (workspace / "ede" / "td3.py").read_bytes() == code.read_bytes()
@@ -248,21 +305,89 @@ def test_one_experiment_runs_once_at_a_time(repo: Path) -> None:
     assert [p for p in after if not p.endswith(".two-seeds.lock")] == before
 
 
+def _entry_replaced(lock: Path) -> None:
+    records = yaml.safe_load(lock.read_text())
+    records["stages"]["collect@point"] = 5
+    lock.write_text(yaml.safe_dump(records))
+
+
+@pytest.mark.parametrize(
+    ("damage", "problem"),
+    [
+        (lambda lock: lock.write_text(""), "empty"),  # a kill while DVC wrote it
+        (
+            _entry_replaced,
+            "not what DVC expects: stages.collect@point: expected a dictionary",
+        ),
+    ],
+    ids=["empty", "an entry replaced"],
+)
 def test_a_damaged_dvc_lock_in_the_working_copy_is_removed_and_the_runs_restored(
-    repo: Path,
+    repo: Path, damage, problem: str
 ) -> None:
-    """A kill while DVC wrote the working copy's dvc.lock can leave it empty; the next run says
-    so in one line, removes it, and DVC restores the finished runs from its run cache."""
+    """A working copy's dvc.lock DVC cannot read (a kill while DVC wrote it can leave it empty;
+    an entry of it replaced) is said in one line and removed by the next run, and DVC restores
+    the finished runs from its run cache."""
     ok(experiment(repo, "run", "two-seeds", "--jobs", "2"))
     workspace = repo / ".dvc" / "tmp" / "experiments" / "two-seeds"
     finished = workspace / "data" / "runs" / TASK / "td3" / "seed1" / "metrics.json"
     made = finished.read_bytes()
-    (workspace / "dvc.lock").write_text("")
+    damage(workspace / "dvc.lock")
     again = experiment(repo, "run", "two-seeds", "--jobs", "2")
     assert again.returncode == 0, again.stderr[-3000:]
-    assert "its working copy's dvc.lock was damaged (empty, or not DVC's YAML)" in again.stderr
+    said = [line for line in again.stderr.splitlines() if "dvc.lock" in line]
+    assert said == [
+        f"experiment two-seeds: its working copy's dvc.lock was damaged ({problem}) and is "
+        "removed; DVC restores the finished runs from its run cache"
+    ], said
+    assert "Traceback" not in again.stderr
     assert "Running stage" not in again.stdout + again.stderr  # restored, not trained again
     assert finished.read_bytes() == made
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "line"),
+    [
+        ("dvc.yaml", "stages: {{{\n", "dvc.yaml: not YAML (line 2: "),
+        ("dvc.yaml", "stages: 5\n", "dvc.yaml: not what DVC expects: stages: expected a "),
+        ("dvc.yaml", "", "dvc.yaml: no stages; mend it ("),
+        ("dvc.yaml", None, "dvc.yaml: not a file; mend it ("),
+        (
+            "dvc.lock",
+            "schema: '2.0'\nstages:\n  collect@point: 5\n",
+            "dvc.lock: not what DVC expects: stages.collect@point: expected a dictionary; "
+            "remove it: DVC then restores",
+        ),
+    ],
+    ids=["not YAML", "a wrong type", "empty", "a folder", "an entry of dvc.lock replaced"],
+)
+def test_a_damaged_dvc_yaml_or_dvc_lock_here_is_one_line_and_makes_nothing(
+    repo: Path, name: str, content: str | None, line: str
+) -> None:
+    """The checkout's dvc.yaml or dvc.lock that DVC cannot read: one line naming it and how to
+    mend it, before the experiment's working copy is made; the file is left as it is."""
+    (repo / "experiments" / "untouched.yaml").write_text(EXPERIMENT)
+    damaged = repo / name
+    kept = damaged.read_bytes() if damaged.is_file() else None
+    damaged.unlink(missing_ok=True)
+    try:
+        if content is None:
+            damaged.mkdir()
+        else:
+            damaged.write_text(content)
+        refused = experiment(repo, "run", "untouched", "--jobs", "1")
+        assert content is None or damaged.read_text() == content
+    finally:
+        if damaged.is_dir():
+            shutil.rmtree(damaged)
+        damaged.unlink(missing_ok=True)
+        if kept is not None:
+            damaged.write_bytes(kept)
+        (repo / "experiments" / "untouched.yaml").unlink()
+    assert refused.returncode == 2, refused.stderr
+    assert refused.stderr.startswith(f"Error: {line}"), refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1, refused.stderr
+    assert not (repo / ".dvc" / "tmp" / "experiments" / "untouched").exists()
 
 
 def test_make_quick_runs_the_quick_look_as_an_experiment_with_no_warning(tmp_path: Path) -> None:
@@ -278,6 +403,11 @@ def test_make_quick_runs_the_quick_look_as_an_experiment_with_no_warning(tmp_pat
     made = ok(run(repo, "make", "quick", f"VENV={installed}", timeout=900))
     warned = [line for line in made.splitlines() if "warn" in line.lower()]
     assert warned == [], warned[:5]
+    # No traceback either (the sweep's progress thread once printed one): neither its header
+    # nor an exception's line.
+    assert "Traceback (most recent call last)" not in made, made[-3000:]
+    raised = re.findall(r"^\s*(?:\w+\.)*\w+(?:Error|Exception)\b.*$", made, re.MULTILINE)
+    assert raised == [], raised[:5]
     assert "experiment run quick --update-code" in made  # one way to run an experiment
     for algo in ("td3", "ede-td3"):
         assert (repo / ".dvc/tmp/experiments/quick/data/runs" / TASK / algo / "seed0").is_dir()
@@ -287,6 +417,11 @@ def test_make_quick_runs_the_quick_look_as_an_experiment_with_no_warning(tmp_pat
     ok(dvc(repo, "exp", "apply", "quick"))
     assert (repo / "data" / "report" / "index.html").is_file()
     assert yaml.safe_load((repo / "params.yaml").read_text())["td3"]["lr"] == 0.002
+    # The README's next step, an experiment run with the quick look's params in the workspace:
+    # it runs the commit's, and says so.
+    again = ok(run(repo, "make", "quick", f"VENV={installed}", timeout=900))
+    assert "this checkout's params.yaml differs from its commit's (td3.lr) and is not used" in again
+    assert re.search(r"sweep: 0 of \d+ stages out of date", again), again[-3000:]
 
 
 def test_an_export_with_policies_publishes_what_render_plays(repo: Path) -> None:

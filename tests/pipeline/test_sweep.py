@@ -304,9 +304,9 @@ def test_a_sweep_writes_into_its_own_logs_folder_again_and_never_beside_a_users_
         (
             "dvc.lock",
             'schema: "2.0"\nstages:\n  collect@point: 5\n',
-            "'./dvc.lock' validation failed",
+            "dvc.lock: not what DVC expects: stages.collect@point",
         ),
-        ("dvc.yaml", "stages:\n  a:\n    cmd: x\n    deps: [5\n", "unable to read: 'dvc.yaml'"),
+        ("dvc.yaml", "stages:\n  a:\n    cmd: x\n    deps: [5\n", "dvc.yaml: not YAML (line 5"),
     ],
 )
 def test_a_damaged_dvc_file_is_one_line_before_anything_runs(

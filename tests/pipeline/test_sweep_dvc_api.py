@@ -49,6 +49,9 @@ INTERNALS: dict[str, list[str] | None] = {
     "dvc.lock:LockError": None,
     "dvc.exceptions:DvcException": None,
     "dvc.exceptions:NotDvcRepoError": None,
+    "dvc.utils.serialize:EncodingError": None,
+    "dvc.utils.strictyaml:YAMLSyntaxError": None,
+    "dvc.utils.strictyaml:YAMLValidationError": None,
 }
 
 
@@ -276,3 +279,47 @@ def test_a_sweep_does_not_start_while_dvc_holds_the_repository_lock(
     assert blocked.exit_code == 2, blocked.output
     assert "another sweep is running here" in blocked.stderr, blocked.stderr
     assert not (swept / "data").exists()
+
+
+# A damaged file of the pipeline, its content (None: a folder in its place), and the start of the
+# line that refuses it. The line names the file and how to mend it; the checkout's files are the
+# user's, so nothing is repaired here (an experiment's working copy is: test_experiment_run.py).
+DAMAGED = {
+    "an entry of dvc.lock replaced": (
+        "dvc.lock",
+        "schema: '2.0'\nstages:\n  prepare: 5\n",
+        "dvc.lock: not what DVC expects: stages.prepare: expected a dictionary; remove it: ",
+    ),
+    "dvc.lock not YAML": ("dvc.lock", "stages: {\n", "dvc.lock: not YAML (line 2: "),
+    "dvc.lock empty": ("dvc.lock", "", "dvc.lock: empty; remove it: "),
+    "dvc.lock a folder": ("dvc.lock", None, "dvc.lock: not a file; remove it: "),
+    "dvc.yaml not YAML": ("dvc.yaml", "stages: {{{\n", "dvc.yaml: not YAML (line 2: "),
+    "dvc.yaml of a wrong type": (
+        "dvc.yaml",
+        "stages:\n  prepare:\n    cmd: 5\n",
+        "dvc.yaml: not what DVC expects: stages.prepare.cmd: expected str; mend it (",
+    ),
+    "dvc.yaml empty": ("dvc.yaml", "", "dvc.yaml: no stages; mend it ("),
+    "dvc.yaml a folder": ("dvc.yaml", None, "dvc.yaml: not a file; mend it ("),
+    "dvc.yaml not UTF-8": ("dvc.yaml", "stages:\n  caf\xe9:\n", "dvc.yaml: not UTF-8 text; "),
+}
+
+
+@pytest.mark.parametrize("damage", list(DAMAGED))
+def test_a_damaged_dvc_yaml_or_dvc_lock_is_one_line_and_runs_nothing(
+    tmp_path: Path, toy_params: dict[str, Any], monkeypatch: pytest.MonkeyPatch, damage: str
+) -> None:
+    name, content, line = DAMAGED[damage]
+    toy = _toy(tmp_path / "toy", toy_params)
+    damaged = toy / name
+    damaged.unlink(missing_ok=True)
+    if content is None:
+        damaged.mkdir()
+    else:
+        damaged.write_bytes(content.encode("latin-1"))
+    refused = _sweep(toy, monkeypatch)
+    assert refused.exit_code == 2, refused.output
+    assert refused.stderr.startswith(f"Error: {line}"), refused.stderr
+    assert len(refused.stderr.splitlines()) == 1, refused.stderr
+    assert not (toy / "data").exists()
+    assert content is None or damaged.read_bytes() == content.encode("latin-1")  # left as it is
