@@ -124,7 +124,7 @@ def edit_tensors(folder: Path, change: Callable[[dict], None]) -> None:
 
 
 POLICY_JSON, WEIGHTS = "run/policy/policy.json", "run/policy/policy.safetensors"
-DISAGREEING: dict[str, tuple[Callable[[Path], None], str]] = {
+DISAGREEING: dict[str, tuple[Callable[[Path], object], str]] = {
     "another task": (
         lambda f: edit_policy(f, lambda m: m.update(task="ede/PointMass-v0")),
         f"{POLICY_JSON}: not the policy of the run its run.json describes (task is "
