@@ -247,3 +247,20 @@ def test_a_video_that_fails_midway_is_one_line_and_leaves_nothing(
     assert done.returncode == 1 and done.stderr.count("\n") == 1, done.stderr
     assert done.stderr.startswith(f"Error: v{suffix}: not written (File too large)"), done.stderr
     assert listing(policy_run.parent) == before
+
+
+@pytest.mark.parametrize(
+    "meta",
+    ['{"kind": "ede-encoder"}'.encode("utf-16"), b'{"kind": "\xff"}'],
+    ids=["utf-16", "bytes"],
+)
+def test_an_embedding_meta_not_utf8_json_is_one_line(policy_run: Path, meta: bytes) -> None:
+    for name in ("policy/policy.json", "run.json"):  # an EDE-TD3 run: it acts through its embedding
+        edit = json.loads((policy_run / name).read_text())
+        (policy_run / name).write_text(json.dumps({**edit, "algo": "ede-td3"}))
+    for part in ("encoder", "decoder"):
+        Path(part).mkdir()
+        (Path(part) / "meta.json").write_bytes(meta)
+        (Path(part) / "weights.safetensors").write_bytes(b"")
+    done = run("render", str(policy_run), "--encoder", "encoder", "--decoder", "decoder")
+    one_line(done, 2, "decoder/meta.json: Invalid JSON: ")
