@@ -13,11 +13,16 @@ An EDE-TD3 run needs its family's embedding, the one its ``run.json`` names: the
 beside it, where ``ede-pipeline experiment export --policies`` published the run, else the
 pipeline's for its task.
 
+Frames go to the encoder as they are made, and a video holds at most :data:`MAX_FRAMES` (an
+MP4 10,000, a GIF 1,000): more ``--episodes`` than fit are refused before anything is played.
+
 Bad input is one line (exit 2): a folder with no policy (a published copy keeps one only where
 exported with ``--policies``), a damaged
-policy (its SHA-256 not the one ``run.json`` records, or unreadable), an EDE-TD3 run without its
+policy (its SHA-256 not the one ``run.json`` records, or unreadable), a policy that disagrees with
+its run or with itself (:func:`policy_of`), an EDE-TD3 run without its
 embedding, a task that cannot be made or cannot render; a machine where MuJoCo has no offscreen GL
-is one line, exit 1. The video appears whole or not at all.
+is one line, exit 1, and so is a video that cannot be written whole (a full disk). The video
+appears whole or not at all.
 """
 
 from __future__ import annotations
@@ -57,13 +62,16 @@ VIDEO_KIND = "video"  # what a video's mark says made it (ede.atomic.writing_fil
 FORMATS = (".mp4", ".gif")
 OFFSCREEN = ("egl", "osmesa")  # MuJoCo's offscreen GL backends; egl where MUJOCO_GL is unset
 
-# The most frames one video holds: 100 episodes of our tasks' 100 steps (ten times the final
-# evaluation's 10 episodes), 3.3 to 8.3 minutes at their 50 or 20 frames a second. An MP4's frames
-# go to the encoder as they are made, so its length costs time, not memory: about 15 ms a frame
-# (480², rendered, marked and encoded on our 2-core machines), 2.5 minutes for the lot. A GIF
-# keeps what it shows (every other frame, halved to 240²: 170 KB each) until its palette is drawn
-# from all of them: under 1 GB at this bound. ``--episodes`` is refused beyond it before any work.
-MAX_FRAMES = 10_000
+# The most frames one video holds. An MP4's frames go to the encoder as they are made, so its
+# length costs time, not memory: 100 episodes of our tasks' 100 steps (ten times the final
+# evaluation's 10 episodes; 3.3 to 8.3 minutes at their 50 or 20 frames a second). Measured
+# (2026-12-07, ede/Point-v0 at 480², on a 2-core machine shared by six test runs): 70 ms a frame,
+# rendered, marked and encoded, so about 12 minutes for the lot, and a peak RSS of 480 MB for 100
+# frames and for 600 alike. A GIF keeps what it shows (every other frame, halved to 240²) until
+# its palette is drawn from all of them, and Pillow keeps its frames too: 0.6 MB a frame kept
+# (670 MB for 600 frames), so it holds ten episodes. ``--episodes`` beyond these is refused
+# before any work.
+MAX_FRAMES = {".mp4": 10_000, ".gif": 1_000}
 
 # A disk with less room than this is full for a video (ffmpeg writes in blocks of 256 KiB).
 FULL = 2**20
@@ -386,18 +394,20 @@ def _cause(error: OSError, written: Path) -> OSError:
     return OSError(errno.EIO, f"the encoder failed: {first_line(error)}")
 
 
-def check_episodes(task: str, episodes: int) -> None:
-    """Refuse more episodes of ``task`` than a video holds (:data:`MAX_FRAMES`), before any work.
+def check_episodes(task: str, episodes: int, suffix: str) -> None:
+    """Refuse more episodes of ``task`` than a video of ``suffix``'s format holds
+    (:data:`MAX_FRAMES`), before any work.
 
     Raises:
-        BadInput: naming the option, its value and the most episodes of ``task`` a video holds.
+        BadInput: naming the option, its value and the most episodes of ``task`` that fit.
     """
-    steps = episode_steps(task) or MAX_FRAMES  # a task without a time limit: one episode at most
-    fits = max(1, MAX_FRAMES // steps)
+    most = MAX_FRAMES[suffix]
+    steps = episode_steps(task) or most  # a task without a time limit: one episode at most
+    fits = max(1, most // steps)
     if episodes > fits:
         raise BadInput(
             f"--episodes {episodes}: at most {fits} of {task} (episodes of up to {steps} steps) "
-            f"fit in a video of {MAX_FRAMES:,} frames"
+            f"fit in {'an MP4' if suffix == '.mp4' else 'a GIF'} of {most:,} frames"
         )
 
 
@@ -408,7 +418,8 @@ def check_episodes(task: str, episodes: int) -> None:
     type=click.IntRange(min=1),
     default=1,
     show_default=True,
-    help=f"Episodes to play, one after another (at most {MAX_FRAMES:,} frames in all).",
+    help=f"Episodes to play, one after another (at most {MAX_FRAMES['.mp4']:,} frames in all, "
+    f"{MAX_FRAMES['.gif']:,} in a GIF).",
 )
 @click.option(
     "--out",
@@ -439,10 +450,10 @@ def render(
         check_out(out)
     meta, tensors = policy_of(run)
     task, algo, seed = meta["task"], meta["algo"], int(meta["seed"])
-    check_episodes(task, episodes)
     if out is None:
         out = layout.video(task, algo, seed)
         check_out(out)
+    check_episodes(task, episodes, out.suffix)
     embedding = embedding_for(run, meta, params, encoder, decoder) if algo == "ede-td3" else None
     frames, returns = frames_of(meta, tensors, adapter_of(meta, embedding), episodes)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -75,19 +75,25 @@ def test_render_plays_a_policy_made_here(policy_run: Path) -> None:
     assert done.output.startswith("v.mp4: 200 frames, ede/Point-v0 td3 seed 0; returns ")
 
 
-def test_episodes_beyond_a_videos_frames_are_refused_before_any_work(policy_run: Path) -> None:
+@pytest.mark.parametrize(("suffix", "fits"), [(".mp4", 100), (".gif", 10)])
+def test_episodes_beyond_a_videos_frames_are_refused_before_any_work(
+    policy_run: Path, suffix: str, fits: int
+) -> None:
     before = listing(policy_run.parent)
     start = time.perf_counter()
-    done = run("render", str(policy_run), "--episodes", "1000000000", "--out", "v.mp4")
+    done = run("render", str(policy_run), "--episodes", "1000000000", "--out", f"v{suffix}")
     assert time.perf_counter() - start < 30
+    kind = "an MP4" if suffix == ".mp4" else "a GIF"
     one_line(
         done,
         2,
-        f"--episodes 1000000000: at most {MAX_FRAMES // 100} of ede/Point-v0 (episodes of up to "
-        f"100 steps) fit in a video of {MAX_FRAMES:,} frames",
+        f"--episodes 1000000000: at most {fits} of ede/Point-v0 (episodes of up to 100 steps) "
+        f"fit in {kind} of {MAX_FRAMES[suffix]:,} frames",
     )
     assert listing(policy_run.parent) == before
-    assert run("render", str(policy_run), "--episodes", str(MAX_FRAMES // 100 + 1)).exit_code == 2
+    assert fits * 100 == MAX_FRAMES[suffix]
+    done = run("render", str(policy_run), "--episodes", str(fits + 1), "--out", f"v{suffix}")
+    assert done.exit_code == 2 and listing(policy_run.parent) == before
 
 
 @pytest.mark.parametrize("suffix", [".mp4", ".gif"])
