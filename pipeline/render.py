@@ -32,6 +32,7 @@ import json
 import os
 import resource
 import shutil
+import tempfile
 from collections.abc import Iterable, Iterator
 from itertools import pairwise, zip_longest
 from pathlib import Path
@@ -376,6 +377,23 @@ def write_video(out: Path, frames: Iterable[np.ndarray], fps: float) -> int:
         finally:
             tmp.unlink(missing_ok=True)
     return count
+
+
+def video_bytes(frames: Iterable[np.ndarray], fps: float, name: Path) -> bytes:
+    """``frames`` as the bytes of an MP4 (a page's clip, ``name`` on the page), encoded through
+    a temporary file.
+
+    Raises:
+        NotWritten: the clip could not be encoded whole (a full disk), naming it: a failure of
+            the machine, not of the clip (the command stops in one line, exit 1).
+    """
+    with tempfile.TemporaryDirectory() as scratch:
+        clip = Path(scratch) / name.name
+        try:
+            encode(frames, fps, ".mp4", clip)
+        except OSError as error:
+            raise NotWritten(name, _cause(error, clip)) from None
+        return clip.read_bytes()
 
 
 def _cause(error: OSError, written: Path) -> OSError:

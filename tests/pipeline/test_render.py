@@ -270,3 +270,23 @@ def test_an_embedding_meta_not_utf8_json_is_one_line(policy_run: Path, meta: byt
         (Path(part) / "weights.safetensors").write_bytes(b"")
     done = run("render", str(policy_run), "--encoder", "encoder", "--decoder", "decoder")
     one_line(done, 2, "decoder/meta.json: Invalid JSON: ")
+
+
+def test_a_pages_clip_that_fails_midway_names_itself_as_not_written(tmp_path: Path) -> None:
+    """(The report's clips: its command turns this into one line, exit 1.)"""
+    code = LIMITED + (
+        "import numpy as np\n"
+        "from pathlib import Path\n"
+        "from ede.atomic import NotWritten\n"
+        "from ede_pipeline.render import video_bytes\n"
+        "frames = (np.random.default_rng(n).integers(0, 255, (64, 64, 3), np.uint8)"
+        " for n in range(50))\n"
+        "try:\n"
+        "    video_bytes(frames, 20.0, Path('clip-x.mp4'))\n"
+        "except NotWritten as error:\n"
+        "    print(error.strerror)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path
+    )
+    assert done.stdout.startswith("clip-x.mp4: not written (File too large)"), done
