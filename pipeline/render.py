@@ -96,6 +96,7 @@ class PolicyMeta(BaseModel):
     code_size: Annotated[StrictInt, Field(gt=0)]
     code_low: list[float]
     code_high: list[float]
+    params: dict[str, Any] = Field(default_factory=dict)
 
     @model_validator(mode="after")
     def _a_box(self) -> PolicyMeta:
@@ -104,6 +105,12 @@ class PolicyMeta(BaseModel):
             raise ValueError(f"code_low and code_high: expected {self.code_size} numbers each")
         if not (np.isfinite(low).all() and np.isfinite(high).all() and (low < high).all()):
             raise ValueError("code_low and code_high: expected finite bounds, each low < high")
+        ede_td3 = self.params.get("ede_td3")
+        scale = ede_td3.get("bound_scale") if isinstance(ede_td3, dict) else None
+        if self.algo == "ede-td3" and (
+            isinstance(scale, bool) or not isinstance(scale, int | float)
+        ):
+            raise ValueError("params.ede_td3.bound_scale: expected a number (EDE-TD3's code bound)")
         return self
 
 
@@ -127,10 +134,6 @@ def policy_of(run: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
         where = ".".join(str(part) for part in problem["loc"])
         said = problem["msg"].removeprefix("Value error, ")
         raise BadInput(f"{described}: {where + ': ' if where else ''}{said}") from None
-    if checked.algo == "ede-td3" and not isinstance(
-        meta.get("params", {}).get("ede_td3", {}).get("bound_scale"), int | float
-    ):
-        raise BadInput(f"{described}: params.ede_td3.bound_scale: expected a number")
     made = _run_json(run)
     if made is not None:
         expected = {key: made[key] for key in IDENTITY if key in made and key in meta}

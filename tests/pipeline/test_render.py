@@ -148,6 +148,14 @@ DISAGREEING: dict[str, tuple[Callable[[Path], object], str]] = {
         lambda f: edit_policy(f, lambda m: m.update(hidden=["8"])),
         f"{POLICY_JSON}: hidden.0: Input should be a valid integer",
     ),
+    "params not a mapping": (
+        lambda f: edit_policy(f, lambda m: m.update(params=[1])),
+        f"{POLICY_JSON}: params: Input should be a valid dictionary",
+    ),
+    "an EDE-TD3 policy without its bound": (
+        lambda f: edit_policy(f, lambda m: m.update(algo="ede-td3", params={"ede_td3": {}})),
+        f"{POLICY_JSON}: params.ede_td3.bound_scale: expected a number",
+    ),
     "a box of another size": (
         lambda f: edit_policy(f, lambda m: m.update(code_size=3)),
         f"{POLICY_JSON}: code_low and code_high: expected 3 numbers each",
