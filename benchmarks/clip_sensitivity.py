@@ -46,7 +46,10 @@ def returns(run: Path, scales: list[float], rng: np.random.Generator) -> list[fl
             return actions * (1 + scale * noise.to(actions.dtype))
 
         setattr(adapter, "decode", jittered)  # noqa: B010 (a method replaced on this one instance)
-        made.append(frames_of(meta, tensors, adapter, 1, shrink=2)[1][0])
+        frames, played = frames_of(meta, tensors, adapter, 1, shrink=2)
+        for _ in frames:  # each frame played and dropped: the episode's return is known after
+            pass
+        made.append(played[0])
     return made
 
 

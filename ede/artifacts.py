@@ -170,7 +170,7 @@ def _load_meta(path: Path, model: type[M]) -> tuple[M, dict[str, torch.Tensor]]:
             f"(expected {META} and {WEIGHTS}; run `ede-pipeline pretrain`)"
         )
     try:
-        meta = model.model_validate_json(meta_file.read_text())
+        meta = model.model_validate_json(meta_file.read_bytes())  # UTF-8 JSON, or one line
     except ValidationError as error:
         first = error.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
@@ -178,7 +178,7 @@ def _load_meta(path: Path, model: type[M]) -> tuple[M, dict[str, torch.Tensor]]:
             raise ArtifactError(
                 f"{meta_file}: records no meta_sha256 (made by an earlier version); {AGAIN}"
             ) from None
-        raise ArtifactError(f"{meta_file}: {where}: {first['msg']}") from None
+        raise ArtifactError(f"{meta_file}: {where + ': ' if where else ''}{first['msg']}") from None
     if meta.content_sha256() != meta.meta_sha256:
         raise ArtifactError(
             f"{meta_file}: does not match its checksum (meta_sha256): edited or "

@@ -16,7 +16,6 @@ from typing import Any, NamedTuple
 import gymnasium
 import numpy as np
 import torch
-from gymnasium.envs.mujoco import MujocoEnv
 from PIL import Image, ImageDraw, ImageFont
 
 from ede.tasks import make
@@ -55,6 +54,10 @@ def actor_of(
 def smaller(task: str, shrink: int) -> dict[str, int]:
     """The size at which ``task`` renders frames ``shrink`` times smaller than its own, where it
     can (MuJoCo's ``width`` and ``height``); ``{}`` where it cannot (its frames are strided)."""
+    # Imported here: MuJoCo reads MUJOCO_GL as it is imported, and fails there on a value it does
+    # not know; importing this module must leave that to the command's own check of the variable.
+    from gymnasium.envs.mujoco import MujocoEnv
+
     env = make(task, render_mode="rgb_array")
     try:
         mujoco = env.unwrapped

@@ -16,7 +16,16 @@ from ede.rollouts import Rollouts, RolloutsError, state_source, write_store
 from ede.rollouts import collect as collect_steps
 from ede.tasks import action_bounds, make
 from ede_pipeline import layout
-from ede_pipeline.common import BadInput, check_family, family_option, holding, params_option
+from ede_pipeline.common import (
+    USABLE_SHARE,
+    BadInput,
+    available_memory,
+    check_family,
+    family_option,
+    holding,
+    in_units,
+    params_option,
+)
 from ede_pipeline.progress import progress
 
 
@@ -36,12 +45,32 @@ def collect(params: Params, family: str, out: Path | None, workers: int | None) 
     env_id = params.families[family].source
     config = params.collect
     num_envs = config.num_envs or default_num_envs(config.steps, episode_length(env_id))
+    check_collect_memory(env_id, config.steps, config.seed)
     with holding((out, ROLLOUTS)), progress(config.steps, f"collect {family}") as advance:
         arrays = collect_steps(
             env_id, config.steps, num_envs, config.seed, workers, advance, config.saturated_episodes
         )
         write_store(out, arrays, store_attrs(params, family, num_envs, arrays))
     click.echo(f"{out}: {len(arrays['reward'])} steps, {int(arrays['episode'][-1]) + 1} episodes")
+
+
+def check_collect_memory(env_id: str, steps: int, seed: int) -> None:
+    """Refuse more steps than this machine can hold, before any work: collect keeps every
+    episode's rows, then their concatenation (twice the store's rows), measured on one episode;
+    pretrain loads the store whole again.
+
+    Raises:
+        BadInput: naming the key, the steps, the memory they need and what is available.
+    """
+    one = collect_steps(env_id, 1, 1, seed, workers=1)  # one episode, at least one step
+    row = sum(array.nbytes for array in one.values()) // len(one["reward"])
+    need, free = 2 * steps * row, available_memory()
+    if need > USABLE_SHARE * free:
+        raise BadInput(
+            f"collect.steps: {steps:,} steps of {env_id} need about {in_units(need)} of memory "
+            f"(collected whole, {row} bytes a step, twice), more than {USABLE_SHARE:.0%} of the "
+            f"{in_units(free)} available; at most {int(USABLE_SHARE * free) // (2 * row):,} fit"
+        )
 
 
 def default_num_envs(steps: int, length: int | None) -> int:

@@ -351,3 +351,24 @@ def _mujoco_starts_with(value: str) -> bool:
         [sys.executable, "-c", "import mujoco"], env=environ, capture_output=True, timeout=60
     )
     return probe.returncode == 0
+
+
+# The share of the host's available memory a command may fill by its own count of what it holds:
+# the rest is for what the count leaves out (Python and its libraries, a few hundred MB).
+USABLE_SHARE = 0.8
+
+
+def available_memory() -> int:
+    """The bytes of memory this machine can give without swapping (Linux's MemAvailable)."""
+    for line in Path("/proc/meminfo").read_text().splitlines():
+        if line.startswith("MemAvailable:"):
+            return int(line.split()[1]) * 1024
+    raise OSError("/proc/meminfo holds no MemAvailable line")
+
+
+def in_units(size: int) -> str:
+    """``size`` bytes in the largest binary unit it fills, to a tenth."""
+    for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if size >= scale:
+            return f"{size / scale:.1f} {unit}"
+    return f"{size} bytes"

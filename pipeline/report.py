@@ -12,7 +12,6 @@ import html
 import io
 import json
 import os
-import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +34,7 @@ from ede.runs import Curve, RunRejected, RunSpec, read_run
 from ede.stats import Band, curve_band
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, holding, params_option
-from ede_pipeline.render import encode, fps_of, side_by_side
+from ede_pipeline.render import fps_of, side_by_side, video_bytes
 
 STYLE = """
 body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }
@@ -438,16 +437,13 @@ def _videos(
             if family in inputs.loaded
             else None
         )
+        name = f"clip-{task.replace('/', '_')}"
         try:
             frames, _ = side_by_side(runs, embedding)
-            with tempfile.TemporaryDirectory() as scratch:
-                clip = Path(scratch) / "clip.mp4"
-                encode(frames, fps_of(task), ".mp4", clip)
-                data = clip.read_bytes()
+            data = video_bytes(frames, fps_of(task), Path(f"{name}.mp4"))
         except click.ClickException as error:  # no policy, no GL: the page says so
             page.add(f"<p>{html.escape(task)}: no clip ({html.escape(error.format_message())})</p>")
             continue
-        name = f"clip-{task.replace('/', '_')}"
         page.add(f"<h4>{html.escape(task)}, seed {seed}</h4>")
         page.video(name, data, f"{task}: TD3 beside EDE-TD3, seed {seed}")
 

@@ -19,14 +19,17 @@ from ede.nets import pick_device
 from ede.runs import RUN_KIND, RunSpec
 from ede.tasks import action_bounds, make
 from ede.td3 import Critic
-from ede.training import Diverged, train_group
+from ede.training import Diverged, env_workers, train_group
 from ede_pipeline import layout
 from ede_pipeline.common import (
+    USABLE_SHARE,
     BadInput,
     Failed,
+    available_memory,
     check_outputs,
     embedding_options,
     holding,
+    in_units,
     params_option,
 )
 from ede_pipeline.progress import progress
@@ -182,35 +185,66 @@ def parse_seeds(text: str) -> list[int]:
 # and the two tensors its step works in (ede.ensemble.Adam).
 NETWORK_COPIES = 7
 
+# float32 values an update keeps per row of its batch and per unit of a network (the inputs,
+# hidden and output widths of the actor and both critics): a forward's activations and their
+# gradients. Measured (2026-12-07, CPU, hidden [400, 300], 8 members, batch 2,000 and 8,000): the
+# peak RSS grows by 2,500 floats a member's row beyond the replay rows, against 4,384 counted here.
+ACTIVATION_COPIES = 2
 
-# The share of the free memory a group may fill by group_memory's count: the rest is for what it
-# leaves out. (A group estimated at 21.1 GiB, 201 TD3 runs of ede/ReacherVertical-v0 with 10^6
-# steps of replay each, was killed for memory where 21.2 GiB were available.)
-USABLE_SHARE = 0.8
+# Host memory each environment of a member holds (a member has two: training and evaluation,
+# ede.training._Group): in this process, a MuJoCo model and its data, 0.6 to 0.9 MiB measured for
+# ede/Point-v0, ede/Pusher-v0 and ede/Striker-v0; or, with td3.env_workers (AsyncVectorEnv), a
+# worker process of its own that imports ede, gymnasium and MuJoCo: 164 MiB unique to it (USS;
+# 262 MiB RSS, the rest shared with its forkserver) for either task, measured the same day.
+ENVS_PER_MEMBER = 2
+ENV_BYTES = 2**20
+WORKER_BYTES = 170 * 2**20
+
+# A group may fill USABLE_SHARE of the free memory by group_memory's count: the rest is for what
+# it leaves out. (A group estimated at 21.1 GiB, 201 TD3 runs of ede/ReacherVertical-v0 with 10^6
+# steps of replay each, was killed for memory where 21.2 GiB were available.) Measured whole
+# (2026-12-07, `train` of TD3 on ede/Point-v0, hidden [64, 64], batch 64, 2,000 steps, no
+# workers): a peak RSS of 305 MiB for one seed and 322 MiB for eight, 2.4 MiB a member beyond the
+# first against the 2.7 MiB counted; the first's 300 MiB are Python, torch and MuJoCo.
 
 
 def group_memory(
-    members: int, capacity: int, obs_size: int, code_size: int, networks: Sequence[Sequence[int]]
+    members: int,
+    capacity: int,
+    obs_size: int,
+    code_size: int,
+    networks: Sequence[Sequence[int]],
+    batch_size: int = 0,
 ) -> int:
-    """The bytes a group of ``members`` runs holds while it trains, at least.
+    """The bytes a group of ``members`` runs holds in its tensors while it trains, at least.
 
     Counts the replay buffer, ``capacity`` steps of each member as :class:`ede.td3.ReplayBuffer`
     stores them (two float32 observations of ``obs_size``, a float32 code of ``code_size``, an
-    int64 plan step, a float32 reward, two bool flags), and each member's ``networks``, given by
-    their layer widths (a twin critic given twice), :data:`NETWORK_COPIES` times in float32.
-    Not counted: the environments, an update's activations, the embedding (one for the group,
-    a few MB) and torch itself.
+    int64 plan step, a float32 reward, two bool flags), each member's ``networks``, given by
+    their layer widths (a twin critic given twice), :data:`NETWORK_COPIES` times in float32, and
+    an update's activations of ``batch_size`` rows through them (:data:`ACTIVATION_COPIES`).
+    Not counted: the environments (:func:`environment_memory`), the embedding (one for the
+    group, a few MB) and torch itself.
     """
     step = 4 * (2 * obs_size + code_size + 1) + 8 + 2
     weights = sum((n_in + 1) * n_out for widths in networks for n_in, n_out in pairwise(widths))
-    return members * (capacity * step + NETWORK_COPIES * 4 * weights)
+    units = sum(sum(widths) for widths in networks)
+    activations = ACTIVATION_COPIES * 4 * batch_size * units
+    return members * (capacity * step + NETWORK_COPIES * 4 * weights + activations)
+
+
+def environment_memory(members: int, workers: bool) -> int:
+    """The host's bytes a group's environments hold: :data:`ENVS_PER_MEMBER` a member, each in
+    this process or, with ``workers``, in a worker process of its own."""
+    return members * ENVS_PER_MEMBER * (WORKER_BYTES if workers else ENV_BYTES)
 
 
 def check_group_memory(
     params: Params, task: str, algo: str, seeds: str, members: int, device: torch.device
 ) -> None:
-    """Refuse a group whose :func:`group_memory` is more than :data:`USABLE_SHARE` of the memory
-    free where its tensors go (the GPU's, or the host's available memory), before any work.
+    """Refuse a group whose memory is more than :data:`USABLE_SHARE` of the memory free where
+    it goes, before any work: its tensors (:func:`group_memory`) where they go (the GPU's, or
+    the host's available memory), its environments (:func:`environment_memory`) on the host.
 
     Raises:
         BadInput: naming the seeds, the estimate, what is free and how many seeds would fit.
@@ -228,23 +262,36 @@ def check_group_memory(
     actor = [obs_size, *td3.hidden, code_size]
     critic = Critic(obs_size, code_size, k, td3.hidden, plan_step, td3.critic_action_repeat).sizes
     capacity = min(td3.buffer_size, params.runs.budgets[task])  # as ede.training sizes it
-    one = group_memory(1, capacity, obs_size, code_size, [actor, critic, critic])
-    need = members * one
-    free, where = free_memory(device)
-    usable = int(USABLE_SHARE * free)
-    if need <= usable:
-        return
-    fits = usable // one
-    advice = (
-        f"train at most {fits} seed{'s' if fits > 1 else ''} per process"
-        if fits
-        else "not one run fits: lower td3.buffer_size or the task's budget"
+    workers = env_workers(td3.env_workers, members, device)  # as ede.training chooses
+    tensors = group_memory(
+        1, capacity, obs_size, code_size, [actor, critic, critic], td3.batch_size
     )
-    raise BadInput(
-        f"--seed {seeds}: {algo} on {task} for {members} seed{'s' if members > 1 else ''} in "
-        f"one process needs about {_in_units(need)} (replay buffers and networks), more than "
-        f"{USABLE_SHARE:.0%} of the {_in_units(free)} {where}; {advice}"
-    )
+    hosted = environment_memory(1, workers)
+    everything = "replay buffers, networks, activations and environments"
+    if device.type == "cuda":  # the tensors on the GPU, the environments on the host
+        places = [
+            (tensors, "replay buffers, networks and activations", device),
+            (hosted, "environments", torch.device("cpu")),
+        ]
+    else:
+        places = [(tensors + hosted, everything, device)]
+    for one, what, where in places:
+        free, there = free_memory(where)
+        need, usable = members * one, int(USABLE_SHARE * free)
+        if need <= usable:
+            continue
+        fits = usable // one
+        if fits:
+            advice = f"train at most {fits} seed{'s' if fits > 1 else ''} per process"
+        elif workers and what == "environments":
+            advice = "not one run fits: set td3.env_workers to no"
+        else:
+            advice = "not one run fits: lower td3.buffer_size or the task's budget"
+        raise BadInput(
+            f"--seed {seeds}: {algo} on {task} for {members} seed{'s' if members > 1 else ''} "
+            f"in one process needs about {in_units(need)} ({what}), more than "
+            f"{USABLE_SHARE:.0%} of the {in_units(free)} {there}; {advice}"
+        )
 
 
 def free_memory(device: torch.device) -> tuple[int, str]:
@@ -252,18 +299,7 @@ def free_memory(device: torch.device) -> tuple[int, str]:
     memory, or the host's available memory (what it can use without swapping)."""
     if device.type == "cuda":
         return torch.cuda.mem_get_info(device)[0], f"free on {device}"
-    for line in Path("/proc/meminfo").read_text().splitlines():  # Linux's own estimate
-        if line.startswith("MemAvailable:"):
-            return int(line.split()[1]) * 1024, "of memory available"
-    raise OSError("/proc/meminfo holds no MemAvailable line")
-
-
-def _in_units(size: int) -> str:
-    """``size`` bytes in the largest binary unit it fills, to a tenth."""
-    for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
-        if size >= scale:
-            return f"{size / scale:.1f} {unit}"
-    return f"{size} bytes"
+    return available_memory(), "of memory available"
 
 
 def run_dirs(task: str, algo: str, seeds: list[int], out: Path | None) -> list[Path]:

@@ -16,11 +16,10 @@ from typing import NamedTuple
 import numpy as np
 
 from ede.config import ALGO_LABELS, ALGOS, Params
-from ede.runs import POLICY, RunRejected, read_policy
+from ede.runs import POLICY
 from ede_pipeline import layout
-from ede_pipeline.common import BadInput
 from ede_pipeline.published import Source, published_runs, read_source, task_folders
-from ede_pipeline.render import embedding_for, fps_of, side_by_side
+from ede_pipeline.render import embedding_for, fps_of, policy_of, side_by_side
 from ede_pipeline.results.sections import Section
 
 CLIP = "Clip: "  # a clip's heading: CLIP + its task
@@ -58,12 +57,10 @@ def clips(runs: Path, params: Params, tasks: set[str]) -> list[Clip]:
             continue
         seed = seeds[0]
         pair = [kept[seed][algo] for algo in ALGOS]
-        try:
-            meta, _ = read_policy(kept[seed]["ede-td3"])
-        except RunRejected as error:
-            raise BadInput(str(error)) from None
+        meta, _ = policy_of(kept[seed]["ede-td3"])
         embedding = embedding_for(pair[1], meta, params, None, None)
-        frames, returns = side_by_side(pair, (embedding, meta["embedding"]))
+        played, returns = side_by_side(pair, (embedding, meta["embedding"]))
+        frames = list(played)  # one episode each (the returns are known once it is played)
         gif = runs.parent / clip_name(task)
         folder = layout.task_runs(task, Path(runs.name)).as_posix()  # from a page in runs.parent
         source = read_source(layout.task_runs(task, runs))  # the part that made this seed's runs

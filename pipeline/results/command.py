@@ -178,6 +178,12 @@ def check_figures(figures: Path, names: Iterable[str], inputs: tuple[Path, ...])
     )
 
 
+# The most bins a run's budget is cut into: each bin is bootstrapped, so time grows with them, and
+# a bin averages the evaluations in it: a run of our longest budgets (10^6 steps, an evaluation
+# every 1,000) holds 1,000, so more bins than that would leave some empty.
+MAX_BINS = 1_000
+
+
 @click.command()
 @click.option(
     "--runs",
@@ -192,7 +198,7 @@ def check_figures(figures: Path, names: Iterable[str], inputs: tuple[Path, ...])
 )
 @click.option(
     "--bins",
-    type=click.IntRange(min=1),
+    type=click.IntRange(min=1, max=MAX_BINS),
     default=20,
     show_default=True,
     help="Bins per run's budget.",

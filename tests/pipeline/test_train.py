@@ -449,7 +449,10 @@ def test_a_group_too_big_for_the_memory_is_refused_in_one_line_before_any_work(
     )  # fmt: skip
     assert time.perf_counter() - start < 30
     bad(result, "--seed 0-4095: td3 on ede/Point-v0 for 4096 seeds in one process needs about ")
-    assert "(replay buffers and networks), more than 80% of the " in result.stderr
+    assert (
+        "(replay buffers, networks, activations and environments), more than 80% of the "
+        in result.stderr
+    )
     assert "GiB of memory available; train at most " in result.stderr
     assert [p.name for p in tmp_path.iterdir()] == [path.name]
 
@@ -460,13 +463,13 @@ def test_a_group_too_big_for_the_memory_is_refused_in_one_line_before_any_work(
         ("td3", 10**15, None),
         (
             "td3",
-            700 * 2**10,
-            "more than 80% of the 700.0 KiB of memory; train at most 1 seed per process",
+            5 * 2**20,
+            "more than 80% of the 5.0 MiB of memory; train at most 1 seed per process",
         ),
         (
             "ede-td3",
-            10**5,
-            "more than 80% of the 97.7 KiB of memory; not one run fits: lower td3.buffer_size",
+            3 * 2**20,
+            "more than 80% of the 3.0 MiB of memory; not one run fits: lower td3.buffer_size",
         ),
     ],
 )
@@ -478,7 +481,7 @@ def test_a_group_is_refused_only_when_its_estimate_exceeds_the_free_memory(
     free: int,
     message: str | None,
 ) -> None:
-    path = write_params(tiny)  # runs of 3,000 steps: about 0.5 MiB each
+    path = write_params(tiny)  # runs of 3,000 steps: about 2.7 MiB each, 2 of them environments
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr("ede_pipeline.train.train_group", _no_training)
     monkeypatch.setattr("ede_pipeline.train.free_memory", lambda device: (free, "of memory"))
@@ -507,6 +510,96 @@ def test_a_groups_memory_is_compared_with_the_memory_where_its_tensors_go(
     free, where = free_memory(torch.device("cpu"))
     assert where == "of memory available"
     assert abs(free - psutil.virtual_memory().available) < 2**30  # read again: it moves a little
+
+
+# The peak RSS of a process that builds a group's agent and replay buffer and updates it: what the
+# update's activations add is the difference between two batch sizes (the buffer holds the same).
+PEAK = """
+import resource, sys
+import numpy as np, torch
+from ede.config import TD3Config
+from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
+torch.set_num_threads(1)
+members, batch, obs, code, cpu = 4, int(sys.argv[1]), 11, 2, torch.device("cpu")
+config = TD3Config.model_validate({"hidden": [400, 300], "batch_size": batch})
+agent = Agent(obs, IdentityAdapter(-np.ones(code), np.ones(code), cpu), config, cpu, range(members))
+buffer = ReplayBuffer(4_000, obs, code, 1, cpu, members)
+every, rows = np.ones(members, bool), np.zeros((members, obs), np.float32)
+zeros = np.zeros(members)
+for _ in range(4_000):
+    buffer.add(every, rows, torch.zeros(members, code), zeros.astype(np.int64), zeros, rows,
+               zeros.astype(bool), zeros.astype(bool))
+for _ in range(3):
+    agent.update(buffer)
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
+"""
+
+
+def test_a_groups_estimate_bounds_what_an_updates_activations_add() -> None:
+    from ede.td3 import Critic
+    from ede_pipeline.train import group_memory
+
+    def peak(batch: int) -> int:
+        done = subprocess.run(
+            [sys.executable, "-c", PEAK, str(batch)], capture_output=True, text=True, check=True
+        )
+        return int(done.stdout)
+
+    critic = Critic(11, 2, 1, [400, 300], "onehot", 1).sizes
+    networks = [[11, 400, 300, 2], critic, critic]
+
+    def estimate(batch: int) -> int:
+        return group_memory(4, 4_000, 11, 2, networks, batch)
+
+    measured, counted = peak(4_000) - peak(100), estimate(4_000) - estimate(100)
+    # Counted: at least what the update adds, and not more than three times it.
+    assert measured <= counted <= 3 * measured, (measured, counted)
+
+
+def test_a_groups_environments_are_counted_as_they_are_held() -> None:
+    """With workers, each environment is a process: its own memory (USS) is what the estimate
+    counts, at most, and not far below."""
+    import psutil
+    from gymnasium.vector import AsyncVectorEnv
+
+    from ede.vector import MemberEnvs
+    from ede_pipeline.train import ENVS_PER_MEMBER, WORKER_BYTES, environment_memory
+
+    assert environment_memory(3, workers=True) == 3 * ENVS_PER_MEMBER * WORKER_BYTES
+    envs = MemberEnvs.of_task("ede/Pusher-v0", 2, workers=True)
+    try:
+        envs.reset(np.ones(2, dtype=bool), [0, 1])
+        assert isinstance(envs.vector, AsyncVectorEnv)
+        own = [psutil.Process(p.pid).memory_full_info().uss for p in envs.vector.processes]
+    finally:
+        envs.close()
+    assert len(own) == 2 and all(WORKER_BYTES / 2 < uss <= WORKER_BYTES for uss in own), own
+
+
+def test_a_gpu_groups_environments_are_weighed_against_the_hosts_memory(
+    write_params, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import torch
+
+    def workers(params: dict) -> None:
+        tiny(params)
+        params["td3"].update(env_workers="yes", device="cuda")
+
+    path = write_params(workers)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("ede_pipeline.train.train_group", _no_training)
+    monkeypatch.setattr("ede_pipeline.train.pick_device", lambda setting: torch.device("cuda"))
+    memory = {"cuda": (10**15, "free on cuda"), "cpu": (2 * 2**30, "of memory available")}
+    monkeypatch.setattr("ede_pipeline.train.free_memory", lambda device: memory[device.type])
+    result = run(
+        "train", "--params", str(path), "--task", "ede/Point-v0", "--algo", "td3",
+        "--seeds", "0-7", "--out", "runs/seed{seed}",
+    )  # fmt: skip
+    bad(result, "--seed 0-7: td3 on ede/Point-v0 for 8 seeds in one process needs about 2.7 GiB ")
+    assert "(environments), more than 80% of the 2.0 GiB of memory available; train at most 4 " in (
+        result.stderr
+    )
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]
 
 
 def trained(workdir: Path, algo: str) -> Path:
