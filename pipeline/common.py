@@ -324,8 +324,9 @@ def check_mujoco_gl() -> None:
     """An ``MUJOCO_GL`` that MuJoCo cannot start with (a value it does not know, or a backend
     whose libraries this machine lacks) is one line naming the values this machine supports.
 
-    MuJoCo reads the variable when it is first imported and fails there, in every stage; no
-    stage renders, so leaving it unset (or ``disable``) always works.
+    MuJoCo reads the variable when it is first imported and fails there, in every command. Only
+    the commands that play videos (``render``, ``report``, ``results``) render, and unset they
+    take ``egl``; the others never render, so unset (or ``disable``) always works for them.
 
     Raises:
         BadInput: naming the variable, its value, why, and the working values.
@@ -341,7 +342,7 @@ def check_mujoco_gl() -> None:
         raise BadInput(
             f"MUJOCO_GL={value}: MuJoCo cannot start with it ({reason}); this machine "
             f"supports {', '.join(works) or 'none of ' + ', '.join(MUJOCO_GL_VALUES)}, "
-            "or leave it unset: no stage renders"
+            "or leave it unset (render, report and results then take egl; no other command renders)"
         ) from None
 
 

@@ -120,7 +120,10 @@ def test_an_invalid_mujoco_gl_is_one_line_naming_what_works_here() -> None:
         "value for environment variable MUJOCO_GL: foo); this machine "
         "supports "
     ), result.stderr
-    assert result.stderr.endswith(", disable, or leave it unset: no stage renders\n")
+    assert result.stderr.endswith(
+        ", disable, or leave it unset (render, report and results then take egl; no other "
+        "command renders)\n"
+    )
     assert len(result.stderr.splitlines()) == 1
 
 
