@@ -10,6 +10,8 @@ from typing import Any
 
 import click
 
+from ede.config import ParamsError, read_yaml
+from ede.errors import first_line
 from ede.locks import OutputBusy, exclusive
 from ede_pipeline.common import BadInput, Failed
 from ede_pipeline.experiments.export import export
@@ -19,6 +21,7 @@ from ede_pipeline.experiments.workspace import (
     WORKSPACES,
     check_code_keeps_runs,
     committed_params,
+    experiment_file,
     experiment_params,
     git_identity,
     mend_records,
@@ -138,6 +141,10 @@ def _params(
     workspace's with --workspace-params; to which, in words; and the line that says the
     workspace's ``params.yaml`` differs from its commit's and is not used (``None`` where it does
     not, or is used)."""
+    try:  # an unknown name, one that is not a name, and a file that is not YAML: before git
+        read_yaml(experiment_file(name))
+    except ParamsError as error:
+        raise BadInput(first_line(error)) from None
     if from_workspace:
         return experiment_params(name, workspace_params()), "this checkout's", None
     committed = committed_params()

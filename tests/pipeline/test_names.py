@@ -28,8 +28,12 @@ SHELL_WORDS = "pt;touch PWNED;echo $(touch PWNED) `touch PWNED` & x | y > PWNED 
 
 @pytest.fixture(scope="module")
 def copy(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A scratch copy of the repository (a git repository with ``.dvc/``), nothing made."""
-    return scratch_copy(tmp_path_factory.mktemp("names") / "repo")
+    """A scratch copy of the repository (a git repository with ``.dvc/``, its files committed:
+    an experiment applies its file to the committed params.yaml), nothing made."""
+    copy = scratch_copy(tmp_path_factory.mktemp("names") / "repo")
+    identity = ("-c", "user.email=t@example.org", "-c", "user.name=t")
+    run(copy, "git", *identity, "commit", "-qm", "the checkout")
+    return copy
 
 
 def family_named(params: dict[str, Any], name: str) -> None:

@@ -213,9 +213,17 @@ def test_a_policy_that_disagrees_with_its_run_is_one_line_naming_the_file(
 def test_checksummed_policy_files_are_checked_before_they_are_read(policy_run: Path) -> None:
     """(A run made since checksums exist: a changed policy file is not its run's.)"""
     made = json.loads((policy_run / "run.json").read_text())
+    for name in ("eval.csv", "diagnostics.csv", "metrics.json"):  # a finished run's other files
+        (policy_run / name).write_text("")
     made["sha256"] = {
         name: sha256(policy_run / name)
-        for name in ("policy/policy.json", "policy/policy.safetensors")
+        for name in (
+            "eval.csv",
+            "diagnostics.csv",
+            "metrics.json",
+            "policy/policy.json",
+            "policy/policy.safetensors",
+        )
     }
     (policy_run / "run.json").write_text(json.dumps(made))
     edit_policy(policy_run, lambda m: m.update(hidden=[16]))
