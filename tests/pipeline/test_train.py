@@ -512,10 +512,13 @@ def test_a_groups_memory_is_compared_with_the_memory_where_its_tensors_go(
     assert abs(free - psutil.virtual_memory().available) < 2**30  # read again: it moves a little
 
 
-# The peak RSS of a process that builds a group's agent and replay buffer and updates it: what the
-# update's activations add is the difference between two batch sizes (the buffer holds the same).
+# What a group's updates add to the memory of a process that holds its agent and replay buffer:
+# the peak resident size while they run (Linux's VmHWM, reset just before them by writing 5 to
+# /proc/self/clear_refs) less the resident size before, so that the peak of the imports, which a
+# machine's libraries set and which may be the higher, does not hide it.
 PEAK = """
-import resource, sys
+import re, sys
+from pathlib import Path
 import numpy as np, torch
 from ede.config import TD3Config
 from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
@@ -529,9 +532,13 @@ zeros = np.zeros(members)
 for _ in range(4_000):
     buffer.add(every, rows, torch.zeros(members, code), zeros.astype(np.int64), zeros, rows,
                zeros.astype(bool), zeros.astype(bool))
+def status(key):
+    return int(re.search(rf"{key}:\\s+(\\d+) kB", Path("/proc/self/status").read_text())[1]) * 1024
+before = status("VmRSS")
+Path("/proc/self/clear_refs").write_text("5")
 for _ in range(3):
     agent.update(buffer)
-print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
+print(status("VmHWM") - before)
 """
 
 
