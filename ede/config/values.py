@@ -140,6 +140,16 @@ def _registered(task: str) -> str:
     return task
 
 
+@functools.cache
+def _registered_task_ids() -> frozenset[str]:
+    import gymnasium
+
+    import ede_envs
+
+    ede_envs.register_envs()
+    return frozenset(gymnasium.registry)
+
+
 TaskId = Annotated[TaskName, AfterValidator(_registered)]
 Device = Annotated[
     Literal["cpu", "cuda", "auto"],
@@ -209,13 +219,3 @@ def _returns(value: Any) -> Any:
 
 
 Returns = Annotated[list[float], BeforeValidator(_returns)]
-
-
-@functools.cache
-def _registered_task_ids() -> frozenset[str]:
-    import gymnasium
-
-    import ede_envs
-
-    ede_envs.register_envs()
-    return frozenset(gymnasium.registry)
