@@ -25,7 +25,8 @@ from safetensors.torch import load_file
 from torch import nn
 
 from ede.atomic import save_tensors, sha256, write_atomically
-from ede.config import DecoderConfig, EmbeddingConfig, result_neutral
+from ede.config.schema import DecoderConfig, EmbeddingConfig
+from ede.config.values import result_neutral
 from ede.embedding import ActionDecoder, ActionEmbedding, Encoder, EncoderResult, Predictor
 from ede.provenance import software_versions
 from ede.rollouts import Whitening

@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ede.config import DecoderConfig, EmbeddingConfig
+from ede.config.schema import DecoderConfig, EmbeddingConfig
 from ede.nets import initial_weights, mlp
 from ede.rollouts import Rollouts, Whitening
 

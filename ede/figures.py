@@ -15,7 +15,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ede.config import ALGO_LABELS, Algo
+from ede.config.values import ALGO_LABELS, Algo
 from ede.probes import EffectSpace, Exploration
 from ede.results import Profile
 from ede.stats import Band, align_curves

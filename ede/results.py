@@ -22,7 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ede.config import ALGO_LABELS, ReportConfig
+from ede.config.schema import ReportConfig
+from ede.config.values import ALGO_LABELS
 from ede.probes import RANDOM_EPISODES
 from ede.runs import Curve
 from ede.stats import (

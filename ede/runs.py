@@ -41,7 +41,8 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file
 
 from ede.atomic import save_tensors, sha256, write_atomically, write_json, write_text
-from ede.config import Algo, EdeTD3Config, TD3Config, result_neutral
+from ede.config.schema import EdeTD3Config, TD3Config
+from ede.config.values import Algo, result_neutral
 from ede.early_runs import EARLY_RUNS
 from ede.errors import first_line
 from ede.provenance import code_version, machine, software_versions

@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 
 from ede import ensemble
-from ede.config import TD3Config
+from ede.config.schema import TD3Config
 from ede.embedding import ActionEmbedding
 from ede.ensemble import Params
 from ede.nets import initial_mlp, matmul_precision, to_device

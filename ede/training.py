@@ -34,7 +34,7 @@ import torch
 from ede import checkpoint
 from ede.atomic import claim, remove_stale_temporaries
 from ede.checkpoint import CheckpointError, Episode, Layout
-from ede.config import ALGOS
+from ede.config.values import ALGOS
 from ede.embedding import ActionEmbedding
 from ede.nets import flush_denormals
 from ede.runs import (

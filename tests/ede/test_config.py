@@ -10,7 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 from ede import config
-from ede.config import Params, ParamsError, load_params, overridden, read_yaml
+from ede.config import Params, ParamsError, checks, load_params, overridden, read_yaml
 from ede_pipeline.cli import main
 from tests.support import HOSTILE_NAMES, REPO
 
@@ -286,7 +286,7 @@ def test_sources_without_a_time_limit_bound_sub_environments_by_steps(
     write_params, monkeypatch
 ) -> None:
     """No episode length to hold: a sub-environment needs a step, the rollouts a window."""
-    monkeypatch.setattr(config, "episode_length", lambda task: None)
+    monkeypatch.setattr(checks, "episode_length", lambda task: None)
     load_params(write_params(lambda p: p["collect"].update(steps=200, num_envs=200)))
     with pytest.raises(ParamsError) as caught:
         load_params(write_params(lambda p: p["collect"].update(steps=3, num_envs=5)))
