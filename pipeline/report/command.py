@@ -32,9 +32,9 @@ from ede.provenance import describe_software, software_versions
 from ede.results import SCORES, Arm, across_tasks, arm, fresh
 from ede.runs import Curve, RunRejected, RunSpec, read_run
 from ede.stats import Band, curve_band
+from ede.video import NoOffscreenGL, PolicyRejected, fps_of, side_by_side, video_bytes
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, holding, params_option
-from ede_pipeline.render import fps_of, side_by_side, video_bytes
 
 STYLE = """
 body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }
@@ -441,8 +441,8 @@ def _videos(
         try:
             frames, _ = side_by_side(runs, embedding)
             data = video_bytes(frames, fps_of(task), Path(f"{name}.mp4"))
-        except click.ClickException as error:  # no policy, no GL: the page says so
-            page.add(f"<p>{html.escape(task)}: no clip ({html.escape(error.format_message())})</p>")
+        except (PolicyRejected, NoOffscreenGL) as error:  # no policy, no GL: the page says so
+            page.add(f"<p>{html.escape(task)}: no clip ({html.escape(str(error))})</p>")
             continue
         page.add(f"<h4>{html.escape(task)}, seed {seed}</h4>")
         page.video(name, data, f"{task}: TD3 beside EDE-TD3, seed {seed}")
