@@ -300,7 +300,9 @@ def observation_size(task: str) -> int:
         env.close()
 
 
-def trained_embedding(meta: Mapping[str, Any], encoder: Path | None, decoder: Path) -> ActionEmbedding:
+def trained_embedding(
+    meta: Mapping[str, Any], encoder: Path | None, decoder: Path
+) -> ActionEmbedding:
     """The embedding an EDE-TD3 policy (its ``policy.json``, ``meta``) acts through, read from
     ``encoder`` (None: the decoder alone, as a published run keeps it) and ``decoder``, which
     must be the one its run trained with.
@@ -381,7 +383,9 @@ def side_by_side(
         used = None
         if meta["algo"] == "ede-td3":
             if embedding is None or embedding[1] != meta.get("embedding"):
-                raise PolicyRejected(f"{run}: its family's embedding is not the one it trained with")
+                raise PolicyRejected(
+                    f"{run}: its family's embedding is not the one it trained with"
+                )
             used = embedding[0]
         frames, returns = frames_of(meta, tensors, adapter_of(meta, used), episodes, shrink=2)
         played.append(frames)
