@@ -23,18 +23,20 @@ import torch
 
 from ede.config import ALGOS, load_params
 from ede.runs import POLICY, read_policy
+from ede.video import adapter_of, frames_of, trained_embedding
 from ede_pipeline import layout
 from ede_pipeline.published import published_runs, task_folders
-from ede_pipeline.render import adapter_of, embedding_for, frames_of
 
 
 def returns(run: Path, scales: list[float], rng: np.random.Generator) -> list[float]:
     """The return of the first episode of ``run``'s final evaluation, as ``ede-pipeline render``
-    plays it (:func:`~ede_pipeline.render.frames_of`), once per scale, each action scaled by
+    plays it (:func:`ede.video.frames_of`), once per scale, each action scaled by
     ``1 + scale·N(0, 1)``."""
     meta, tensors = read_policy(run)
     params = load_params("params.yaml")
-    embedding = embedding_for(run, meta, params, None, None) if meta["algo"] != "td3" else None
+    embedding = None
+    if meta["algo"] != "td3":
+        embedding = trained_embedding(meta, *layout.run_embedding(run, meta, params))
     adapter = adapter_of(meta, embedding)
     decode = adapter.decode
     made = []

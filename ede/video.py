@@ -5,21 +5,44 @@ k actions (:class:`ede.td3.CodeExecutor`; TD3's code is the action, k = 1), each
 start its run's final evaluation used. Each step's frame is MuJoCo's offscreen rendering
 (``render_mode="rgb_array"``: ``MUJOCO_GL=egl`` or ``osmesa`` where there is no display), marked
 with the episode, its return so far and, for EDE-TD3, the steps where a code starts.
+
+Below them, the rest of the video code, which ``ede-pipeline render``, the report's clips and the
+results pages' clips share: a run's policy checked against its run (:func:`policy_of`), played
+into frames (:func:`frames_of`, :func:`side_by_side`) and encoded (:func:`write_video`,
+:func:`video_bytes`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping
+import errno
+import json
+import os
+import resource
+import shutil
+import tempfile
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from functools import partial
-from typing import Any, NamedTuple
+from itertools import pairwise, zip_longest
+from pathlib import Path
+from typing import Annotated, Any, NamedTuple
 
 import gymnasium
+import imageio.v2 as imageio
+import imageio_ffmpeg
 import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError, model_validator
 
+from ede.artifacts import ArtifactError, load_action_embedding
+from ede.atomic import NotWritten, writing_files
+from ede.config import ALGO_LABELS, SEED_MAX, Algo
+from ede.embedding import ActionEmbedding
+from ede.errors import first_line
+from ede.runs import RunRejected, identity_difference, read_policy
 from ede.tasks import make
-from ede.td3 import ActionAdapter, Actor, CodeExecutor
+from ede.td3 import ActionAdapter, Actor, CodeExecutor, EmbeddingAdapter, IdentityAdapter
+from ede.training import EVAL_SEED_OFFSET
 from ede.vector import MemberEnvs
 
 CODE_MARK = (255, 196, 0)  # the bar along a frame's top where a code starts
@@ -123,3 +146,369 @@ def annotate(frame: Frame, k: int, label: str) -> np.ndarray:
     draw.text((6, image.height - 6), text, fill=(255, 255, 255), font=font, anchor="ld")
     draw.text((6, image.height // 40 + 6), label, fill=(255, 255, 255), font=font, anchor="la")
     return np.asarray(image)
+
+
+# What follows plays a run's final policy (``policy/``, :func:`ede.runs.read_policy`) into frames
+# and encodes them: the library of ``ede-pipeline render``, the report's clips and the results
+# pages' clips. Its refusals are :class:`PolicyRejected` (the commands' bad input) and
+# :class:`NoOffscreenGL` (a failure of the machine); a video that cannot be written whole is
+# :class:`ede.atomic.NotWritten`.
+
+
+class PolicyRejected(ValueError):
+    """A policy, its run or its embedding that a video cannot play, or a task that cannot be
+    made to render: one line naming the file or the task and what is wrong."""
+
+
+class NoOffscreenGL(RuntimeError):
+    """MuJoCo cannot render offscreen on this machine: one line naming ``MUJOCO_GL`` and what
+    to install."""
+
+
+VIDEO_KIND = "video"  # what a video's mark says made it (ede.atomic.writing_files)
+FORMATS = (".mp4", ".gif")
+
+# The most frames one video holds. An MP4's frames go to the encoder as they are made, so its
+# length costs time, not memory: 100 episodes of our tasks' 100 steps (ten times the final
+# evaluation's 10 episodes; 3.3 to 8.3 minutes at their 50 or 20 frames a second). Measured
+# (2026-12-07, ede/Point-v0 at 480², on a 2-core machine shared by six test runs): 70 ms a frame,
+# rendered, marked and encoded, so about 12 minutes for the lot, and a peak RSS of 480 MB for 100
+# frames and for 600 alike. A GIF keeps what it shows (every other frame, halved to 240²) until
+# its palette is drawn from all of them, and Pillow keeps its frames too: 0.6 MB a frame kept
+# (670 MB for 600 frames), so it holds ten episodes. ``--episodes`` beyond these is refused
+# before any work.
+MAX_FRAMES = {".mp4": 10_000, ".gif": 1_000}
+
+# A disk with less room than this is full for a video (ffmpeg writes in blocks of 256 KiB).
+FULL = 2**20
+
+# The keys of a run's identity (ede.runs.RunSpec.identity) that say which run a policy is and how
+# it acts: a policy is its run's where those its policy.json and its run.json both hold agree.
+IDENTITY = ("task", "algo", "seed", "embedding")
+
+
+class PolicyMeta(BaseModel):
+    """What ``policy.json`` says of its actor (:func:`ede.training.save_policy`), as rendering
+    reads it; its other keys (the run's identity) are checked against ``run.json``."""
+
+    model_config = ConfigDict(extra="allow")
+
+    task: str
+    algo: Algo
+    seed: Annotated[StrictInt, Field(ge=0, le=SEED_MAX)]
+    hidden: list[Annotated[StrictInt, Field(gt=0)]]
+    k: Annotated[StrictInt, Field(gt=0)]
+    code_size: Annotated[StrictInt, Field(gt=0)]
+    code_low: list[float]
+    code_high: list[float]
+    params: dict[str, Any] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _a_box(self) -> PolicyMeta:
+        low, high = np.array(self.code_low), np.array(self.code_high)
+        if not (len(low) == len(high) == self.code_size):
+            raise ValueError(f"code_low and code_high: expected {self.code_size} numbers each")
+        if not (np.isfinite(low).all() and np.isfinite(high).all() and (low < high).all()):
+            raise ValueError("code_low and code_high: expected finite bounds, each low < high")
+        ede_td3 = self.params.get("ede_td3")
+        scale = ede_td3.get("bound_scale") if isinstance(ede_td3, dict) else None
+        if self.algo == "ede-td3" and (
+            isinstance(scale, bool) or not isinstance(scale, int | float)
+        ):
+            raise ValueError("params.ede_td3.bound_scale: expected a number (EDE-TD3's code bound)")
+        return self
+
+
+def policy_of(run: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """The run's final policy (:func:`ede.runs.read_policy`), checked to be one this command can
+    play: ``policy.json`` describes an actor, of the run its ``run.json`` describes, and
+    ``policy.safetensors`` holds that actor's tensors, each of its shape.
+
+    Raises:
+        PolicyRejected: naming the file and what disagrees.
+    """
+    try:
+        meta, tensors = read_policy(run)
+    except RunRejected as error:
+        raise PolicyRejected(str(error)) from None
+    described = run / "policy/policy.json"
+    try:
+        checked = PolicyMeta.model_validate(meta)
+    except ValidationError as error:
+        problem = error.errors()[0]
+        where = ".".join(str(part) for part in problem["loc"])
+        said = problem["msg"].removeprefix("Value error, ")
+        raise PolicyRejected(f"{described}: {where + ': ' if where else ''}{said}") from None
+    made = _run_json(run)
+    if made is not None:
+        expected = {key: made[key] for key in IDENTITY if key in made and key in meta}
+        if difference := identity_difference(meta, expected, said="run.json says"):
+            raise PolicyRejected(
+                f"{described}: not the policy of the run its run.json describes ({difference})"
+            )
+    sizes = [observation_size(checked.task), *checked.hidden, checked.code_size]  # ede.td3.Actor's
+    wanted = {
+        f"net.{2 * j}.{part}": (n_out, n_in) if part == "weight" else (n_out,)
+        for j, (n_in, n_out) in enumerate(pairwise(sizes))
+        for part in ("weight", "bias")
+    } | {"centre": (checked.code_size,), "half_range": (checked.code_size,)}
+    found = {name: tuple(tensor.shape) for name, tensor in tensors.items()}
+    layers = [tensor for name, tensor in tensors.items() if name.startswith("net.")]
+    if found != wanted or any(t.dtype != torch.float32 for t in layers):  # as observations are
+        held = run / "policy/policy.safetensors"
+        missing = [name for name in wanted if name not in found]  # the first layer's first
+        other = [name for name in wanted if name in found and found[name] != wanted[name]]
+        if missing:
+            why = f"no tensor {missing[0]}"
+        elif other:
+            why = f"{other[0]} of shape {list(found[other[0]])}, expected {list(wanted[other[0]])}"
+        elif extra := sorted(found.keys() - wanted.keys()):
+            why = f"a tensor {extra[0]} that the actor has not"
+        else:
+            why = "layers other than float32"
+        raise PolicyRejected(
+            f"{held}: not the actor {described.name} describes ({why}: an actor of layers "
+            f"{sizes} for {checked.task})"
+        )
+    return meta, tensors
+
+
+def _run_json(run: Path) -> dict[str, Any] | None:
+    """The run's ``run.json``, where it has one (read_policy has read it already)."""
+    try:
+        made = json.loads((run / "run.json").read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as error:
+        raise PolicyRejected(f"{run / 'run.json'}: not JSON ({first_line(error)})") from None
+    return made if isinstance(made, dict) else None
+
+
+def observation_size(task: str) -> int:
+    """The size of ``task``'s observations, the task made as a video makes it.
+
+    Raises:
+        PolicyRejected: the task cannot be made to render.
+    """
+    try:
+        env = make(task, render_mode="rgb_array")
+    except (gymnasium.error.Error, ValueError, TypeError) as error:
+        raise PolicyRejected(f"{task}: cannot be made to render ({first_line(error)})") from None
+    try:
+        return int(np.prod(env.observation_space.shape or ()))
+    finally:
+        env.close()
+
+
+def trained_embedding(
+    meta: Mapping[str, Any], encoder: Path | None, decoder: Path
+) -> ActionEmbedding:
+    """The embedding an EDE-TD3 policy (its ``policy.json``, ``meta``) acts through, read from
+    ``encoder`` (None: the decoder alone, as a published run keeps it) and ``decoder``, which
+    must be the one its run trained with.
+
+    Raises:
+        PolicyRejected: the embedding cannot be read, or is another than the run's.
+    """
+    try:
+        found, embedding = load_action_embedding(encoder, decoder)
+    except ArtifactError as error:
+        raise PolicyRejected(
+            f"{error} (an EDE-TD3 run on {meta['task']} acts through its family's embedding)"
+        ) from None
+    if found.identity != meta.get("embedding"):
+        raise PolicyRejected(
+            f"{decoder}: not the embedding the run trained with (its "
+            f"checksum {found.identity[:12]}…, the run's policy.json names "
+            f"{str(meta.get('embedding'))[:12]}…); name the run's with --encoder and --decoder"
+        )
+    return embedding
+
+
+def adapter_of(meta: dict, embedding: ActionEmbedding | None) -> ActionAdapter:
+    """How the policy's codes become actions: as they are (TD3), or decoded by the embedding
+    (EDE-TD3), in the code box its run acted in."""
+    if embedding is None:
+        low, high = np.array(meta["code_low"]), np.array(meta["code_high"])
+        return IdentityAdapter(low, high, torch.device("cpu"))
+    return EmbeddingAdapter(embedding, meta["params"]["ede_td3"]["bound_scale"])
+
+
+def frames_of(
+    meta: dict, tensors: dict, adapter: ActionAdapter, episodes: int, shrink: int = 1
+) -> tuple[Iterator[np.ndarray], list[float]]:
+    """The policy's episodes, one marked frame per step (``shrink`` times smaller than the task
+    renders it by default), each made as it is read (none is kept), and each episode's return,
+    filled in as the frames are read.
+
+    Raises:
+        PolicyRejected: the task cannot be made (here) or cannot render (as the frames are read).
+        NoOffscreenGL: MuJoCo has no offscreen GL here (as the frames are read).
+    """
+    task = meta["task"]
+    policy = actor_of(meta, tensors, observation_size(task))
+    seed = EVAL_SEED_OFFSET * (int(meta["seed"]) + 1)  # the run's final evaluation's starts
+    label = ALGO_LABELS[meta["algo"]]
+    returns = [0.0] * episodes
+
+    def frames() -> Iterator[np.ndarray]:
+        try:
+            for frame in play(task, policy, adapter, episodes, seed, shrink):
+                returns[frame.episode] = frame.ret
+                yield annotate(frame, adapter.k, label)
+        except gymnasium.error.Error as error:
+            raise PolicyRejected(f"{task}: cannot render ({first_line(error)})") from None
+        except Exception as error:  # MuJoCo's renderer without a GL context names only its library
+            if "GL" not in str(error) and "GL" not in type(error).__name__:
+                raise
+            raise NoOffscreenGL(
+                f"MUJOCO_GL={os.environ.get('MUJOCO_GL')}: MuJoCo cannot render offscreen here "
+                f"({first_line(error)}); install Mesa's EGL or OSMesa libraries "
+                "(docs/pipeline.md, 'Videos')"
+            ) from None
+
+    return frames(), returns
+
+
+def side_by_side(
+    runs: list[Path], embedding: tuple[ActionEmbedding, str] | None, episodes: int = 1
+) -> tuple[Iterator[np.ndarray], list[float]]:
+    """The runs' policies (TD3 and EDE-TD3 of one seed, say) played from the same starts, their
+    frames side by side at half size (the shorter episodes hold their last frame), each made as
+    it is read, and each one's mean return, filled in once the frames are read. An EDE-TD3 run's
+    ``embedding`` (with its decoder's identity) must be the one it trained with."""
+    played, each = [], []
+    for run in runs:
+        meta, tensors = policy_of(run)
+        used = None
+        if meta["algo"] == "ede-td3":
+            if embedding is None or embedding[1] != meta.get("embedding"):
+                raise PolicyRejected(
+                    f"{run}: its family's embedding is not the one it trained with"
+                )
+            used = embedding[0]
+        frames, returns = frames_of(meta, tensors, adapter_of(meta, used), episodes, shrink=2)
+        played.append(frames)
+        each.append(returns)
+    means: list[float] = []
+
+    def together() -> Iterator[np.ndarray]:
+        last: list[np.ndarray] = []
+        for row in zip_longest(*played):
+            last = [frame if frame is not None else held for frame, held in zip_longest(row, last)]
+            yield np.concatenate(last, axis=1)
+        means.extend(float(np.mean(returns)) for returns in each)
+
+    return together(), means
+
+
+# A GIF's frames are halved where taller than this: a run's own 480-pixel frames are; TD3 beside
+# EDE-TD3 (:func:`side_by_side`) is already half size, and its labels would not read halved again.
+GIF_HEIGHT = 240
+
+
+def encode(frames: Iterable[np.ndarray], fps: float, suffix: str, to: Path) -> int:
+    """``frames`` into the file ``to`` as ``suffix`` says: H.264 MP4, each frame encoded as it
+    comes, or a GIF of every other frame (a page's clip, small), halved where taller than
+    :data:`GIF_HEIGHT`. Returns the number of frames read."""
+    count = 0
+    if suffix == ".mp4":
+        with imageio.get_writer(to, format="FFMPEG", fps=fps, codec="libx264") as writer:
+            for frame in frames:
+                writer.append_data(frame)  # type: ignore[attr-defined]  # (FFMPEG's Writer has it)
+                count += 1
+        # ffmpeg may fail to finish the file (a full disk as it writes the index at the end)
+        # and imageio does not say so (it ignores ffmpeg's exit status): count what it holds.
+        try:
+            held, _ = imageio_ffmpeg.count_frames_and_secs(str(to))
+        except RuntimeError as error:
+            raise OSError(f"ffmpeg cannot read it back ({first_line(error)})") from None
+        if held != count:
+            raise OSError(f"it holds {held} of the {count} frames")
+        return count
+    small: list[np.ndarray] = []  # every other frame, from the first
+    for frame in frames:
+        if count % 2 == 0:
+            step = 2 if frame.shape[0] > GIF_HEIGHT else 1
+            small.append(frame[::step, ::step].copy())  # (a view would keep the whole frame)
+        count += 1
+    # One palette of 256 colours for the whole clip, drawn from all its frames, and no dithering:
+    # Pillow's default (a palette per frame, dithered) scatters noise that compresses badly.
+    # Measured on the results pages' clips (2026-12-06): Striker's 1.30 MB then, 0.29 now;
+    # ReacherTurn's 0.50 and 0.24; Pusher's 0.30 and 0.10; the frames alike to the eye.
+    palette = Image.fromarray(np.concatenate(small)).quantize(256)
+    images = [Image.fromarray(f).quantize(palette=palette, dither=Image.Dither.NONE) for f in small]
+    images[0].save(
+        to, format="GIF", save_all=True, append_images=images[1:], duration=2000 / fps, loop=0
+    )
+    return count
+
+
+def fps_of(task: str) -> float:
+    """The task's own frame rate (its simulator's time step), as gymnasium renders it."""
+    env = make(task)
+    try:
+        return float(env.metadata.get("render_fps") or 30)
+    finally:
+        env.close()
+
+
+def episode_steps(task: str) -> int | None:
+    """The most steps an episode of ``task`` takes (its time limit), None where it has none."""
+    env = make(task)
+    try:
+        return env.spec.max_episode_steps if env.spec else None
+    finally:
+        env.close()
+
+
+def write_video(out: Path, frames: Iterable[np.ndarray], fps: float) -> int:
+    """``frames`` as ``out``, in the format of its suffix, whole or not at all; the number of
+    frames written.
+
+    Raises:
+        NotWritten: the file could not be written whole (a full disk): nothing of it is left.
+    """
+    tmp = out.with_name(f".{out.stem}.tmp-{os.getpid()}{out.suffix}")
+    with writing_files([(out, VIDEO_KIND)]):
+        try:
+            count = encode(frames, fps, out.suffix, tmp)
+            os.replace(tmp, out)
+        except OSError as error:
+            raise NotWritten(out, _cause(error, tmp)) from None
+        finally:
+            tmp.unlink(missing_ok=True)
+    return count
+
+
+def video_bytes(frames: Iterable[np.ndarray], fps: float, name: Path) -> bytes:
+    """``frames`` as the bytes of an MP4 (a page's clip, ``name`` on the page), encoded through
+    a temporary file.
+
+    Raises:
+        NotWritten: the clip could not be encoded whole (a full disk), naming it: a failure of
+            the machine, not of the clip (the command stops in one line, exit 1).
+    """
+    with tempfile.TemporaryDirectory() as scratch:
+        clip = Path(scratch) / name.name
+        try:
+            encode(frames, fps, ".mp4", clip)
+        except OSError as error:
+            raise NotWritten(name, _cause(error, clip)) from None
+        return clip.read_bytes()
+
+
+def _cause(error: OSError, written: Path) -> OSError:
+    """Why a video could not be written, as the system says it: the error itself, or for the
+    encoder's (ffmpeg stops where a write fails: imageio says "Broken pipe", or :func:`encode`
+    finds the file short), the limit the file ``written`` reached: the process's largest file
+    (RLIMIT_FSIZE), or a full disk."""
+    if error.errno not in (None, errno.EPIPE):
+        return error
+    size = written.stat().st_size if written.exists() else 0
+    largest = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    if largest != resource.RLIM_INFINITY and size >= largest:
+        return OSError(errno.EFBIG, os.strerror(errno.EFBIG))
+    if shutil.disk_usage(written.parent).free < FULL:
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    return OSError(errno.EIO, f"the encoder failed: {first_line(error)}")

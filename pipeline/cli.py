@@ -22,7 +22,7 @@ STAGES = {
     "inspect": "ede_pipeline.collect:inspect_rollouts",
     "pretrain": "ede_pipeline.pretrain:pretrain",
     "train": "ede_pipeline.train:train",
-    "report": "ede_pipeline.report:report",
+    "report": "ede_pipeline.report.command:report",
     "results": "ede_pipeline.results.command:results",
     "render": "ede_pipeline.render:render",
     "sweep": "ede_pipeline.sweep.command:sweep",

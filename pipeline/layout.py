@@ -7,8 +7,12 @@ holds the two together); the commands use these as the defaults of their path op
 
 from __future__ import annotations
 
-from collections.abc import Collection
+from collections.abc import Collection, Mapping
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from ede.config import Params
 
 __all__ = [
     "DATA",
@@ -32,6 +36,7 @@ __all__ = [
     "published_embedding",
     "rollouts",
     "run",
+    "run_embedding",
     "task_code",
     "task_inputs",
     "task_runs",
@@ -121,3 +126,24 @@ def embedding_beside(run: Path, checksum: str) -> Path:
     """A published run's embedding (:func:`published_embedding`), from the run's own folder
     (``<task folder>/<algo>/seed<N>``)."""
     return run.parent.parent / PUBLISHED_EMBEDDINGS / checksum[:12]
+
+
+def run_embedding(
+    run: Path,
+    meta: Mapping[str, Any],
+    params: Params,
+    encoder: Path | None = None,
+    decoder: Path | None = None,
+) -> tuple[Path | None, Path]:
+    """Where the embedding an EDE-TD3 run (its policy's ``meta``) acts through is, as its
+    encoder (None: the decoder alone) and decoder: the ones ``encoder`` and ``decoder`` name;
+    else, for a published run, the decoder published beside it (``experiment export
+    --policies``; a policy acts through the decoder alone); else its family's in the pipeline's
+    data (:func:`ede.video.trained_embedding` reads it)."""
+    task = meta["task"]
+    beside = embedding_beside(run, str(meta.get("embedding"))) / DECODER
+    if encoder is None and decoder is None and beside.is_dir():
+        return None, beside
+    family = params.runs.tasks.get(task) or own_family(task, params.families)
+    folder = embedding(family)
+    return encoder or folder / ENCODER, decoder or folder / DECODER

@@ -29,7 +29,7 @@ STAGE_MODULES = {
     "pretrain_decoder": "ede_pipeline.pretrain",
     "task_inputs": "ede_pipeline.task_inputs",
     "train": "ede_pipeline.train",
-    "report": "ede_pipeline.report",
+    "report": "ede_pipeline.report.command",
 }
 # The stages that step tasks, and what holds the record of each task they step, as dvc.yaml
 # writes it: the record itself, the task's folder (a copy of it, ``ede-pipeline task-inputs``) or

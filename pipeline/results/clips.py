@@ -10,16 +10,27 @@ that name the folder lie there too.
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
+from ede.atomic import NotWritten
 from ede.config import ALGO_LABELS, ALGOS, Params
 from ede.runs import POLICY
+from ede.video import (
+    NoOffscreenGL,
+    PolicyRejected,
+    fps_of,
+    policy_of,
+    side_by_side,
+    trained_embedding,
+)
 from ede_pipeline import layout
+from ede_pipeline.common import BadInput, Failed
 from ede_pipeline.published import Source, published_runs, read_source, task_folders
-from ede_pipeline.render import embedding_for, fps_of, policy_of, side_by_side
 from ede_pipeline.results.sections import Section
 
 CLIP = "Clip: "  # a clip's heading: CLIP + its task
@@ -32,6 +43,20 @@ class Clip(NamedTuple):
     gif: Path
     frames: list[np.ndarray]
     fps: float
+
+
+@contextmanager
+def refused() -> Iterator[None]:
+    """The video library's refusals as the command's: a policy it cannot play is bad input (one
+    line, exit 2); no offscreen GL, or a clip the disk cannot hold, one line, exit 1."""
+    try:
+        yield
+    except PolicyRejected as error:
+        raise BadInput(str(error)) from None
+    except NoOffscreenGL as error:
+        raise Failed(str(error)) from None
+    except NotWritten as error:
+        raise Failed(error.strerror or str(error)) from None
 
 
 def clip_name(task: str) -> str:
@@ -58,7 +83,7 @@ def clips(runs: Path, params: Params, tasks: set[str]) -> list[Clip]:
         seed = seeds[0]
         pair = [kept[seed][algo] for algo in ALGOS]
         meta, _ = policy_of(kept[seed]["ede-td3"])
-        embedding = embedding_for(pair[1], meta, params, None, None)
+        embedding = trained_embedding(meta, *layout.run_embedding(pair[1], meta, params))
         played, returns = side_by_side(pair, (embedding, meta["embedding"]))
         frames = list(played)  # one episode each (the returns are known once it is played)
         gif = runs.parent / clip_name(task)

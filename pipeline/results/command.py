@@ -16,11 +16,11 @@ from ede.figures import learning_curves, performance_profile
 from ede.probes import RANDOM_EPISODES, ZERO_EPISODES, random_policy_return, zero_action_return
 from ede.results import across_tasks
 from ede.stats import Band
+from ede.video import VIDEO_KIND, write_video
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, hold, hold_outputs, params_option
 from ede_pipeline.published import TaskRuns, read_ablations, read_runs
-from ede_pipeline.render import VIDEO_KIND, write_video
-from ede_pipeline.results.clips import CLIP, clips
+from ede_pipeline.results.clips import CLIP, clips, refused
 from ede_pipeline.results.pages import fill_pages, read_pages
 from ede_pipeline.results.sections import (
     Section,
@@ -255,7 +255,8 @@ def results(
         for block in found.blocks:
             if block.heading.startswith(CLIP):
                 shown.setdefault(block.runs, set()).add(block.heading.removeprefix(CLIP))
-        played = {folder: clips(folder, params, tasks) for folder, tasks in shown.items()}
+        with refused():
+            played = {folder: clips(folder, params, tasks) for folder, tasks in shown.items()}
         for folder, drawn in made.items():
             check_figures(folder.parent, drawn.figures, (folder,))
         for folder, each in played.items():
@@ -273,7 +274,8 @@ def results(
         for folder, drawn in made.items():  # figures and clips first: a page filled is complete
             save_figures(folder.parent, drawn.figures)
         for clip in (clip for each in played.values() for clip in each):
-            write_video(clip.gif, clip.frames, clip.fps)
+            with refused():
+                write_video(clip.gif, clip.frames, clip.fps)
         for page, text in filled.items():
             write_text(page, text)
             click.echo(f"Filled: {page}")
