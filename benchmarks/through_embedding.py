@@ -41,7 +41,7 @@ from ede.embedding import ActionEmbedding
 from ede.runs import read_policy
 from ede.tasks import action_bounds, make, observation_size
 from ede.training import EVAL_SEED_OFFSET
-from ede.video import actor_of
+from ede.analysis.video import actor_of
 from ede_pipeline import layout
 
 

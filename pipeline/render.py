@@ -4,7 +4,7 @@
                         [--encoder DIR --decoder DIR] [--params params.yaml]
 
 The run's ``policy/`` (TD3 or EDE-TD3, any task, a task of the user's own included) acts as in its
-run's final evaluation, from the same starts (:mod:`ede.video`); each step's frame is MuJoCo's
+run's final evaluation, from the same starts (:mod:`ede.analysis.video`); each step's frame is MuJoCo's
 offscreen rendering (``MUJOCO_GL=egl``, or ``osmesa``), marked with the episode, the step and the
 return so far, and for EDE-TD3 with a bar at each step where a code starts. The format follows
 ``--out``'s suffix: ``.mp4`` (H.264 through the ffmpeg that imageio-ffmpeg's wheel carries, at the
@@ -246,7 +246,7 @@ def frames_of(
         Failed: MuJoCo has no offscreen GL here (as the frames are read).
     """
     # Imported here: MuJoCo reads MUJOCO_GL on import, after the command's own check of it.
-    from ede.video import actor_of, annotate, play
+    from ede.analysis.video import actor_of, annotate, play
 
     task = meta["task"]
     policy = actor_of(meta, tensors, observation_size(task))
