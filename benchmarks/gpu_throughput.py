@@ -59,7 +59,7 @@ class Row:
 def embedding(task: str, device: torch.device) -> Any:
     """An untrained embedding of ``task``'s actions, k = 4, codes the size of an action."""
     from ede.embedding import ActionDecoder, ActionEmbedding, Encoder
-    from ede.rollouts import Whitening
+    from ede.io.rollouts import Whitening
     from ede.tasks import make
 
     env = make(task)

@@ -21,8 +21,8 @@ import torch
 
 from ede.config import load_params
 from ede.embedding import train_decoder, train_encoder
+from ede.io.rollouts import Rollouts, collect, write_store
 from ede.nets import mlp
-from ede.rollouts import Rollouts, collect, write_store
 
 
 def reference_epoch(rollouts: Rollouts, k: int, hidden: list[int], batch_size: int) -> float:

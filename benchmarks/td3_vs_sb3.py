@@ -34,9 +34,9 @@ import gymnasium
 import numpy as np
 import torch
 
+from ede.analysis.stats import area_under_curve, bootstrap_mean
 from ede.config import EdeTD3Config, TD3Config
 from ede.runs import RunSpec
-from ede.stats import area_under_curve, bootstrap_mean
 from ede.tasks import action_bounds, observation_size
 from ede.td3 import Agent, IdentityAdapter
 from ede.training import EVAL_SEED_OFFSET, evaluate, train_run

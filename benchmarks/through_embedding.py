@@ -36,12 +36,12 @@ import numpy as np
 import torch
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
+from ede.analysis.video import actor_of
 from ede.artifacts import load_action_embedding
 from ede.embedding import ActionEmbedding
 from ede.runs import read_policy
 from ede.tasks import action_bounds, make, observation_size
 from ede.training import EVAL_SEED_OFFSET
-from ede.analysis.video import actor_of
 from ede_pipeline import layout
 
 

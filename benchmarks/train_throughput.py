@@ -77,8 +77,8 @@ import torch
 
 from ede.config import Algo, EdeTD3Config, Precision, TD3Config
 from ede.embedding import ActionDecoder, ActionEmbedding, Encoder
+from ede.io.rollouts import Whitening
 from ede.nets import product_error
-from ede.rollouts import Whitening
 from ede.runs import RunSpec
 from ede.training import train_group
 

@@ -34,8 +34,8 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file
 
-from ede.atomic import NotWritten, save_tensors, sha256, write_atomically
 from ede.errors import first_line
+from ede.io.atomic import NotWritten, save_tensors, sha256, write_atomically
 from ede.runs import identity_difference
 
 if TYPE_CHECKING:

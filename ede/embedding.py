@@ -25,8 +25,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from ede.config import DecoderConfig, EmbeddingConfig
+from ede.io.rollouts import Rollouts, Whitening
 from ede.nets import initial_weights, mlp
-from ede.rollouts import Rollouts, Whitening
 
 __all__ = [
     "ActionDecoder",

@@ -33,18 +33,18 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
-from safetensors import SafetensorError
-from safetensors.torch import load_file
 
-from ede.atomic import save_tensors, sha256, write_atomically, write_json, write_text
 from ede.config import Algo, EdeTD3Config, TD3Config, result_neutral
 from ede.early_runs import EARLY_RUNS
 from ede.errors import first_line
-from ede.provenance import code_version, machine, software_versions
+from ede.io.atomic import save_tensors, sha256, write_atomically, write_json, write_text
+from ede.io.provenance import code_version, machine, software_versions
+
+if TYPE_CHECKING:  # torch loads only where a policy is read: the results model stays free of it
+    import torch
 
 __all__ = [
     "CHECKSUMMED",
@@ -255,6 +255,9 @@ def read_policy(run_dir: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]
         RunRejected: no policy there (a published copy keeps none), or a file damaged or not the
             run's, naming the file.
     """
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
     policy = run_dir / POLICY
     missing = [n for n in ("policy.safetensors", "policy.json") if not (policy / n).is_file()]
     if missing:

@@ -32,10 +32,11 @@ import numpy as np
 import torch
 
 from ede import checkpoint
-from ede.atomic import claim, remove_stale_temporaries
+from ede.analysis.stats import area_under_curve
 from ede.checkpoint import CheckpointError, Episode, Layout
 from ede.config import ALGOS
 from ede.embedding import ActionEmbedding
+from ede.io.atomic import claim, remove_stale_temporaries
 from ede.nets import flush_denormals
 from ede.runs import (
     POLICY,
@@ -46,7 +47,6 @@ from ede.runs import (
     write_finished,
     write_policy,
 )
-from ede.stats import area_under_curve
 from ede.tasks import make
 from ede.td3 import (
     ActionAdapter,

@@ -18,9 +18,9 @@ from ede.artifacts import (
     save_decoder,
     save_encoder,
 )
-from ede.atomic import write_json, write_text
 from ede.config import Params
 from ede.embedding import train_decoder, train_encoder
+from ede.io.atomic import write_json, write_text
 from ede.nets import pick_device
 from ede_pipeline import layout
 from ede_pipeline.collect import open_rollouts

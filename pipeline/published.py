@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ede.config import ALGOS
-from ede.provenance import INSTRUCTION_SETS
+from ede.io.provenance import INSTRUCTION_SETS
 from ede.runs import (
     Curve,
     Run,
@@ -192,7 +192,7 @@ def read_folder(root: Path, task: str) -> TaskRuns | None:
 
 def cpu(path: Path, made: dict) -> str | None:
     """The CPU that made a run, with the instruction sets of it that change results (its
-    ``run.json``'s ``machine``, :func:`ede.provenance.machine`); None where unrecorded (runs made
+    ``run.json``'s ``machine``, :func:`ede.io.provenance.machine`); None where unrecorded (runs made
     before run.json named its machine)."""
     machine = made.get("machine")
     if machine is None:
@@ -209,7 +209,7 @@ def cpu(path: Path, made: dict) -> str | None:
     ):
         raise BadInput(
             f"{path}: 'machine' is {machine!r}; expected its 'cpu' and "
-            "'instruction_sets', as ede.provenance.machine records them"
+            "'instruction_sets', as ede.io.provenance.machine records them"
         )
     return f"{model} ({', '.join(sets) or 'none of ' + ', '.join(INSTRUCTION_SETS)})"
 

@@ -48,10 +48,10 @@ from PIL import Image
 from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError, model_validator
 
 from ede.artifacts import ArtifactError, load_action_embedding
-from ede.atomic import NotWritten, writing_files
 from ede.config import ALGO_LABELS, SEED_MAX, Algo, Params
 from ede.embedding import ActionEmbedding
 from ede.errors import first_line
+from ede.io.atomic import NotWritten, writing_files
 from ede.runs import RunRejected, identity_difference, read_policy
 from ede.tasks import make
 from ede.td3 import ActionAdapter, EmbeddingAdapter, IdentityAdapter
@@ -59,7 +59,7 @@ from ede.training import EVAL_SEED_OFFSET
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, Failed, embedding_options, hold_outputs, params_option
 
-VIDEO_KIND = "video"  # what a video's mark says made it (ede.atomic.writing_files)
+VIDEO_KIND = "video"  # what a video's mark says made it (ede.io.atomic.writing_files)
 FORMATS = (".mp4", ".gif")
 OFFSCREEN = ("egl", "osmesa")  # MuJoCo's offscreen GL backends; egl where MUJOCO_GL is unset
 

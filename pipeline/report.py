@@ -22,16 +22,16 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
-from ede import figures
+from ede.analysis import figures
+from ede.analysis.probes import effect_space, exploration, random_policy_return
+from ede.analysis.results import RANDOM_EPISODES, SCORES, Arm, across_tasks, arm, fresh
+from ede.analysis.stats import Band, curve_band
 from ede.artifacts import ArtifactError, load_action_embedding
-from ede.atomic import write_atomically, write_json
 from ede.config import ALGO_LABELS, Algo, Params
 from ede.embedding import ActionEmbedding
-from ede.probes import RANDOM_EPISODES, effect_space, exploration, random_policy_return
-from ede.provenance import describe_software, software_versions
-from ede.results import SCORES, Arm, across_tasks, arm, fresh
+from ede.io.atomic import write_atomically, write_json
+from ede.io.provenance import describe_software, software_versions
 from ede.runs import Curve, RunRejected, RunSpec, read_run
-from ede.stats import Band, curve_band
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, holding, params_option
 from ede_pipeline.render import fps_of, side_by_side, video_bytes
@@ -519,7 +519,7 @@ def _width(params: Params, task: str) -> float:
 
 
 def _fell_back(rows: list[tuple[str, Arm, list[int]]]) -> str:
-    """The seeds whose returns fell and stayed below their best (:func:`ede.stats.divergence`,
+    """The seeds whose returns fell and stayed below their best (:func:`ede.analysis.stats.divergence`,
     on the figure's bins): flagged, not hidden."""
     flagged = [
         f"{ALGO_LABELS[algo]} seed {seed} (best {verdict.best:.4g} "

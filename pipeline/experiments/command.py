@@ -10,7 +10,7 @@ from typing import Any
 
 import click
 
-from ede.locks import OutputBusy, exclusive
+from ede.io.locks import OutputBusy, exclusive
 from ede_pipeline.common import BadInput, Failed
 from ede_pipeline.experiments.export import export
 from ede_pipeline.experiments.show import WIDTH, show

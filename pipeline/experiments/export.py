@@ -11,7 +11,9 @@ from pathlib import Path
 
 import click
 
-from ede.atomic import (
+from ede.config import ALGO_LABELS, Params
+from ede.errors import first_line
+from ede.io.atomic import (
     MARK,
     claim,
     ownership_problem,
@@ -20,9 +22,7 @@ from ede.atomic import (
     unwritable,
     write_json,
 )
-from ede.config import ALGO_LABELS, Params
-from ede.errors import first_line
-from ede.locks import OutputBusy, exclusive
+from ede.io.locks import OutputBusy, exclusive
 from ede.runs import POLICY, PUBLISHED, Run
 from ede_pipeline import layout
 from ede_pipeline.common import (
@@ -37,7 +37,7 @@ from ede_pipeline.experiments.workspace import EXPERIMENTS, WORKSPACES, experime
 
 EVERY_SEED = "all"  # --policies given alone: every finished run's policy
 EMBEDDING_METRICS = ("encoder_metrics.json", "decoder_metrics.json")  # as pretrain writes them
-# The mark (ede.atomic.MARK) of a published embedding's folder that an export wrote: only such a
+# The mark (ede.io.atomic.MARK) of a published embedding's folder that an export wrote: only such a
 # folder is ever removed (where no published run acts through it any more), or written into.
 EMBEDDING_KIND = "published embedding"
 EMBEDDING_OWNS = (*EMBEDDING_METRICS, layout.DECODER)
@@ -89,7 +89,7 @@ def export(name: str, to: Path, policies: str | None) -> None:
     another) or that were made with other params than this export's.
 
     An export removes or replaces only what an export wrote: a policy/ or an embedding's folder
-    of its mark (`ede.atomic.MARK`), a published run of the experiment's own seeds; anything else
+    of its mark (`ede.io.atomic.MARK`), a published run of the experiment's own seeds; anything else
     in its way (a user's folder among the embeddings, a file where a folder goes, a symbolic
     link in a task's folder) is refused. TO is never the working directory or a folder above it,
     nor the experiment's working copy. Nothing is written unless every task's runs pass, and
@@ -564,7 +564,7 @@ def _refuse_in_the_way(paths: list[tuple[Path, bool]]) -> None:
 
 def _not_ours(path: Path, kind: str) -> str | None:
     """Why an export may not replace or remove ``path``: not a folder, or not one of ``kind``
-    holding only what its mark owns (:func:`ede.atomic.ownership_problem`)."""
+    holding only what its mark owns (:func:`ede.io.atomic.ownership_problem`)."""
     if not path.is_dir():
         return f"{path}: a file where an export writes {kind} folders; move it out first"
     if not any(path.iterdir()):

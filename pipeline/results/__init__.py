@@ -46,7 +46,7 @@ report draws them) and prints, per task, in Markdown:
   on the final return and on the area;
 - each algorithm's mean over seeds of a seed's last quarter of bins, with its bootstrap interval
   (the asymptote, as far as the budget shows it);
-- per seed, whether it diverged (:func:`ede.stats.divergence`: its last quarter of bins all below
+- per seed, whether it diverged (:func:`ede.analysis.stats.divergence`: its last quarter of bins all below
   its best earlier bin by more than half of what it had gained by then);
 
 and, per family, over the paper's tasks (where they span two families and there are tasks beyond

@@ -27,10 +27,10 @@ from ede.artifacts import (
     save_decoder,
     save_encoder,
 )
-from ede.atomic import sha256
 from ede.config import load_params
 from ede.embedding import ActionDecoder, Encoder, EncoderResult, Predictor
-from ede.rollouts import Whitening
+from ede.io.atomic import sha256
+from ede.io.rollouts import Whitening
 from ede_pipeline.cli import main
 
 TASK, STATES, ACTIONS = "ede/Point-v0", 4, 2

@@ -19,7 +19,7 @@ from ede.artifacts import (
 )
 from ede.config import DecoderConfig, EmbeddingConfig
 from ede.embedding import ActionDecoder, Encoder, EncoderResult, Predictor
-from ede.rollouts import Whitening
+from ede.io.rollouts import Whitening
 
 K, ACTIONS, STATES = 3, 2, 4
 LOW, HIGH = -np.ones(ACTIONS), np.ones(ACTIONS)

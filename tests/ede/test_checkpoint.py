@@ -13,9 +13,9 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from ede import checkpoint
-from ede.atomic import sha256
 from ede.checkpoint import CheckpointError
 from ede.config import EdeTD3Config, TD3Config
+from ede.io.atomic import sha256
 from ede.runs import RunSpec
 from ede.training import _Group
 

@@ -28,7 +28,7 @@ from ede.embedding import (
     train_decoder,
     train_encoder,
 )
-from ede.rollouts import Rollouts
+from ede.io.rollouts import Rollouts
 
 SMALL: dict[str, Any] = {"hidden": [64, 64], "lr": 1e-3, "batch_size": 64}
 LOW, HIGH = np.array([-1.0, -1.0]), np.array([1.0, 1.0])

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from ede.atomic import MARK
 from ede.config import EdeTD3Config, TD3Config
 from ede.embedding import ActionEmbedding
+from ede.io.atomic import MARK
 from ede.runs import RunSpec
 from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
 from ede.training import train_group, train_run
@@ -169,7 +169,7 @@ def point_embedding(point_store: Path) -> object:
     """A small embedding of ede/Point-v0's actions (k = 4), trained for one epoch."""
     from ede.config import DecoderConfig, EmbeddingConfig
     from ede.embedding import ActionEmbedding, train_decoder, train_encoder
-    from ede.rollouts import Rollouts
+    from ede.io.rollouts import Rollouts
 
     rollouts = Rollouts.open(point_store)
     small = {"hidden": [64, 64], "epochs": 1}

@@ -1,5 +1,5 @@
 """A run's folder (ede.runs): written, read back, checked against the run it must be; and what
-run.json records of the code and the machine (ede.provenance)."""
+run.json records of the code and the machine (ede.io.provenance)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from ede import provenance
-from ede.atomic import sha256
 from ede.config import Algo, EdeTD3Config, TD3Config
+from ede.io import provenance
+from ede.io.atomic import sha256
 from ede.runs import (
     CHECKSUMMED,
     RunRejected,
@@ -98,7 +98,7 @@ def test_run_json_names_the_code_and_the_machine(tmp_path: Path) -> None:
     provenance.code_version.cache_clear()  # read once a process: the checkout's HEAD of now
     finished(tmp_path)
     made = json.loads((tmp_path / "run.json").read_text())
-    root = Path(provenance.__file__).resolve().parents[1]
+    root = Path(provenance.__file__).resolve().parents[2]
     head = subprocess.run(
         ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
     ).stdout.strip()

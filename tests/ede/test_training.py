@@ -106,7 +106,7 @@ def test_diagnostics_are_the_means_of_the_updates_since_the_last_evaluation(
 def test_building_an_agent_or_an_embedding_reseeds_nothing_outside(point_store) -> None:
     from ede.config import EmbeddingConfig
     from ede.embedding import train_encoder
-    from ede.rollouts import Rollouts
+    from ede.io.rollouts import Rollouts
     from ede.td3 import Agent, IdentityAdapter
 
     torch.manual_seed(1234)
@@ -126,7 +126,7 @@ def test_a_checkpoint_taken_inside_a_code_resumes_its_remaining_actions(
 ) -> None:
     from ede.config import DecoderConfig, EmbeddingConfig
     from ede.embedding import ActionEmbedding, train_decoder, train_encoder
-    from ede.rollouts import Rollouts
+    from ede.io.rollouts import Rollouts
 
     rollouts = Rollouts.open(point_store)
     small: dict[str, Any] = {"hidden": [8], "epochs": 1}

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from ede.atomic import MARK, write_atomically
-from ede.locks import lock_path
+from ede.io.atomic import MARK, write_atomically
+from ede.io.locks import lock_path
 from ede_pipeline.cli import main
 from tests.faults.conftest import TASK, Workdir, command
 

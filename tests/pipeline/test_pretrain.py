@@ -9,7 +9,7 @@ import pytest
 from click.testing import CliRunner, Result
 
 from ede.artifacts import load_action_embedding
-from ede.provenance import software_versions
+from ede.io.provenance import software_versions
 from ede_pipeline.cli import main
 
 

@@ -20,8 +20,8 @@ import torch
 from click.testing import CliRunner, Result
 from safetensors.torch import load_file, save_file
 
-from ede.atomic import sha256
 from ede.config import EdeTD3Config, TD3Config
+from ede.io.atomic import sha256
 from ede.runs import RunSpec, write_policy
 from ede.td3 import Actor
 from ede_pipeline.cli import main
@@ -285,7 +285,7 @@ def test_a_pages_clip_that_fails_midway_names_itself_as_not_written(tmp_path: Pa
     code = LIMITED + (
         "import numpy as np\n"
         "from pathlib import Path\n"
-        "from ede.atomic import NotWritten\n"
+        "from ede.io.atomic import NotWritten\n"
         "from ede_pipeline.render import video_bytes\n"
         "frames = (np.random.default_rng(n).integers(0, 255, (64, 64, 3), np.uint8)"
         " for n in range(50))\n"

@@ -19,8 +19,8 @@ from click.testing import CliRunner, Result
 from ede.artifacts import save_decoder, save_encoder
 from ede.config import ALGOS, Algo, DecoderConfig, EmbeddingConfig, load_params
 from ede.embedding import train_decoder, train_encoder
-from ede.provenance import describe_software, software_versions
-from ede.rollouts import Rollouts, collect, write_store
+from ede.io.provenance import describe_software, software_versions
+from ede.io.rollouts import Rollouts, collect, write_store
 from ede.runs import RunSpec
 from ede_pipeline import layout
 from ede_pipeline.cli import main

@@ -16,8 +16,8 @@ import torch
 import yaml
 from click.testing import CliRunner
 
-from ede.atomic import sha256
 from ede.config import Algo, EdeTD3Config, TD3Config
+from ede.io.atomic import sha256
 from ede.runs import PUBLISHED, RunSpec, write_curves, write_finished
 from ede_pipeline import layout
 from ede_pipeline.cli import main

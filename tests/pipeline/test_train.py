@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner, Result
 
-from ede.provenance import code_version, machine, software_versions
+from ede.io.provenance import code_version, machine, software_versions
 from ede.tasks import make
 from ede.training import EVAL_SEED_OFFSET
 from ede_pipeline.cli import main

@@ -1,6 +1,6 @@
 """What the report and the results page measure by running the environments themselves: the
 reference returns of every task (uniform random actions', the normalised scores' 0, and zero
-actions'), and the numbers of the paper's Figures 6 and 7 (:mod:`ede.figures` draws them)."""
+actions'), and the numbers of the paper's Figures 6 and 7 (:mod:`ede.analysis.figures` draws them)."""
 
 from __future__ import annotations
 
@@ -122,7 +122,6 @@ def exploration(
     return Exploration(raw, ede, raw_cov, ede_cov, half_width)
 
 
-RANDOM_EPISODES = 10  # episodes of uniform random actions behind a task's normalised 0
 ZERO_EPISODES = (
     100  # episodes behind a task's zero-action return (its standard error ~10 on Reacher's)
 )
