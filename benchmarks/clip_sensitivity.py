@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from ede.config import ALGOS, load_params
-from ede.runs import POLICY, read_policy
+from ede.run.runs import POLICY, read_policy
 from ede_pipeline import layout
 from ede_pipeline.published import published_runs, task_folders
 from ede_pipeline.render import adapter_of, embedding_for, frames_of

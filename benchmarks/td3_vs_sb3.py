@@ -36,11 +36,11 @@ import torch
 
 from ede.analysis.stats import area_under_curve, bootstrap_mean
 from ede.config import EdeTD3Config, TD3Config
-from ede.runs import RunSpec
+from ede.method.td3 import Agent, IdentityAdapter
+from ede.run.runs import RunSpec
+from ede.run.training import EVAL_SEED_OFFSET, evaluate, train_run
+from ede.run.vector import MemberEnvs
 from ede.tasks import action_bounds, observation_size
-from ede.td3 import Agent, IdentityAdapter
-from ede.training import EVAL_SEED_OFFSET, evaluate, train_run
-from ede.vector import MemberEnvs
 
 TASK = "Reacher-v5"
 START = 1_000

@@ -47,15 +47,15 @@ import torch
 from PIL import Image
 from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError, model_validator
 
-from ede.artifacts import ArtifactError, load_action_embedding
 from ede.config import ALGO_LABELS, SEED_MAX, Algo, Params
-from ede.embedding import ActionEmbedding
 from ede.errors import first_line
 from ede.io.atomic import NotWritten, writing_files
-from ede.runs import RunRejected, identity_difference, read_policy
+from ede.method.embedding import ActionEmbedding
+from ede.method.td3 import ActionAdapter, EmbeddingAdapter, IdentityAdapter
+from ede.run.artifacts import ArtifactError, load_action_embedding
+from ede.run.runs import RunRejected, identity_difference, read_policy
+from ede.run.training import EVAL_SEED_OFFSET
 from ede.tasks import make
-from ede.td3 import ActionAdapter, EmbeddingAdapter, IdentityAdapter
-from ede.training import EVAL_SEED_OFFSET
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, Failed, embedding_options, hold_outputs, params_option
 

@@ -26,12 +26,12 @@ from ede.analysis import figures
 from ede.analysis.probes import effect_space, exploration, random_policy_return
 from ede.analysis.results import RANDOM_EPISODES, SCORES, Arm, across_tasks, arm, fresh
 from ede.analysis.stats import Band, curve_band
-from ede.artifacts import ArtifactError, load_action_embedding
 from ede.config import ALGO_LABELS, Algo, Params
-from ede.embedding import ActionEmbedding
 from ede.io.atomic import write_atomically, write_json
 from ede.io.provenance import describe_software, software_versions
-from ede.runs import Curve, RunRejected, RunSpec, read_run
+from ede.method.embedding import ActionEmbedding
+from ede.run.artifacts import ArtifactError, load_action_embedding
+from ede.run.runs import Curve, RunRejected, RunSpec, read_run
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, holding, params_option
 from ede_pipeline.render import fps_of, side_by_side, video_bytes

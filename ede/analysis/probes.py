@@ -11,11 +11,11 @@ import gymnasium
 import numpy as np
 import torch
 
-from ede.embedding import ActionEmbedding
+from ede.method.embedding import ActionEmbedding
+from ede.method.td3 import CodeExecutor, EmbeddingAdapter, IdentityAdapter
+from ede.run.training import evaluate
+from ede.run.vector import MemberEnvs
 from ede.tasks import action_bounds, make, simulator
-from ede.td3 import CodeExecutor, EmbeddingAdapter, IdentityAdapter
-from ede.training import evaluate
-from ede.vector import MemberEnvs
 
 
 @dataclass
@@ -86,7 +86,7 @@ def exploration(
 ) -> Exploration:
     """Figure 7's numbers: positions over ``episodes`` episodes of uniform random raw actions, and of
     uniform random EDE codes (in [−bound, bound]^D) chosen every k steps and decoded — executed
-    as training executes codes (:class:`ede.td3.CodeExecutor`; raw actions are codes with k = 1).
+    as training executes codes (:class:`ede.method.td3.CodeExecutor`; raw actions are codes with k = 1).
 
     Coverage is the fraction of a ``cells`` × ``cells`` grid over the arena
     ([−half_width, half_width]²) that the positions visit.
@@ -153,7 +153,7 @@ def _episode_returns(
     task: str, episodes: int, seed: int, act: Callable[[gymnasium.spaces.Box], np.ndarray]
 ) -> np.ndarray:
     """Each episode's return on ``task`` with ``act(action_space)`` as the policy, by the
-    evaluation's own loop (:func:`ede.training.evaluate`)."""
+    evaluation's own loop (:func:`ede.run.training.evaluate`)."""
     env = make(task)
     try:
         space = env.action_space

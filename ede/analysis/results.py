@@ -37,7 +37,7 @@ from ede.analysis.stats import (
 )
 from ede.analysis.stats import across_tasks as rliable_across_tasks
 from ede.config import ALGO_LABELS, ReportConfig
-from ede.runs import Curve
+from ede.run.runs import Curve
 
 RANDOM_EPISODES = 10  # episodes of uniform random actions behind a task's normalised 0
 

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 if TYPE_CHECKING:
-    from ede.runs import Curve
+    from ede.run.runs import Curve
 
 __all__ = [
     "Divergence",

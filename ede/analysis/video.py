@@ -1,7 +1,7 @@
 """A trained policy's episodes as frames: what it does, step by step (``ede-pipeline render``).
 
 The policy acts as in its run's evaluations: deterministic μ(s), a code every k steps decoded into
-k actions (:class:`ede.td3.CodeExecutor`; TD3's code is the action, k = 1), each episode from the
+k actions (:class:`ede.method.td3.CodeExecutor`; TD3's code is the action, k = 1), each episode from the
 start its run's final evaluation used. Each step's frame is MuJoCo's offscreen rendering
 (``render_mode="rgb_array"``: ``MUJOCO_GL=egl`` or ``osmesa`` where there is no display), marked
 with the episode, its return so far and, for EDE-TD3, the steps where a code starts.
@@ -18,9 +18,9 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
+from ede.method.td3 import ActionAdapter, Actor, CodeExecutor
+from ede.run.vector import MemberEnvs
 from ede.tasks import make
-from ede.td3 import ActionAdapter, Actor, CodeExecutor
-from ede.vector import MemberEnvs
 
 CODE_MARK = (255, 196, 0)  # the bar along a frame's top where a code starts
 
@@ -38,7 +38,7 @@ class Frame(NamedTuple):
 def actor_of(
     meta: Mapping[str, Any], tensors: Mapping[str, torch.Tensor], obs_size: int
 ) -> Callable[[np.ndarray, np.ndarray], torch.Tensor]:
-    """μ of a run's final policy (:func:`ede.runs.read_policy`), as :class:`CodeExecutor` calls
+    """μ of a run's final policy (:func:`ede.run.runs.read_policy`), as :class:`CodeExecutor` calls
     a policy: observations ``(M, O)`` to codes ``(M, C)``."""
     low, high = (torch.tensor(meta[key], dtype=torch.float32) for key in ("code_low", "code_high"))
     actor = Actor(obs_size, low, high, list(meta["hidden"]))

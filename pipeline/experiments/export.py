@@ -23,7 +23,7 @@ from ede.io.atomic import (
     write_json,
 )
 from ede.io.locks import OutputBusy, exclusive
-from ede.runs import POLICY, PUBLISHED, Run
+from ede.run.runs import POLICY, PUBLISHED, Run
 from ede_pipeline import layout
 from ede_pipeline.common import (
     DEFAULT_PARAMS,
@@ -72,7 +72,7 @@ def export(name: str, to: Path, policies: str | None) -> None:
     """Copy experiment NAME's finished runs into the published layout.
 
     Each finished run's eval.csv, diagnostics.csv, run.json and metrics.json go to
-    TO/<task>/<algo>/seed<N>/, checked first (`ede.runs.read_run`: the run the experiment's
+    TO/<task>/<algo>/seed<N>/, checked first (`ede.run.runs.read_run`: the run the experiment's
     params name, finished, its files whole), and the held-out metrics of the embedding its
     EDE-TD3 runs used to TO/<task>/embedding/<checksum>/. Each task's source.json names the
     experiment file, the commits its runs were made at (an earlier export's too), its seeds,
@@ -147,7 +147,7 @@ def export(name: str, to: Path, policies: str | None) -> None:
 @dataclass
 class _TaskExport:
     """What an export writes to one task's folder, checked: the runs it copies there (each its
-    algorithm, seed, folder in the working copy and :class:`ede.runs.Run`), the seeds whose
+    algorithm, seed, folder in the working copy and :class:`ede.run.runs.Run`), the seeds whose
     policies it copies (None: it leaves the policies there alone), the embeddings it keeps
     (each its checksum, and whether with its decoder), the folders it removes, its source.json."""
 
@@ -387,7 +387,7 @@ def _unplayable(
     before runs kept one), or a decoder in the working copy that is not the embedding a played
     EDE-TD3 run trained with (the family's made again since). None where they can. ``listed``:
     the seeds were named (``--policies 4``), not every seed's runs that finished."""
-    from ede.artifacts import DecoderMeta
+    from ede.run.artifacts import DecoderMeta
 
     done = {(algo, seed) for algo, seed, *_ in runs}
     if listed:
@@ -446,9 +446,9 @@ def _published_beside(task: str, runs: list[tuple], to: Path) -> list[tuple[Path
     those there read and checked as ``results`` reads them
     (:func:`ede_pipeline.published.published_runs`: folders named seed<N>, files those their
     run.json records, seeds source.json names, no run twice), and the ones that stay made with
-    the same params as ``runs`` (:func:`ede.runs.unshared_params`), and no run of ``runs`` one
-    of them (:func:`ede.runs.same_files`). Raises :class:`BadInput` where not."""
-    from ede.runs import same_files, unshared_params
+    the same params as ``runs`` (:func:`ede.run.runs.unshared_params`), and no run of ``runs`` one
+    of them (:func:`ede.run.runs.same_files`). Raises :class:`BadInput` where not."""
+    from ede.run.runs import same_files, unshared_params
     from ede_pipeline.published import published_runs
 
     published = published_runs(to, task)
@@ -493,9 +493,9 @@ def _merged_source(folder: Path, part: dict) -> dict | list[dict]:
 
 def _finished_runs(workspace: Path, params: Params) -> tuple[dict, list[str]]:
     """Every finished run of ``params`` in ``workspace``, checked as a published run, by (task,
-    algo, seed): its folder and :class:`ede.runs.Run`; and one line per run that cannot be
+    algo, seed): its folder and :class:`ede.run.runs.Run`; and one line per run that cannot be
     published."""
-    from ede.runs import RunRejected, RunSpec, read_run
+    from ede.run.runs import RunRejected, RunSpec, read_run
 
     finished, problems = {}, []
     for task, algo, seed in itertools.product(

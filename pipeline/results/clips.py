@@ -16,7 +16,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ede.config import ALGO_LABELS, ALGOS, Params
-from ede.runs import POLICY
+from ede.run.runs import POLICY
 from ede_pipeline import layout
 from ede_pipeline.published import Source, published_runs, read_source, task_folders
 from ede_pipeline.render import embedding_for, fps_of, policy_of, side_by_side

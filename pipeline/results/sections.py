@@ -19,7 +19,7 @@ from ede.analysis.results import (
 )
 from ede.analysis.stats import Band
 from ede.config import ALGO_LABELS, ALGOS, Params
-from ede.runs import Curve
+from ede.run.runs import Curve
 from ede_pipeline.published import TaskRuns, seed_list
 
 

@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from ede.config import EdeTD3Config, TD3Config
-from ede.runs import RunSpec
+from ede.run.runs import RunSpec
+from ede.run.training import Diverged, train_group, train_run
 from ede.tasks import make
-from ede.training import Diverged, train_group, train_run
 
 CPU = torch.device("cpu")
 SMALL = dict(

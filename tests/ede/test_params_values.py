@@ -22,10 +22,10 @@ from ede.config import (
     TD3Config,
     load_params,
 )
-from ede.embedding import train_decoder, train_encoder
 from ede.io.rollouts import Rollouts, collect
-from ede.runs import RunSpec
-from ede.training import train_run
+from ede.method.embedding import train_decoder, train_encoder
+from ede.run.runs import RunSpec
+from ede.run.training import train_run
 from ede_pipeline.cli import main
 from ede_pipeline.common import BadInput
 from ede_pipeline.train import parse_seeds

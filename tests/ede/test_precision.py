@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from ede.config import TD3Config
-from ede.nets import matmul_precision, product_error
-from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
+from ede.method.nets import matmul_precision, product_error
+from ede.method.td3 import Agent, IdentityAdapter, ReplayBuffer
 from tests.support import add_step
 
 PRECISIONS = ["fp32", "bf16-matmul", "bf16"]

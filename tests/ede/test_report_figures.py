@@ -14,7 +14,7 @@ from matplotlib.text import Text
 from ede.analysis import figures
 from ede.analysis.results import AcrossTasks, across_tasks, improvement_on_task
 from ede.analysis.stats import Band, curve_band
-from ede.runs import Curve
+from ede.run.runs import Curve
 
 
 def aggregate(*args: Any, **kwargs: Any) -> AcrossTasks:

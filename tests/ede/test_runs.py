@@ -1,4 +1,4 @@
-"""A run's folder (ede.runs): written, read back, checked against the run it must be; and what
+"""A run's folder (ede.run.runs): written, read back, checked against the run it must be; and what
 run.json records of the code and the machine (ede.io.provenance)."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import torch
 from ede.config import Algo, EdeTD3Config, TD3Config
 from ede.io import provenance
 from ede.io.atomic import sha256
-from ede.runs import (
+from ede.run.runs import (
     CHECKSUMMED,
     RunRejected,
     RunSpec,
@@ -212,7 +212,7 @@ def without_checksums(folder: Path, how: str) -> None:
     ("how", "line"),
     [
         ("removed", "records no 'sha256' of the run's files; every run made since runs recorded "
-                    "them does, and those published before are kept unchanged (ede/early_runs.py)"),
+                    "them does, and those published before are kept unchanged (ede/run/early_runs.py)"),
         ("null", "'sha256' is not a SHA-256 by file name (eval.csv, diagnostics.csv, "
                  "metrics.json, policy/policy.safetensors, policy/policy.json)"),
         ("empty", "'sha256' records no SHA-256 of eval.csv, diagnostics.csv, metrics.json; a run "
@@ -239,7 +239,7 @@ def test_the_runs_published_before_checksums_are_read_byte_for_byte_as_published
     tmp_path: Path,
 ) -> None:
     """A committed run without checksums reads as published; one of its files changed does not."""
-    from ede.early_runs import EARLY_RUNS
+    from ede.run.early_runs import EARLY_RUNS
 
     early = [
         made.parent

@@ -114,7 +114,7 @@ def test_a_bin_without_evaluations_is_left_out_and_uneven_steps_bin_by_value() -
 
 def test_binned_band_is_the_mean_over_seeds_of_each_seeds_bin_means() -> None:
     from ede.analysis.stats import curve_band
-    from ede.runs import Curve
+    from ede.run.runs import Curve
 
     steps = np.array([0, 1000, 2000, 3000, 4000, 5000])
     curves = [
@@ -132,7 +132,7 @@ def test_binned_band_is_the_mean_over_seeds_of_each_seeds_bin_means() -> None:
 
 def test_a_band_over_runs_of_unequal_length_uses_the_seeds_each_point_has() -> None:
     from ede.analysis.stats import curve_band
-    from ede.runs import Curve
+    from ede.run.runs import Curve
 
     steps = np.array([0, 1000, 2000])
     curves = [

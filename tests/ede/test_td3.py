@@ -12,9 +12,9 @@ import pytest
 import torch
 
 from ede.config import TD3Config
-from ede.embedding import ActionEmbedding
-from ede.ensemble import Params
-from ede.td3 import (
+from ede.method.embedding import ActionEmbedding
+from ede.method.ensemble import Params
+from ede.method.td3 import (
     Agent,
     CodeExecutor,
     Critic,
@@ -23,7 +23,7 @@ from ede.td3 import (
     ReplayBuffer,
     k_step_targets,
 )
-from ede.vector import MemberEnvs
+from ede.run.vector import MemberEnvs
 from tests.support import add_step
 
 GAMMA = 0.9

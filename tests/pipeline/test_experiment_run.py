@@ -265,7 +265,7 @@ def test_a_changed_code_keeps_finished_runs_unless_told(tmp_path: Path) -> None:
     assert refused.returncode == 2, refused.stderr
     assert refused.stderr.startswith(
         "Error: experiment one-seed: code its finished runs depend on changed here "
-        "(ede/td3.py), and DVC would run them (1) again; --keep-code "
+        "(ede/method/td3.py), and DVC would run them (1) again; --keep-code "
     ), refused.stderr
     assert len(refused.stderr.strip().splitlines()) == 1, refused.stderr
     assert (workspace / "ede" / "td3.py").read_bytes() == original

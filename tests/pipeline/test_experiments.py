@@ -15,7 +15,7 @@ from click.testing import CliRunner
 
 from ede.config import Algo
 from ede.io.atomic import sha256
-from ede.runs import POLICY
+from ede.run.runs import POLICY
 from ede_pipeline.cli import main
 from ede_pipeline.experiments.show import WIDTH, experiment_blocks
 from tests.support import REPO, tool_env
@@ -184,7 +184,7 @@ def test_every_published_run_was_made_with_its_experiments_params(
 
 def _check_runs(folder: Path, params, seeds: list[int]) -> int:
     """Each run of ``seeds`` in ``folder`` has the identity ``params`` give it; how many."""
-    from ede.runs import RunSpec, identity_difference
+    from ede.run.runs import RunSpec, identity_difference
 
     checked = 0
     for record in sorted(folder.glob("*/seed*/run.json")):
@@ -228,7 +228,7 @@ def finished_workspace(
 
     from ede.config import load_params
     from ede.io.atomic import write_atomically
-    from ede.runs import RunSpec, write_curves, write_finished
+    from ede.run.runs import RunSpec, write_curves, write_finished
     from ede_pipeline import layout
     from tests.support import REPO
 
@@ -434,7 +434,7 @@ def test_an_export_publishes_the_policies_of_the_seeds_it_is_given(
     alone publishes every run's; a narrower one takes away those it no longer plays. A seed the
     experiment has not, a value that is no seed, a seed whose runs have not finished, and a
     decoder that is not the one the runs trained with: one line each, nothing written."""
-    from ede.artifacts import ActionSpaceMeta, DecoderMeta, WhiteningMeta
+    from ede.run.artifacts import ActionSpaceMeta, DecoderMeta, WhiteningMeta
     from ede_pipeline import layout
 
     decoder_meta = DecoderMeta(

@@ -22,8 +22,8 @@ from safetensors.torch import load_file, save_file
 
 from ede.config import EdeTD3Config, TD3Config
 from ede.io.atomic import sha256
-from ede.runs import RunSpec, write_policy
-from ede.td3 import Actor
+from ede.method.td3 import Actor
+from ede.run.runs import RunSpec, write_policy
 from ede_pipeline.cli import main
 from ede_pipeline.render import MAX_FRAMES, encode
 

@@ -17,8 +17,8 @@ import pytest
 from click.testing import CliRunner, Result
 
 from ede.io.provenance import code_version, machine, software_versions
+from ede.run.training import EVAL_SEED_OFFSET
 from ede.tasks import make
-from ede.training import EVAL_SEED_OFFSET
 from ede_pipeline.cli import main
 from ede_pipeline.progress import PROGRESS_ENV, read_progress
 from tests.support import REPO
@@ -402,7 +402,7 @@ def test_a_groups_memory_estimate_is_what_its_replay_buffer_and_networks_hold() 
     import torch
 
     from ede.config import TD3Config
-    from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
+    from ede.method.td3 import Agent, IdentityAdapter, ReplayBuffer
     from ede_pipeline.train import group_memory
 
     obs, code, members, capacity, cpu = 7, 3, 5, 300, torch.device("cpu")
@@ -518,7 +518,7 @@ PEAK = """
 import resource, sys
 import numpy as np, torch
 from ede.config import TD3Config
-from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
+from ede.method.td3 import Agent, IdentityAdapter, ReplayBuffer
 torch.set_num_threads(1)
 members, batch, obs, code, cpu = 4, int(sys.argv[1]), 11, 2, torch.device("cpu")
 config = TD3Config.model_validate({"hidden": [400, 300], "batch_size": batch})
@@ -536,7 +536,7 @@ print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
 
 
 def test_a_groups_estimate_bounds_what_an_updates_activations_add() -> None:
-    from ede.td3 import Critic
+    from ede.method.td3 import Critic
     from ede_pipeline.train import group_memory
 
     def peak(batch: int) -> int:
@@ -562,7 +562,7 @@ def test_a_groups_environments_are_counted_as_they_are_held() -> None:
     import psutil
     from gymnasium.vector import AsyncVectorEnv
 
-    from ede.vector import MemberEnvs
+    from ede.run.vector import MemberEnvs
     from ede_pipeline.train import ENVS_PER_MEMBER, WORKER_BYTES, environment_memory
 
     assert environment_memory(3, workers=True) == 3 * ENVS_PER_MEMBER * WORKER_BYTES

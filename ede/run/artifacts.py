@@ -25,10 +25,10 @@ from safetensors.torch import load_file
 from torch import nn
 
 from ede.config import DecoderConfig, EmbeddingConfig, result_neutral
-from ede.embedding import ActionDecoder, ActionEmbedding, Encoder, EncoderResult, Predictor
 from ede.io.atomic import save_tensors, sha256, write_atomically
 from ede.io.provenance import software_versions
 from ede.io.rollouts import Whitening
+from ede.method.embedding import ActionDecoder, ActionEmbedding, Encoder, EncoderResult, Predictor
 
 __all__ = [
     "ArtifactError",

@@ -5,12 +5,12 @@ group, so either resumes the other:
 
 * ``state.safetensors``: the member's slice of the agent (``agent.*``: networks' parameters by
   name, optimiser moments, update count, diagnostics sums, generator states;
-  :meth:`ede.td3.Agent.state_dict`, opaque here) and of the replay buffer (``buffer.*``: its filled rows and ``buffer.count``, the
-  run's environment steps; :meth:`ede.td3.ReplayBuffer.state_dict`), the code under way
+  :meth:`ede.method.td3.Agent.state_dict`, opaque here) and of the replay buffer (``buffer.*``: its filled rows and ``buffer.count``, the
+  run's environment steps; :meth:`ede.method.td3.ReplayBuffer.state_dict`), the code under way
   (``code``, ``plan``), the current episode's actions (``episode_actions``) and the observation
   their replay must reach (``obs``);
 * ``state.json``: the format version, the run's identity and fingerprint
-  (:meth:`ede.runs.RunSpec.identity`), ``step`` (equal to ``buffer.count``), ``episodes``,
+  (:meth:`ede.run.runs.RunSpec.identity`), ``step`` (equal to ``buffer.count``), ``episodes``,
   ``i`` (steps of the code executed), ``wall_seconds``, ``episode_start``, ``episode_return``,
   the evaluation ``history`` and the training ``diagnostics``;
 * ``checksums.json``: the SHA-256 of the other two.
@@ -36,11 +36,11 @@ from safetensors.torch import load_file
 
 from ede.errors import first_line
 from ede.io.atomic import NotWritten, save_tensors, sha256, write_atomically
-from ede.runs import identity_difference
+from ede.run.runs import identity_difference
 
 if TYPE_CHECKING:
-    from ede.runs import RunSpec
-    from ede.td3 import Agent, CodeExecutor, ReplayBuffer
+    from ede.method.td3 import Agent, CodeExecutor, ReplayBuffer
+    from ede.run.runs import RunSpec
 
 __all__ = [
     "VERSION",

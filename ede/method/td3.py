@@ -8,7 +8,7 @@ its bounds, and k.
 Shapes: M members (the runs an agent trains at once; 1 for a run alone), B batch, K actions per
 code (1 for TD3), A action size, C code size (A for TD3, D for EDE-TD3), O observation size.
 :class:`TD3` is the update of one member; :class:`Agent` holds M members stacked
-(:mod:`ede.ensemble`, the one module that knows their layout) and runs that update on all of
+(:mod:`ede.method.ensemble`, the one module that knows their layout) and runs that update on all of
 them at once, each computing what it computes alone, from its own random streams
 (:class:`Streams`).
 
@@ -34,14 +34,14 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ede import ensemble
 from ede.config import TD3Config
-from ede.embedding import ActionEmbedding
-from ede.ensemble import Params
-from ede.nets import initial_mlp, matmul_precision, to_device
+from ede.method import ensemble
+from ede.method.embedding import ActionEmbedding
+from ede.method.ensemble import Params
+from ede.method.nets import initial_mlp, matmul_precision, to_device
 
 if TYPE_CHECKING:
-    from ede.vector import MemberEnvs
+    from ede.run.vector import MemberEnvs
 
 __all__ = [
     "TD3",
@@ -134,7 +134,7 @@ class EmbeddingAdapter:
 
     @torch.no_grad()
     def decode(self, codes: torch.Tensor) -> torch.Tensor:
-        """(B, D) -> (B, K, A), each code alone (:func:`ede.ensemble.row_by_row`): a member's
+        """(B, D) -> (B, K, A), each code alone (:func:`ede.method.ensemble.row_by_row`): a member's
         actions do not depend on how many members chose a code with it."""
         return ensemble.row_by_row(self.embedding.decode, codes)
 
@@ -270,8 +270,8 @@ class Streams:
 class Actor:
     """μ(s): a code inside [low, high] through a tanh, ``(..., O) -> (..., C)``.
 
-    Its parameters are an ``ede.nets.mlp``'s (``0.weight``, ``0.bias``, ...): one member's, or
-    a stack of members' (:mod:`ede.ensemble`).
+    Its parameters are an ``ede.method.nets.mlp``'s (``0.weight``, ``0.bias``, ...): one member's, or
+    a stack of members' (:mod:`ede.method.ensemble`).
     """
 
     def __init__(
@@ -311,7 +311,7 @@ class Critic:
     """Twin Q(s, c, i) over (observation, then ``repeat`` copies of (code, i)), ``(..., B)`` each.
 
     i is a one-hot of size K (``plan_step="onehot"``) or the raw count as one input ("scalar", the
-    authors' code); it is absent when K = 1. The twins are one ``ede.nets.mlp``'s parameters
+    authors' code); it is absent when K = 1. The twins are one ``ede.method.nets.mlp``'s parameters
     with a twin axis first (``0.weight`` ``(2, out, in)``: Q1's, then Q2's), evaluated together.
     """
 
@@ -551,7 +551,7 @@ class TD3:
     target, the critic's loss and the actor's, as functions of the member's parameters and batch.
 
     Nothing here knows about members: every operation acts on trailing dimensions, so
-    :mod:`ede.ensemble` runs the same functions on M members stacked on a leading axis.
+    :mod:`ede.method.ensemble` runs the same functions on M members stacked on a leading axis.
     """
 
     def __init__(
@@ -602,7 +602,7 @@ class Agent:
     """The TD3 learner of M members over any :class:`ActionAdapter` (TD3: identity, EDE-TD3: the
     decoder). A single run is M = 1; member m is the run of seed ``seeds[m]``.
 
-    Its networks and optimiser states hold the members stacked (:mod:`ede.ensemble`); an update
+    Its networks and optimiser states hold the members stacked (:mod:`ede.method.ensemble`); an update
     runs :class:`TD3`'s functions on every member at once, each on its own batch and target
     noise drawn from its own generators (:meth:`draw`). Members not due an update keep their
     weights and optimiser states.
@@ -827,7 +827,7 @@ class Agent:
         return state
 
     def state_dict(self, member: int) -> dict[str, torch.Tensor]:
-        """Member ``member``'s learner state, as a run alone holds it (``ede/checkpoint.py``):
+        """Member ``member``'s learner state, as a run alone holds it (``ede/run/checkpoint.py``):
         each network's parameters (``actor.0.weight``, ``critic.0.weight`` (Q1's and Q2's), ...),
         each optimiser's moments (``actor_adam.exp_avg.0.weight``, ...), its update count,
         diagnostics sums and generator states."""

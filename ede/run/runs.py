@@ -1,6 +1,6 @@
 """A run's folder: what determines a run, the files it writes, and how they are read back.
 
-A run (task × algorithm × seed) trains into its own folder (:mod:`ede.training` writes it). This
+A run (task × algorithm × seed) trains into its own folder (:mod:`ede.run.training` writes it). This
 module is the one place that knows the folder's files:
 
 * ``eval.csv``: :data:`EVAL_COLUMNS` after every evaluation (the first at step 0);
@@ -11,11 +11,11 @@ module is the one place that knows the folder's files:
   the software, the code (commit, and whether the tree differed from it) and the machine (CPU
   model, the instruction sets that change results, torch's threads), and the SHA-256 of each of
   its result files (:data:`CHECKSUMMED`) as it wrote them (the runs published before it recorded
-  them record none: :data:`ede.early_runs.EARLY_RUNS` names each by its files);
+  them record none: :data:`ede.run.early_runs.EARLY_RUNS` names each by its files);
 * ``metrics.json``: final and best return, area under the curve, steps per second, episodes;
   written last, so a run with ``metrics.json`` is finished;
 * ``policy/``: the final actor (``policy.safetensors`` beside ``policy.json``);
-* ``checkpoint/`` while it trains (:mod:`ede.checkpoint`).
+* ``checkpoint/`` while it trains (:mod:`ede.run.checkpoint`).
 
 :func:`read_run` reads a finished run back for the report and the results page, checked against
 the identity it must have (:func:`identity_difference`, which the checkpoint uses too) and against
@@ -38,10 +38,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ede.config import Algo, EdeTD3Config, TD3Config, result_neutral
-from ede.early_runs import EARLY_RUNS
 from ede.errors import first_line
 from ede.io.atomic import save_tensors, sha256, write_atomically, write_json, write_text
 from ede.io.provenance import code_version, machine, software_versions
+from ede.run.early_runs import EARLY_RUNS
 
 if TYPE_CHECKING:  # torch loads only where a policy is read: the results model stays free of it
     import torch
@@ -355,7 +355,7 @@ def read_run(run_dir: Path, expected: dict[str, Any], published: bool = False) -
 
     A run read to be ``published`` (``experiment export``, ``results``) must record its
     checksums too, unless it is one of the runs published before runs recorded any
-    (:data:`ede.early_runs.EARLY_RUNS`), every byte as published; an EDE-TD3 run's embedding
+    (:data:`ede.run.early_runs.EARLY_RUNS`), every byte as published; an EDE-TD3 run's embedding
     must be a SHA-256 (a published folder keeps the embedding under its first characters).
 
     Raises:
@@ -431,7 +431,7 @@ def _check_files(run_dir: Path, made: dict[str, Any], published: bool) -> dict[s
         if published and early_run(found) not in EARLY_RUNS:
             raise RunRejected(
                 f"{where}: records no 'sha256' of the run's files; every run made since runs "
-                "recorded them does, and those published before are kept unchanged (ede/early_runs.py)"
+                "recorded them does, and those published before are kept unchanged (ede/run/early_runs.py)"
             )
         return found
     recorded = made["sha256"]
@@ -466,7 +466,7 @@ def _check_files(run_dir: Path, made: dict[str, Any], published: bool) -> dict[s
 
 
 def early_run(checksums: Mapping[str, str]) -> str:
-    """What :data:`ede.early_runs.EARLY_RUNS` knows a run by: the SHA-256 of the SHA-256 of each
+    """What :data:`ede.run.early_runs.EARLY_RUNS` knows a run by: the SHA-256 of the SHA-256 of each
     of its published files (:data:`PUBLISHED`, ``run.json`` included) there, by name."""
     return hashlib.sha256(json.dumps(dict(checksums), sort_keys=True).encode()).hexdigest()
 

@@ -1,0 +1,1 @@
+"""The paper's method: the action embedding, the adapters, TD3 and its learner, the replay buffer, the member axis."""

@@ -1,0 +1,1 @@
+"""A run stepping, stopping and resuming: the code executor, the environments, training, checkpoints, artifacts and runs."""
