@@ -127,7 +127,9 @@ def update_us(row: Row, device: str, tiny: bool, compile: str) -> tuple[float, s
     """One batched update of ``row.members`` members, in µs, and whether a CUDA graph ran it."""
     from torch._dynamo.utils import counters
 
-    from ede.method.td3 import Agent, EmbeddingAdapter, IdentityAdapter, ReplayBuffer
+    from ede.method.adapters import EmbeddingAdapter, IdentityAdapter
+    from ede.method.agent import Agent
+    from ede.method.replay import ReplayBuffer
     from ede.tasks import make
 
     where = torch.device(device)

@@ -23,9 +23,10 @@ import numpy as np
 import torch
 
 from ede.config import EdeTD3Config, TD3Config
+from ede.method.agent import Agent
 from ede.method.ensemble import Adam
 from ede.method.nets import flush_denormals
-from ede.method.td3 import Agent, ReplayBatch
+from ede.method.replay import ReplayBatch
 from ede.run.runs import RunSpec
 from ede.run.training import _Group
 

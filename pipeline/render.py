@@ -50,8 +50,8 @@ from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError, m
 from ede.config import ALGO_LABELS, SEED_MAX, Algo, Params
 from ede.errors import first_line
 from ede.io.atomic import NotWritten, writing_files
+from ede.method.adapters import ActionAdapter, EmbeddingAdapter, IdentityAdapter
 from ede.method.embedding import ActionEmbedding
-from ede.method.td3 import ActionAdapter, EmbeddingAdapter, IdentityAdapter
 from ede.run.artifacts import ArtifactError, load_action_embedding
 from ede.run.runs import RunRejected, identity_difference, read_policy
 from ede.run.training import EVAL_SEED_OFFSET

@@ -218,7 +218,7 @@ def group_memory(
 ) -> int:
     """The bytes a group of ``members`` runs holds in its tensors while it trains, at least.
 
-    Counts the replay buffer, ``capacity`` steps of each member as :class:`ede.method.td3.ReplayBuffer`
+    Counts the replay buffer, ``capacity`` steps of each member as :class:`ede.method.replay.ReplayBuffer`
     stores them (two float32 observations of ``obs_size``, a float32 code of ``code_size``, an
     int64 plan step, a float32 reward, two bool flags), each member's ``networks``, given by
     their layer widths (a twin critic given twice), :data:`NETWORK_COPIES` times in float32, and

@@ -11,8 +11,9 @@ import gymnasium
 import numpy as np
 import torch
 
+from ede.method.adapters import EmbeddingAdapter, IdentityAdapter
 from ede.method.embedding import ActionEmbedding
-from ede.method.td3 import CodeExecutor, EmbeddingAdapter, IdentityAdapter
+from ede.run.executor import CodeExecutor
 from ede.run.training import evaluate
 from ede.run.vector import MemberEnvs
 from ede.tasks import action_bounds, make, simulator
@@ -86,7 +87,7 @@ def exploration(
 ) -> Exploration:
     """Figure 7's numbers: positions over ``episodes`` episodes of uniform random raw actions, and of
     uniform random EDE codes (in [−bound, bound]^D) chosen every k steps and decoded — executed
-    as training executes codes (:class:`ede.method.td3.CodeExecutor`; raw actions are codes with k = 1).
+    as training executes codes (:class:`ede.run.executor.CodeExecutor`; raw actions are codes with k = 1).
 
     Coverage is the fraction of a ``cells`` × ``cells`` grid over the arena
     ([−half_width, half_width]²) that the positions visit.

@@ -26,7 +26,6 @@ from ede.analysis.stats import (
     Band,
     Divergence,
     Interval,
-    area_under_curve,
     bootstrap_mean,
     curve_band,
     divergence,
@@ -37,7 +36,7 @@ from ede.analysis.stats import (
 )
 from ede.analysis.stats import across_tasks as rliable_across_tasks
 from ede.config import ALGO_LABELS, ReportConfig
-from ede.run.runs import Curve
+from ede.run.runs import Curve, area_under_curve
 
 RANDOM_EPISODES = 10  # episodes of uniform random actions behind a task's normalised 0
 

@@ -1,7 +1,7 @@
 """A trained policy's episodes as frames: what it does, step by step (``ede-pipeline render``).
 
 The policy acts as in its run's evaluations: deterministic μ(s), a code every k steps decoded into
-k actions (:class:`ede.method.td3.CodeExecutor`; TD3's code is the action, k = 1), each episode from the
+k actions (:class:`ede.run.executor.CodeExecutor`; TD3's code is the action, k = 1), each episode from the
 start its run's final evaluation used. Each step's frame is MuJoCo's offscreen rendering
 (``render_mode="rgb_array"``: ``MUJOCO_GL=egl`` or ``osmesa`` where there is no display), marked
 with the episode, its return so far and, for EDE-TD3, the steps where a code starts.
@@ -18,7 +18,9 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
-from ede.method.td3 import ActionAdapter, Actor, CodeExecutor
+from ede.method.adapters import ActionAdapter
+from ede.method.td3 import Actor
+from ede.run.executor import CodeExecutor
 from ede.run.vector import MemberEnvs
 from ede.tasks import make
 

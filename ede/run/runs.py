@@ -58,6 +58,7 @@ __all__ = [
     "Run",
     "RunRejected",
     "RunSpec",
+    "area_under_curve",
     "identity_difference",
     "read_policy",
     "read_run",
@@ -320,6 +321,22 @@ class Curve:
     seed: int
     steps: np.ndarray
     returns: np.ndarray
+
+
+def area_under_curve(steps: np.ndarray, returns: np.ndarray) -> float:
+    """Trapezoidal area under a return curve divided by the steps it spans: its mean return
+    (``metrics.json``'s ``auc``, and the results' area under the curve).
+
+    A curve of one point has that point's return; an empty one is NaN.
+    """
+    steps, returns = np.asarray(steps, dtype=float), np.asarray(returns, dtype=float)
+    if len(steps) != len(returns):
+        raise ValueError(f"{len(steps)} steps but {len(returns)} returns")
+    if len(steps) == 0:
+        return float("nan")
+    if len(steps) == 1 or steps[-1] == steps[0]:
+        return float(returns[0])
+    return float(np.trapezoid(returns, steps) / (steps[-1] - steps[0]))
 
 
 class RunRejected(ValueError):

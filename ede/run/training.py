@@ -8,7 +8,7 @@ the same for a run trained alone and for a member of a group, so either resumes 
 started where a checkpoint of the same configuration exists continues from it; on CPU a run
 killed at any point and resumed ends with the same ``eval.csv`` returns as an uninterrupted one.
 
-A group of runs (several seeds of one task and algorithm) is one :class:`ede.method.td3.Agent` with a
+A group of runs (several seeds of one task and algorithm) is one :class:`ede.method.agent.Agent` with a
 member per run; a run alone is a group of one. Each run's outputs are what it gets alone.
 
 This module orchestrates: :class:`_Run` keeps one run's counters, episode and history,
@@ -31,31 +31,27 @@ import gymnasium
 import numpy as np
 import torch
 
-from ede.analysis.stats import area_under_curve
 from ede.config import ALGOS
 from ede.io.atomic import claim, remove_stale_temporaries
+from ede.method.adapters import ActionAdapter, EmbeddingAdapter, IdentityAdapter
+from ede.method.agent import Agent
 from ede.method.embedding import ActionEmbedding
 from ede.method.nets import flush_denormals
-from ede.method.td3 import (
-    ActionAdapter,
-    Agent,
-    CodeExecutor,
-    EmbeddingAdapter,
-    IdentityAdapter,
-    ReplayBuffer,
-)
+from ede.method.replay import ReplayBuffer
 from ede.run import checkpoint
-from ede.run.checkpoint import CheckpointError, Episode, Layout
+from ede.run.checkpoint import CheckpointError, Layout
+from ede.run.executor import CodeExecutor
 from ede.run.runs import (
     POLICY,
     RUN_KIND,
     RUN_OWNS,
     RunSpec,
+    area_under_curve,
     write_curves,
     write_finished,
     write_policy,
 )
-from ede.run.vector import MemberEnvs
+from ede.run.vector import Episode, MemberEnvs
 from ede.tasks import make
 
 __all__ = ["Diverged", "evaluate", "train_group", "train_run"]
@@ -249,7 +245,7 @@ class _Group:
 
     def _behaviour(self, obs: np.ndarray, choosing: np.ndarray) -> torch.Tensor:
         """The codes training acts with: uniform for ``td3.start_steps`` steps, then μ(s) +
-        noise (:meth:`ede.method.td3.Agent.behave`)."""
+        noise (:meth:`ede.method.agent.Agent.behave`)."""
         start_steps = self.runs[0].spec.td3.start_steps
         uniform = self.buffer.count < start_steps
         return self.agent.behave(obs, choosing, uniform)
@@ -366,7 +362,7 @@ def train_group(
     notice: Callable[[str], None] = print,
 ) -> list[dict[str, Any]]:
     """Train runs of one task and algorithm that differ only in their seeds, each into its
-    ``out``, in one process: one agent with a member per run (:class:`ede.method.td3.Agent`), their
+    ``out``, in one process: one agent with a member per run (:class:`ede.method.agent.Agent`), their
     environments stepped in turn, their updates as one. Each member's outputs are those it gets
     alone. Members due different numbers of updates (per-episode batches of episodes that ended
     apart) are masked in the updates they are not due; members resumed from different steps

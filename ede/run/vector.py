@@ -18,6 +18,7 @@ the process that holds the environment (``restore``).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
@@ -25,10 +26,30 @@ import gymnasium
 import numpy as np
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
 
-from ede.run.checkpoint import Episode
 from ede.tasks import make
 
-__all__ = ["MemberEnv", "MemberEnvs"]
+__all__ = ["Episode", "MemberEnv", "MemberEnvs"]
+
+
+@dataclass
+class Episode:
+    """The training episode under way, as a checkpoint keeps it: how it started and the actions
+    taken since, which rebuild the environment's state (:meth:`replay`)."""
+
+    start: dict[str, Any]  # {"seed": s} for the first episode, else {"rng": bit generator state}
+    actions: list[np.ndarray] = field(default_factory=list)
+    ret: float = 0.0
+
+    def replay(self, env: gymnasium.Env) -> np.ndarray:
+        """Rebuild the environment's state: the same reset, then the same actions."""
+        if "seed" in self.start:
+            obs, _ = env.reset(seed=self.start["seed"])
+        else:
+            env.unwrapped.np_random.bit_generator.state = self.start["rng"]
+            obs, _ = env.reset()
+        for action in self.actions:
+            obs, *_ = env.step(action)
+        return obs
 
 
 class MemberEnv(gymnasium.Wrapper):

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from ede.config import EdeTD3Config, TD3Config
+from ede.method.agent import Agent
 from ede.method.nets import flush_denormals, flushes_denormals
-from ede.method.td3 import Agent
 from ede.run.runs import RunSpec
 from ede.run.training import _Group, train_run
 

@@ -15,8 +15,10 @@ import torch
 
 from ede.config import EdeTD3Config, TD3Config
 from ede.io.atomic import MARK
+from ede.method.adapters import IdentityAdapter
+from ede.method.agent import Agent
 from ede.method.embedding import ActionEmbedding
-from ede.method.td3 import Agent, IdentityAdapter, ReplayBuffer
+from ede.method.replay import ReplayBuffer
 from ede.run.runs import RunSpec
 from ede.run.training import train_group, train_run
 
@@ -147,7 +149,7 @@ def test_a_member_masked_out_of_an_update_keeps_its_learner_state_bit_for_bit() 
 
 def test_adding_a_member_or_a_purpose_shifts_no_stream() -> None:
     """Each member's generators are seeded from (its seed, the purpose) alone."""
-    from ede.method.td3 import PURPOSES, Streams
+    from ede.method.agent import PURPOSES, Streams
 
     alone, third = (
         Streams(7, CPU),

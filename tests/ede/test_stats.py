@@ -11,7 +11,6 @@ from ede.analysis.stats import (
     Interval,
     across_tasks,
     align_curves,
-    area_under_curve,
     bin_curve,
     bootstrap_mean,
     bootstrap_means,
@@ -20,6 +19,7 @@ from ede.analysis.stats import (
     separation,
     steps_to_threshold,
 )
+from ede.run.runs import area_under_curve
 
 
 def test_area_under_curve_is_the_trapezoidal_mean_return() -> None:

@@ -106,8 +106,9 @@ def test_diagnostics_are_the_means_of_the_updates_since_the_last_evaluation(
 def test_building_an_agent_or_an_embedding_reseeds_nothing_outside(point_store) -> None:
     from ede.config import EmbeddingConfig
     from ede.io.rollouts import Rollouts
+    from ede.method.adapters import IdentityAdapter
+    from ede.method.agent import Agent
     from ede.method.embedding import train_encoder
-    from ede.method.td3 import Agent, IdentityAdapter
 
     torch.manual_seed(1234)
     expected = torch.rand(3)

@@ -402,7 +402,9 @@ def test_a_groups_memory_estimate_is_what_its_replay_buffer_and_networks_hold() 
     import torch
 
     from ede.config import TD3Config
-    from ede.method.td3 import Agent, IdentityAdapter, ReplayBuffer
+    from ede.method.adapters import IdentityAdapter
+    from ede.method.agent import Agent
+    from ede.method.replay import ReplayBuffer
     from ede_pipeline.train import group_memory
 
     obs, code, members, capacity, cpu = 7, 3, 5, 300, torch.device("cpu")
@@ -518,7 +520,9 @@ PEAK = """
 import resource, sys
 import numpy as np, torch
 from ede.config import TD3Config
-from ede.method.td3 import Agent, IdentityAdapter, ReplayBuffer
+from ede.method.agent import Agent
+from ede.method.adapters import IdentityAdapter
+from ede.method.replay import ReplayBuffer
 torch.set_num_threads(1)
 members, batch, obs, code, cpu = 4, int(sys.argv[1]), 11, 2, torch.device("cpu")
 config = TD3Config.model_validate({"hidden": [400, 300], "batch_size": batch})
