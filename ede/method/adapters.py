@@ -92,6 +92,6 @@ class EmbeddingAdapter:
 
     @torch.no_grad()
     def decode(self, codes: torch.Tensor) -> torch.Tensor:
-        """(B, D) -> (B, K, A), each code alone (:func:`ede.ensemble.row_by_row`): a member's
+        """(B, D) -> (B, K, A), each code alone (:func:`ede.method.ensemble.row_by_row`): a member's
         actions do not depend on how many members chose a code with it."""
         return ensemble.row_by_row(self.embedding.decode, codes)

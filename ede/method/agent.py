@@ -54,7 +54,7 @@ class Agent:
     """The TD3 learner of M members over any :class:`ActionAdapter` (TD3: identity, EDE-TD3: the
     decoder). A single run is M = 1; member m is the run of seed ``seeds[m]``.
 
-    Its networks and optimiser states hold the members stacked (:mod:`ede.ensemble`); an update
+    Its networks and optimiser states hold the members stacked (:mod:`ede.method.ensemble`); an update
     runs :class:`TD3`'s functions on every member at once, each on its own batch and target
     noise drawn from its own generators (:meth:`draw`). Members not due an update keep their
     weights and optimiser states.
@@ -279,7 +279,7 @@ class Agent:
         return state
 
     def state_dict(self, member: int) -> dict[str, torch.Tensor]:
-        """Member ``member``'s learner state, as a run alone holds it (``ede/checkpoint.py``):
+        """Member ``member``'s learner state, as a run alone holds it (``ede/run/checkpoint.py``):
         each network's parameters (``actor.0.weight``, ``critic.0.weight`` (Q1's and Q2's), ...),
         each optimiser's moments (``actor_adam.exp_avg.0.weight``, ...), its update count,
         diagnostics sums and generator states."""
