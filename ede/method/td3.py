@@ -22,9 +22,11 @@ code short (truncated, not terminal), the code goes on: c' = c, i' = i + n. The 
 Where the rest lives:
 
 - the adapters (identity for TD3, the decoder for EDE-TD3): :mod:`ede.method.adapters`;
-- the member axis (M runs stacked, the batched MLP, Adam): :mod:`ede.method.ensemble`;
-- the learner that owns networks, targets, optimisers and random streams, and runs this update
-  on every member at once: :mod:`ede.method.agent`;
+- the member axis (M runs stacked on a leading axis, the batched MLP): :mod:`ede.method.ensemble`;
+- the optimiser: Adam over the stacked members (:class:`ede.method.ensemble.Adam`), stepped in
+  :meth:`ede.method.agent.Agent.step`;
+- the learner that owns the networks, their targets, the optimisers and the random streams, and
+  runs this update on every member at once: :class:`ede.method.agent.Agent`;
 - the replay buffer and its k-step batches: :mod:`ede.method.replay`;
 - the loop (acting with codes, evaluating, checkpoints): :mod:`ede.run.executor` and
   :mod:`ede.run.training`.
