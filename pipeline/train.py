@@ -194,11 +194,13 @@ ACTIVATION_COPIES = 2
 # Host memory each environment of a member holds (a member has two: training and evaluation,
 # ede.run.training._Group): in this process, a MuJoCo model and its data, 0.6 to 0.9 MiB measured for
 # ede/Point-v0, ede/Pusher-v0 and ede/Striker-v0; or, with td3.env_workers (AsyncVectorEnv), a
-# worker process of its own that imports ede, gymnasium and MuJoCo: 164 MiB unique to it (USS;
-# 262 MiB RSS, the rest shared with its forkserver) for either task, measured the same day.
+# worker process of its own that imports ede's tasks, gymnasium and MuJoCo, not torch
+# (ede.run.vector imports none of the method): 35 to 39 MiB unique to it (USS; 70 MiB RSS, the
+# rest shared with its forkserver) for each of the three, measured 2026-12-07 (164 MiB while the
+# vector environments' module imported the checkpoint's, and so torch).
 ENVS_PER_MEMBER = 2
 ENV_BYTES = 2**20
-WORKER_BYTES = 170 * 2**20
+WORKER_BYTES = 60 * 2**20
 
 # A group may fill USABLE_SHARE of the free memory by group_memory's count: the rest is for what
 # it leaves out. (A group estimated at 21.1 GiB, 201 TD3 runs of ede/ReacherVertical-v0 with 10^6
