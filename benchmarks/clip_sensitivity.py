@@ -21,16 +21,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ede.analysis.video import adapter_of, frames_of, trained_embedding
 from ede.config import ALGOS, load_params
-from ede.runs import POLICY, read_policy
-from ede.video import adapter_of, frames_of, trained_embedding
+from ede.run.runs import POLICY, read_policy
 from ede_pipeline import layout
 from ede_pipeline.published import published_runs, task_folders
 
 
 def returns(run: Path, scales: list[float], rng: np.random.Generator) -> list[float]:
     """The return of the first episode of ``run``'s final evaluation, as ``ede-pipeline render``
-    plays it (:func:`ede.video.frames_of`), once per scale, each action scaled by
+    plays it (:func:`ede.analysis.video.frames_of`), once per scale, each action scaled by
     ``1 + scale·N(0, 1)``."""
     meta, tensors = read_policy(run)
     params = load_params("params.yaml")

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ede.rollouts import collect, write_store
+from ede.io.rollouts import collect, write_store
 from ede.tasks import action_bounds, make
 
 

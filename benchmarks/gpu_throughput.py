@@ -5,7 +5,7 @@
                                         [--algos td3,ede-td3] [--steps 3000] [--minutes 7]
 
 One command, one table: for each task and algorithm, each ``PxM`` of ``--plan`` — P processes
-side by side, each training a group of M seeds through ``ede.training.train_group`` as
+side by side, each training a group of M seeds through ``ede.run.training.train_group`` as
 ``ede-pipeline train --seeds`` does — and its aggregate rate: environment steps per second of all
 P × M members together, timed in every process from its members' step 500 to their last
 (compiling, setup, the first evaluation and the outputs outside the clock; the paper's evaluation,
@@ -58,8 +58,8 @@ class Row:
 
 def embedding(task: str, device: torch.device) -> Any:
     """An untrained embedding of ``task``'s actions, k = 4, codes the size of an action."""
-    from ede.embedding import ActionDecoder, ActionEmbedding, Encoder
-    from ede.rollouts import Whitening
+    from ede.io.rollouts import Whitening
+    from ede.method.embedding import ActionDecoder, ActionEmbedding, Encoder
     from ede.tasks import make
 
     env = make(task)
@@ -98,8 +98,8 @@ def group(args: tuple[Row, str, bool, int, str, int]) -> float:
     """One process's group: its members' environment steps per second, timed."""
     row, device, tiny, steps, compile, warmup = args
     from ede.config import EdeTD3Config
-    from ede.runs import RunSpec
-    from ede.training import train_group
+    from ede.run.runs import RunSpec
+    from ede.run.training import train_group
 
     torch.set_num_threads(1)
     where = torch.device(device)
@@ -127,8 +127,10 @@ def update_us(row: Row, device: str, tiny: bool, compile: str) -> tuple[float, s
     """One batched update of ``row.members`` members, in µs, and whether a CUDA graph ran it."""
     from torch._dynamo.utils import counters
 
+    from ede.method.adapters import EmbeddingAdapter, IdentityAdapter
+    from ede.method.agent import Agent
+    from ede.method.replay import ReplayBuffer
     from ede.tasks import make
-    from ede.td3 import Agent, EmbeddingAdapter, IdentityAdapter, ReplayBuffer
 
     where = torch.device(device)
     env = make(row.task)

@@ -5,7 +5,7 @@ of a group of M members, against an earlier commit measured in the same run.
                                        [--before DIR] [--whole]
 
 A group of M seeds of the paper's networks (400-300, batch 100) trains ``--steps`` steps per
-member on ``ede/ReacherVertical-v0`` through ``ede.training.train_group``, as the pipeline trains
+member on ``ede/ReacherVertical-v0`` through ``ede.run.training.train_group``, as the pipeline trains
 it: the actor (plus its exploration noise) acts from the first step, the paper's evaluation
 (10 episodes every 1,000 steps) included, the CPU and one torch thread. Two things are taken out
 of the clock, so that what is left is the loop's own work — acting, decoding, the replay
@@ -55,10 +55,10 @@ def measure(algo: Algo, members: int, steps: int, whole: bool = False) -> dict[s
     """One group's loop cost: µs per member-step, the share of the wall in ``env.step``, and
     the group's aggregate steps per second (with ``whole``, the update on: a whole run's)."""
     from ede.config import EdeTD3Config, TD3Config
-    from ede.runs import RunSpec
+    from ede.method.agent import Agent
+    from ede.run.runs import RunSpec
+    from ede.run.training import train_group
     from ede.tasks import make
-    from ede.td3 import Agent
-    from ede.training import train_group
 
     env_class = type(make(TASK).unwrapped)
     step, spent = env_class.step, [0.0]

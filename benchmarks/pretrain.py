@@ -20,9 +20,9 @@ import numpy as np
 import torch
 
 from ede.config import load_params
-from ede.embedding import train_decoder, train_encoder
-from ede.nets import mlp
-from ede.rollouts import Rollouts, collect, write_store
+from ede.io.rollouts import Rollouts, collect, write_store
+from ede.method.embedding import train_decoder, train_encoder
+from ede.method.nets import mlp
 
 
 def reference_epoch(rollouts: Rollouts, k: int, hidden: list[int], batch_size: int) -> float:

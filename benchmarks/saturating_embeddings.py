@@ -34,9 +34,9 @@ import numpy as np
 import yaml
 from through_embedding import at_bound, episode, load_actor
 
-from ede.artifacts import load_action_embedding
+from ede.run.artifacts import load_action_embedding
+from ede.run.training import EVAL_SEED_OFFSET
 from ede.tasks import action_bounds, make, observation_size
-from ede.training import EVAL_SEED_OFFSET
 from ede_pipeline.experiments.workspace import experiment_params
 
 # name: the keys it changes against the experiment's params, and why it could help.

@@ -4,7 +4,7 @@
 
 Trains our TD3 at the paper's size (400-300, batch 100, one update per step, one thread) on
 ``--task`` for ``--steps`` environment steps with flushing off — torch's default, and how
-training ran before ``ede.nets.flush_denormals`` — so that the Adam first moments of weights
+training ran before ``ede.method.nets.flush_denormals`` — so that the Adam first moments of weights
 that get no gradient sink into fp32's subnormal range. Then it prints the share of each
 optimiser's first and second moments that are subnormal and, from copies of that one state on
 the same ``--updates`` batches, the update rate with flushing off (the reference) and on (as
@@ -23,11 +23,12 @@ import numpy as np
 import torch
 
 from ede.config import EdeTD3Config, TD3Config
-from ede.ensemble import Adam
-from ede.nets import flush_denormals
-from ede.runs import RunSpec
-from ede.td3 import Agent, ReplayBatch
-from ede.training import _Group
+from ede.method.agent import Agent
+from ede.method.ensemble import Adam
+from ede.method.nets import flush_denormals
+from ede.method.replay import ReplayBatch
+from ede.run.runs import RunSpec
+from ede.run.training import _Group
 
 SMALLEST_NORMAL = torch.finfo(torch.float32).tiny
 

@@ -34,13 +34,14 @@ import gymnasium
 import numpy as np
 import torch
 
+from ede.analysis.stats import bootstrap_mean
 from ede.config import EdeTD3Config, TD3Config
-from ede.runs import RunSpec
-from ede.stats import area_under_curve, bootstrap_mean
+from ede.method.adapters import IdentityAdapter
+from ede.method.agent import Agent
+from ede.run.runs import RunSpec, area_under_curve
+from ede.run.training import EVAL_SEED_OFFSET, evaluate, train_run
+from ede.run.vector import MemberEnvs
 from ede.tasks import action_bounds, observation_size
-from ede.td3 import Agent, IdentityAdapter
-from ede.training import EVAL_SEED_OFFSET, evaluate, train_run
-from ede.vector import MemberEnvs
 
 TASK = "Reacher-v5"
 START = 1_000

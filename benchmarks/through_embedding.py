@@ -5,7 +5,7 @@
 ``DIR`` holds a ``train`` stage's layout (``runs/<task>/td3/seed<N>/policy/`` and
 ``families/<family>/embedding/``), as ``ede-pipeline experiment run NAME`` leaves it in
 ``.dvc/tmp/experiments/NAME/data``. Each TD3 run's final actor μ is evaluated twice from the starts its own
-final evaluation used (``ede.training``: episode e of seed s resets with
+final evaluation used (``ede.run.training``: episode e of seed s resets with
 ``EVAL_SEED_OFFSET·(s+1) + e``):
 
 - *as is*: μ(s) at every step — the run's last evaluation, again (printed beside it: a check that
@@ -36,17 +36,17 @@ import numpy as np
 import torch
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
-from ede.artifacts import load_action_embedding
-from ede.embedding import ActionEmbedding
-from ede.runs import read_policy
+from ede.analysis.video import actor_of
+from ede.method.embedding import ActionEmbedding
+from ede.run.artifacts import load_action_embedding
+from ede.run.runs import read_policy
+from ede.run.training import EVAL_SEED_OFFSET
 from ede.tasks import action_bounds, make, observation_size
-from ede.training import EVAL_SEED_OFFSET
-from ede.video import actor_of
 from ede_pipeline import layout
 
 
 def load_actor(run: Path, obs_size: int):
-    """μ of a run's final policy (:func:`ede.runs.read_policy`): obs (O,) -> action (A,)."""
+    """μ of a run's final policy (:func:`ede.run.runs.read_policy`): obs (O,) -> action (A,)."""
     meta, tensors = read_policy(run)
     batched = actor_of(meta, tensors, obs_size)  # (M, O) -> (M, A)
 

@@ -22,11 +22,11 @@ the paper's TD3; ``--hidden 256,256 --batch-size 256`` is SB3's default.
 The default invocation prints one table, one row each for:
 
 * stable-baselines3's TD3: the reference (``x SB3`` 1.00);
-* our TD3, one run (``ede.training.train_run``, an agent of M = 1), in each ``--compile`` mode
+* our TD3, one run (``ede.run.training.train_run``, an agent of M = 1), in each ``--compile`` mode
   (``td3.compile``: ``none`` eager; ``default`` the update compiled whole by ``torch.compile``;
   ``reduce-overhead`` that plus CUDA graphs, ``--device cuda`` only);
 * our TD3, a group of M seeds 0..M-1 trained as one agent of M members
-  (``ede.training.train_group``, what ``ede-pipeline train --seeds`` does) for each M of
+  (``ede.run.training.train_group``, what ``ede-pipeline train --seeds`` does) for each M of
   ``--members``, in each mode. ``steps/s`` is then the group's aggregate (M runs' steps), ``per
   run`` that / M, and ``x single`` the aggregate over the single run's rate in the same mode: on
   one core, what one process of M seeds buys against M single-run processes one after another.
@@ -52,7 +52,7 @@ SB3, EDE-TD3 >= 0.9x our TD3.)
 
 Both modes first print the machine. What ``bf16-matmul`` and ``bf16`` compute and buy depends on
 the CPU, so this is the CPU model and its bf16-related flags, and for each precision measured the
-error of a product against float64 (``ede.nets.product_error``) and the oneDNN kernel that
+error of a product against float64 (``ede.method.nets.product_error``) and the oneDNN kernel that
 computed it (from ``ONEDNN_VERBOSE``; none means torch's own BLAS path); with ``--device cuda``
 also the GPU. Read the ratios only for that machine. A row whose timed run still compiled
 something (it should not) is marked: its rate is understated.
@@ -76,11 +76,11 @@ import numpy as np
 import torch
 
 from ede.config import Algo, EdeTD3Config, Precision, TD3Config
-from ede.embedding import ActionDecoder, ActionEmbedding, Encoder
-from ede.nets import product_error
-from ede.rollouts import Whitening
-from ede.runs import RunSpec
-from ede.training import train_group
+from ede.io.rollouts import Whitening
+from ede.method.embedding import ActionDecoder, ActionEmbedding, Encoder
+from ede.method.nets import product_error
+from ede.run.runs import RunSpec
+from ede.run.training import train_group
 
 TASK = "Reacher-v5"
 PRECISIONS = list(get_args(Precision))
@@ -247,7 +247,7 @@ def cpu_model() -> tuple[str, list[str]]:
 
 def onednn_kernels(precision: str) -> str:
     """The oneDNN kernels of one product under ``precision``, from a fresh interpreter."""
-    code = f"import torch; torch.set_num_threads(1); from ede.nets import product_error; product_error({precision!r})"
+    code = f"import torch; torch.set_num_threads(1); from ede.method.nets import product_error; product_error({precision!r})"
     result = subprocess.run(
         [sys.executable, "-c", code],
         capture_output=True,

@@ -19,7 +19,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from ede.atomic import sha256
+from ede.io.atomic import sha256
 
 __all__ = ["OURS", "closure", "package_dirs", "relative_name", "task_code", "task_record"]
 

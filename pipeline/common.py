@@ -16,7 +16,8 @@ from typing import Any
 
 import click
 
-from ede.atomic import (
+from ede.config import Params, ParamsError, load_params
+from ede.io.atomic import (
     NotOurs,
     NotWritten,
     file_problem,
@@ -25,8 +26,7 @@ from ede.atomic import (
     unwritable,
     writing_files,
 )
-from ede.config import Params, ParamsError, load_params
-from ede.locks import OutputBusy, exclusive
+from ede.io.locks import OutputBusy, exclusive
 from ede_pipeline.progress import PROGRESS_ENV, PROGRESS_KIND
 
 DEFAULT_PARAMS = Path("params.yaml")
@@ -110,10 +110,10 @@ def check_outputs(
     """Before any work, the one rule for every place a stage writes — ``output`` (a folder) with
     its lock and temporaries, the other folders ``dirs`` and files ``files``, each with its
     kind, and the progress file ``EDE_PROGRESS`` names (a file of its own kind) — each taken
-    where its symbolic links lead: it can be written (:func:`ede.atomic.unwritable`: its name
+    where its symbolic links lead: it can be written (:func:`ede.io.atomic.unwritable`: its name
     fits, nothing in the way, a location that takes data); it is new or this kind's own earlier
-    output (a folder holding only what its mark owns, :func:`ede.atomic.ownership_problem`; a
-    file as its mark records it, :func:`ede.atomic.file_problem`), never a user's or another
+    output (a folder holding only what its mark owns, :func:`ede.io.atomic.ownership_problem`; a
+    file as its mark records it, :func:`ede.io.atomic.file_problem`), never a user's or another
     stage's; a folder is not the working directory or a folder above it; and none is, holds or
     lies inside one of ``inputs``, the params file, or another of these places.
 
@@ -197,7 +197,7 @@ def overlap(output: Path, places: Iterable[Path], role: str = "input") -> str | 
 def _lock(
     places: Iterable[Path | None], enter: Callable[[AbstractContextManager[Any]], Any]
 ) -> None:
-    """Take each place's exclusive lock (:func:`ede.locks.exclusive`), handing it to ``enter``
+    """Take each place's exclusive lock (:func:`ede.io.locks.exclusive`), handing it to ``enter``
     (which holds it as long as its owner lasts).
 
     Raises:
@@ -243,12 +243,12 @@ def holding(
     inputs: tuple[Path | None, ...] = (),
 ) -> Iterator[None]:
     """The stage's exclusive lock on each of its outputs — the folder ``output``, the folders
-    ``dirs`` and the files ``files`` (:func:`ede.locks.exclusive`) — for the block, after
+    ``dirs`` and the files ``files`` (:func:`ede.io.locks.exclusive`) — for the block, after
     :func:`check_outputs`, and each file of ``files`` marked as its kind's once the block has
     written it. A place that cannot be written or that holds what the stage did not write,
     and a second process on one of the outputs (or on the progress file), are refused as bad
     input: one line, exit 2, nothing written. A write that fails in the block (a full disk) is
-    one line, exit 1, its temporaries removed (:class:`ede.atomic.NotWritten`)."""
+    one line, exit 1, its temporaries removed (:class:`ede.io.atomic.NotWritten`)."""
     check_outputs(output, files, dirs, inputs)
     assert output[0] is not None
     with ExitStack() as held:

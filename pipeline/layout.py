@@ -139,7 +139,7 @@ def run_embedding(
     encoder (None: the decoder alone) and decoder: the ones ``encoder`` and ``decoder`` name;
     else, for a published run, the decoder published beside it (``experiment export
     --policies``; a policy acts through the decoder alone); else its family's in the pipeline's
-    data (:func:`ede.video.trained_embedding` reads it)."""
+    data (:func:`ede.analysis.video.trained_embedding` reads it)."""
     task = meta["task"]
     beside = embedding_beside(run, str(meta.get("embedding"))) / DECODER
     if encoder is None and decoder is None and beside.is_dir():

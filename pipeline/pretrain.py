@@ -11,17 +11,17 @@ import click
 import numpy as np
 import torch
 
-from ede.artifacts import (
+from ede.config import Params
+from ede.io.atomic import write_json, write_text
+from ede.method.embedding import train_decoder, train_encoder
+from ede.method.nets import pick_device
+from ede.run.artifacts import (
     ArtifactError,
     load_encoder,
     params_mismatches,
     save_decoder,
     save_encoder,
 )
-from ede.atomic import write_json, write_text
-from ede.config import Params
-from ede.embedding import train_decoder, train_encoder
-from ede.nets import pick_device
 from ede_pipeline import layout
 from ede_pipeline.collect import open_rollouts
 from ede_pipeline.common import BadInput, check_family, family_option, holding, params_option

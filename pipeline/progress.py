@@ -10,7 +10,7 @@ show one line for the whole sweep.
 The file is an output like any other (:func:`ede_pipeline.common.check_outputs` holds it to the
 same rule before any work): while a stage publishes it holds the file's lock (``.<name>.lock``
 beside it, gone when it ends) and marks it as a progress writer's (``.<name>.ede-output.json``
-beside it, :func:`ede.atomic.writing_files`), so that a later stage may replace it and nothing
+beside it, :func:`ede.io.atomic.writing_files`), so that a later stage may replace it and nothing
 replaces a file it did not write.
 """
 
@@ -27,12 +27,14 @@ from pathlib import Path
 import click
 from tqdm import tqdm
 
-from ede.atomic import write_json, writing_files
-from ede.locks import exclusive
+from ede.io.atomic import write_json, writing_files
+from ede.io.locks import exclusive
 
 LOG_EVERY = 0.1  # fraction of the total between two log lines when stderr is not a terminal
 PROGRESS_ENV = "EDE_PROGRESS"
-PROGRESS_KIND = "progress"  # what a progress file's mark says wrote it (ede.atomic.writing_files)
+PROGRESS_KIND = (
+    "progress"  # what a progress file's mark says wrote it (ede.io.atomic.writing_files)
+)
 PUBLISH_EVERY = 1.0  # seconds between two writes of the progress file
 
 

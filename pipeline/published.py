@@ -14,8 +14,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ede.config import ALGOS
-from ede.provenance import INSTRUCTION_SETS
-from ede.runs import (
+from ede.io.provenance import INSTRUCTION_SETS
+from ede.run.runs import (
     Curve,
     Run,
     RunRejected,
@@ -114,11 +114,11 @@ SEED_FOLDER = re.compile(r"seed(0|[1-9][0-9]*)")  # seed<N>, as layout.run names
 
 def published_runs(root: Path, task: str) -> list[tuple[Path, Run]]:
     """A task's finished runs under ``root`` (:func:`ede_pipeline.layout.run`), per algorithm by
-    seed, each checked as a published run (:func:`ede.runs.read_run`: the task, algorithm and
+    seed, each checked as a published run (:func:`ede.run.runs.read_run`: the task, algorithm and
     seed of its folder, its files those its ``run.json`` records). Every folder of an
     algorithm's is a run, named ``seed<N>`` as ``layout.run`` names it, so that no seed is read
     twice (``seed00`` beside ``seed0``); each run's ``run.json`` names its folder's seed, a seed
-    its task's ``source.json`` names; and no two runs are one (:func:`ede.runs.same_files`: a
+    its task's ``source.json`` names; and no two runs are one (:func:`ede.run.runs.same_files`: a
     copy of a run is refused whatever its folder and its ``run.json`` say)."""
     found = []
     for algo in ALGOS:
@@ -157,7 +157,7 @@ def published_runs(root: Path, task: str) -> list[tuple[Path, Run]]:
 
 def read_folder(root: Path, task: str) -> TaskRuns | None:
     """A task's finished runs under ``root`` (:func:`published_runs`), made with the same params
-    (:func:`ede.runs.unshared_params`), with its ``source.json`` and embedding figures; None
+    (:func:`ede.run.runs.unshared_params`), with its ``source.json`` and embedding figures; None
     where no run is finished."""
     folder = layout.task_runs(task, root)
     curves: dict[str, list[Curve]] = {}
@@ -192,7 +192,7 @@ def read_folder(root: Path, task: str) -> TaskRuns | None:
 
 def cpu(path: Path, made: dict) -> str | None:
     """The CPU that made a run, with the instruction sets of it that change results (its
-    ``run.json``'s ``machine``, :func:`ede.provenance.machine`); None where unrecorded (runs made
+    ``run.json``'s ``machine``, :func:`ede.io.provenance.machine`); None where unrecorded (runs made
     before run.json named its machine)."""
     machine = made.get("machine")
     if machine is None:
@@ -209,7 +209,7 @@ def cpu(path: Path, made: dict) -> str | None:
     ):
         raise BadInput(
             f"{path}: 'machine' is {machine!r}; expected its 'cpu' and "
-            "'instruction_sets', as ede.provenance.machine records them"
+            "'instruction_sets', as ede.io.provenance.machine records them"
         )
     return f"{model} ({', '.join(sets) or 'none of ' + ', '.join(INSTRUCTION_SETS)})"
 
@@ -341,7 +341,7 @@ def read_runs(runs: Path, params) -> dict[str, list[TaskRuns]]:
     """Each family with finished runs, and its tasks': ``params.yaml``'s tasks in its order, then
     every other task kept under ``runs``, as its own family (as an experiment file runs
     such a task: its embedding learned on its own random data). No run is another task's too
-    (:func:`ede.runs.same_files`)."""
+    (:func:`ede.run.runs.same_files`)."""
     kept = task_folders(runs) if runs.is_dir() else []
     tasks = {
         **{t: f for t, f in params.runs.tasks.items() if t in kept},
@@ -361,7 +361,7 @@ def read_ablations(ablations: Path, runs: Path) -> list[tuple[str, TaskRuns, Tas
     """Each variant under ``ablations`` (``<variant>/<task>/<algorithm>/seed<N>/``, a ``source.json``
     per task) with the default's runs of the same task under ``runs``, which must hold every seed
     of every algorithm the variant ran: (variant, its runs, the default's of those seeds); no run
-    of a variant is the default's or another variant's (:func:`ede.runs.same_files`)."""
+    of a variant is the default's or another variant's (:func:`ede.run.runs.same_files`)."""
     found = []
     for variant in sorted(p for p in ablations.glob("*") if p.is_dir()):
         if variant.name == "default":

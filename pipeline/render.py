@@ -4,7 +4,7 @@
                         [--encoder DIR --decoder DIR] [--params params.yaml]
 
 The run's ``policy/`` (TD3 or EDE-TD3, any task, a task of the user's own included) acts as in its
-run's final evaluation, from the same starts (:mod:`ede.video`, which holds the rest of the video code); each step's frame is MuJoCo's
+run's final evaluation, from the same starts (:mod:`ede.analysis.video`, which holds the rest of the video code); each step's frame is MuJoCo's
 offscreen rendering (``MUJOCO_GL=egl``, or ``osmesa``), marked with the episode, the step and the
 return so far, and for EDE-TD3 with a bar at each step where a code starts. The format follows
 ``--out``'s suffix: ``.mp4`` (H.264 through the ffmpeg that imageio-ffmpeg's wheel carries, at the
@@ -13,13 +13,13 @@ An EDE-TD3 run needs its family's embedding, the one its ``run.json`` names: the
 beside it, where ``ede-pipeline experiment export --policies`` published the run, else the
 pipeline's for its task.
 
-Frames go to the encoder as they are made, and a video holds at most :data:`ede.video.MAX_FRAMES` (an
+Frames go to the encoder as they are made, and a video holds at most :data:`ede.analysis.video.MAX_FRAMES` (an
 MP4 10,000, a GIF 1,000): more ``--episodes`` than fit are refused before anything is played.
 
 Bad input is one line (exit 2): a folder with no policy (a published copy keeps one only where
 exported with ``--policies``), a damaged
 policy (its SHA-256 not the one ``run.json`` records, or unreadable), a policy that disagrees with
-its run or with itself (:func:`ede.video.policy_of`), an EDE-TD3 run without its
+its run or with itself (:func:`ede.analysis.video.policy_of`), an EDE-TD3 run without its
 embedding, a task that cannot be made or cannot render; a machine where MuJoCo has no offscreen GL
 is one line, exit 1, and so is a video that cannot be written whole (a full disk). The video
 appears whole or not at all.
@@ -33,9 +33,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ede.atomic import NotWritten
-from ede.config import Params
-from ede.video import (
+from ede.analysis.video import (
     FORMATS,
     MAX_FRAMES,
     VIDEO_KIND,
@@ -49,6 +47,8 @@ from ede.video import (
     trained_embedding,
     write_video,
 )
+from ede.config import Params
+from ede.io.atomic import NotWritten
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, Failed, embedding_options, hold_outputs, params_option
 
@@ -57,7 +57,7 @@ OFFSCREEN = ("egl", "osmesa")  # MuJoCo's offscreen GL backends; egl where MUJOC
 
 def check_episodes(task: str, episodes: int, suffix: str) -> None:
     """Refuse more episodes of ``task`` than a video of ``suffix``'s format holds
-    (:data:`ede.video.MAX_FRAMES`), before any work.
+    (:data:`ede.analysis.video.MAX_FRAMES`), before any work.
 
     Raises:
         BadInput: naming the option, its value and the most episodes of ``task`` that fit.

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import click
 
-from ede.atomic import write_atomically
 from ede.config import Params
+from ede.io.atomic import write_atomically
 from ede_pipeline import layout
 from ede_pipeline.closure import task_code as describe
 from ede_pipeline.common import check_family, family_option, holding, params_option

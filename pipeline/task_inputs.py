@@ -15,9 +15,9 @@ from pathlib import Path
 
 import click
 
-from ede.artifacts import ArtifactError, load_action_embedding
-from ede.atomic import write_atomically
 from ede.config import Params
+from ede.io.atomic import write_atomically
+from ede.run.artifacts import ArtifactError, load_action_embedding
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, holding, params_option
 

@@ -12,14 +12,14 @@ import click
 import numpy as np
 import torch
 
-from ede.artifacts import ArtifactError, load_action_embedding, params_mismatches
-from ede.checkpoint import CheckpointError, CheckpointWriteError
 from ede.config import ALGOS, SEED_RANGE, Params, is_seed
-from ede.nets import pick_device
-from ede.runs import RUN_KIND, RunSpec
+from ede.method.nets import pick_device
+from ede.method.td3 import Critic
+from ede.run.artifacts import ArtifactError, load_action_embedding, params_mismatches
+from ede.run.checkpoint import CheckpointError, CheckpointWriteError
+from ede.run.runs import RUN_KIND, RunSpec
+from ede.run.training import Diverged, env_workers, train_group
 from ede.tasks import action_bounds, make
-from ede.td3 import Critic
-from ede.training import Diverged, env_workers, train_group
 from ede_pipeline import layout
 from ede_pipeline.common import (
     USABLE_SHARE,
@@ -182,7 +182,7 @@ def parse_seeds(text: str) -> list[int]:
 
 
 # float32 copies a group keeps of each network: weights, target, gradient, Adam's two moments
-# and the two tensors its step works in (ede.ensemble.Adam).
+# and the two tensors its step works in (ede.method.ensemble.Adam).
 NETWORK_COPIES = 7
 
 # float32 values an update keeps per row of its batch and per unit of a network (the inputs,
@@ -192,13 +192,15 @@ NETWORK_COPIES = 7
 ACTIVATION_COPIES = 2
 
 # Host memory each environment of a member holds (a member has two: training and evaluation,
-# ede.training._Group): in this process, a MuJoCo model and its data, 0.6 to 0.9 MiB measured for
+# ede.run.training._Group): in this process, a MuJoCo model and its data, 0.6 to 0.9 MiB measured for
 # ede/Point-v0, ede/Pusher-v0 and ede/Striker-v0; or, with td3.env_workers (AsyncVectorEnv), a
-# worker process of its own that imports ede, gymnasium and MuJoCo: 164 MiB unique to it (USS;
-# 262 MiB RSS, the rest shared with its forkserver) for either task, measured the same day.
+# worker process of its own that imports ede's tasks, gymnasium and MuJoCo, not torch
+# (ede.run.vector imports none of the method): 35 to 39 MiB unique to it (USS; 70 MiB RSS, the
+# rest shared with its forkserver) for each of the three, measured 2026-12-07 (164 MiB while the
+# vector environments' module imported the checkpoint's, and so torch).
 ENVS_PER_MEMBER = 2
 ENV_BYTES = 2**20
-WORKER_BYTES = 170 * 2**20
+WORKER_BYTES = 60 * 2**20
 
 # A group may fill USABLE_SHARE of the free memory by group_memory's count: the rest is for what
 # it leaves out. (A group estimated at 21.1 GiB, 201 TD3 runs of ede/ReacherVertical-v0 with 10^6
@@ -218,7 +220,7 @@ def group_memory(
 ) -> int:
     """The bytes a group of ``members`` runs holds in its tensors while it trains, at least.
 
-    Counts the replay buffer, ``capacity`` steps of each member as :class:`ede.td3.ReplayBuffer`
+    Counts the replay buffer, ``capacity`` steps of each member as :class:`ede.method.replay.ReplayBuffer`
     stores them (two float32 observations of ``obs_size``, a float32 code of ``code_size``, an
     int64 plan step, a float32 reward, two bool flags), each member's ``networks``, given by
     their layer widths (a twin critic given twice), :data:`NETWORK_COPIES` times in float32, and
@@ -261,8 +263,8 @@ def check_group_memory(
         k, plan_step = params.embedding.k, params.ede_td3.plan_step_input
     actor = [obs_size, *td3.hidden, code_size]
     critic = Critic(obs_size, code_size, k, td3.hidden, plan_step, td3.critic_action_repeat).sizes
-    capacity = min(td3.buffer_size, params.runs.budgets[task])  # as ede.training sizes it
-    workers = env_workers(td3.env_workers, members, device)  # as ede.training chooses
+    capacity = min(td3.buffer_size, params.runs.budgets[task])  # as ede.run.training sizes it
+    workers = env_workers(td3.env_workers, members, device)  # as ede.run.training chooses
     tensors = group_memory(
         1, capacity, obs_size, code_size, [actor, critic, critic], td3.batch_size
     )

@@ -112,7 +112,7 @@ PY
 check_store() {  # check_store REPO: the tiny collect's store, read by the host's library
     "$python" - "$1/data/families/point/rollouts.zarr" <<'PY'
 import sys
-from ede.rollouts import Rollouts
+from ede.io.rollouts import Rollouts
 rollouts = Rollouts.open(sys.argv[1], env_id="ede/Point-v0")
 assert len(rollouts) == 200, len(rollouts)
 print(f"host reads {sys.argv[1]}: {len(rollouts)} steps, fingerprint ok")
@@ -152,8 +152,8 @@ copy_repo "$work/host/repo"
 same_store() {  # same_store REPO_A REPO_B
     "$python" - "$1/data/families/point/rollouts.zarr" "$2/data/families/point/rollouts.zarr" <<'PY'
 import sys
-from ede.provenance import describe_software
-from ede.rollouts import Rollouts
+from ede.io.provenance import describe_software
+from ede.io.rollouts import Rollouts
 a, b = (Rollouts.open(path) for path in sys.argv[1:3])
 arrays_a, arrays_b = a.arrays(), b.arrays()
 assert arrays_a.keys() == arrays_b.keys(), (sorted(arrays_a), sorted(arrays_b))

@@ -183,7 +183,7 @@ def add_step(
     terminated: bool,
     truncated: bool,
 ) -> None:
-    """One step of member ``member`` alone into an ``ede.td3.ReplayBuffer``, whose ``add`` takes
+    """One step of member ``member`` alone into an ``ede.method.replay.ReplayBuffer``, whose ``add`` takes
     a step of every member (rows of the others unused)."""
     import numpy as np
     import torch
@@ -214,7 +214,7 @@ SEEDS, UPDATES = [3, 4], 12  # updated_agent's members, and its updates
 
 
 def updated_agent(mode: str, device: str = "cpu") -> tuple[Any, Any]:
-    """An ``ede.td3.Agent`` of two members (seeds ``SEEDS``) at small sizes after ``UPDATES``
+    """An ``ede.method.agent.Agent`` of two members (seeds ``SEEDS``) at small sizes after ``UPDATES``
     updates from its replay buffer of random steps, member 1 sitting every third out, its update
     compiled as ``td3.compile: mode`` says, and the buffer: the compiled update's tests compare
     these."""
@@ -222,7 +222,9 @@ def updated_agent(mode: str, device: str = "cpu") -> tuple[Any, Any]:
     import torch
 
     from ede.config import TD3Config
-    from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
+    from ede.method.adapters import IdentityAdapter
+    from ede.method.agent import Agent
+    from ede.method.replay import ReplayBuffer
 
     obs, act = 5, 2
     config = TD3Config.model_validate({"hidden": [32, 32], "batch_size": 16, "compile": mode})

@@ -91,7 +91,7 @@ def test_the_task_code_stage_reads_all_of_envs() -> None:
 
 def test_the_closure_follows_imports_inside_functions() -> None:
     files = closure(["ede_pipeline.train"], DIRS)
-    assert REPO / "ede/td3.py" in files and REPO / "ede/nets.py" in files
+    assert REPO / "ede/method/td3.py" in files and REPO / "ede/method/nets.py" in files
     assert not any(file.is_relative_to(REPO / "pipeline/sweep") for file in files)
     task = closure(["ede_envs.reacher_push"], DIRS)
     assert task == {

@@ -12,7 +12,7 @@ import click
 
 from ede.config import ParamsError, read_yaml
 from ede.errors import first_line
-from ede.locks import OutputBusy, exclusive
+from ede.io.locks import OutputBusy, exclusive
 from ede_pipeline.common import BadInput, Failed
 from ede_pipeline.experiments.export import export
 from ede_pipeline.experiments.show import WIDTH, show

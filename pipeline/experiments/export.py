@@ -11,7 +11,9 @@ from pathlib import Path
 
 import click
 
-from ede.atomic import (
+from ede.config import ALGO_LABELS, Params
+from ede.errors import first_line
+from ede.io.atomic import (
     MARK,
     claim,
     ownership_problem,
@@ -20,10 +22,8 @@ from ede.atomic import (
     unwritable,
     write_json,
 )
-from ede.config import ALGO_LABELS, Params
-from ede.errors import first_line
-from ede.locks import OutputBusy, exclusive
-from ede.runs import POLICY, PUBLISHED, Run
+from ede.io.locks import OutputBusy, exclusive
+from ede.run.runs import POLICY, PUBLISHED, Run
 from ede_pipeline import layout
 from ede_pipeline.common import (
     DEFAULT_PARAMS,
@@ -37,7 +37,7 @@ from ede_pipeline.experiments.workspace import EXPERIMENTS, WORKSPACES, experime
 
 EVERY_SEED = "all"  # --policies given alone: every finished run's policy
 EMBEDDING_METRICS = ("encoder_metrics.json", "decoder_metrics.json")  # as pretrain writes them
-# The mark (ede.atomic.MARK) of a published embedding's folder that an export wrote: only such a
+# The mark (ede.io.atomic.MARK) of a published embedding's folder that an export wrote: only such a
 # folder is ever removed (where no published run acts through it any more), or written into.
 EMBEDDING_KIND = "published embedding"
 EMBEDDING_OWNS = (*EMBEDDING_METRICS, layout.DECODER)
@@ -72,7 +72,7 @@ def export(name: str, to: Path, policies: str | None) -> None:
     """Copy experiment NAME's finished runs into the published layout.
 
     Each finished run's eval.csv, diagnostics.csv, run.json and metrics.json go to
-    TO/<task>/<algo>/seed<N>/, checked first (`ede.runs.read_run`: the run the experiment's
+    TO/<task>/<algo>/seed<N>/, checked first (`ede.run.runs.read_run`: the run the experiment's
     params name, finished, its files whole), and the held-out metrics of the embedding its
     EDE-TD3 runs used to TO/<task>/embedding/<checksum>/. Each task's source.json names the
     experiment file, the commits its runs were made at (an earlier export's too), its seeds,
@@ -89,7 +89,7 @@ def export(name: str, to: Path, policies: str | None) -> None:
     another) or that were made with other params than this export's.
 
     An export removes or replaces only what an export wrote: a policy/ or an embedding's folder
-    of its mark (`ede.atomic.MARK`), a published run of the experiment's own seeds; anything else
+    of its mark (`ede.io.atomic.MARK`), a published run of the experiment's own seeds; anything else
     in its way (a user's folder among the embeddings, a file where a folder goes, a symbolic
     link in a task's folder) is refused. TO is never the working directory or a folder above it,
     nor the experiment's working copy. Nothing is written unless every task's runs pass, and
@@ -147,7 +147,7 @@ def export(name: str, to: Path, policies: str | None) -> None:
 @dataclass
 class _TaskExport:
     """What an export writes to one task's folder, checked: the runs it copies there (each its
-    algorithm, seed, folder in the working copy and :class:`ede.runs.Run`), the seeds whose
+    algorithm, seed, folder in the working copy and :class:`ede.run.runs.Run`), the seeds whose
     policies it copies (None: it leaves the policies there alone), the embeddings it keeps
     (each its checksum, and whether with its decoder), the folders it removes, its source.json."""
 
@@ -387,7 +387,7 @@ def _unplayable(
     before runs kept one), or a decoder in the working copy that is not the embedding a played
     EDE-TD3 run trained with (the family's made again since). None where they can. ``listed``:
     the seeds were named (``--policies 4``), not every seed's runs that finished."""
-    from ede.artifacts import DecoderMeta
+    from ede.run.artifacts import DecoderMeta
 
     done = {(algo, seed) for algo, seed, *_ in runs}
     if listed:
@@ -446,9 +446,9 @@ def _published_beside(task: str, runs: list[tuple], to: Path) -> list[tuple[Path
     those there read and checked as ``results`` reads them
     (:func:`ede_pipeline.published.published_runs`: folders named seed<N>, files those their
     run.json records, seeds source.json names, no run twice), and the ones that stay made with
-    the same params as ``runs`` (:func:`ede.runs.unshared_params`), and no run of ``runs`` one
-    of them (:func:`ede.runs.same_files`). Raises :class:`BadInput` where not."""
-    from ede.runs import same_files, unshared_params
+    the same params as ``runs`` (:func:`ede.run.runs.unshared_params`), and no run of ``runs`` one
+    of them (:func:`ede.run.runs.same_files`). Raises :class:`BadInput` where not."""
+    from ede.run.runs import same_files, unshared_params
     from ede_pipeline.published import published_runs
 
     published = published_runs(to, task)
@@ -493,9 +493,9 @@ def _merged_source(folder: Path, part: dict) -> dict | list[dict]:
 
 def _finished_runs(workspace: Path, params: Params) -> tuple[dict, list[str]]:
     """Every finished run of ``params`` in ``workspace``, checked as a published run, by (task,
-    algo, seed): its folder and :class:`ede.runs.Run`; and one line per run that cannot be
+    algo, seed): its folder and :class:`ede.run.runs.Run`; and one line per run that cannot be
     published."""
-    from ede.runs import RunRejected, RunSpec, read_run
+    from ede.run.runs import RunRejected, RunSpec, read_run
 
     finished, problems = {}, []
     for task, algo, seed in itertools.product(
@@ -564,7 +564,7 @@ def _refuse_in_the_way(paths: list[tuple[Path, bool]]) -> None:
 
 def _not_ours(path: Path, kind: str) -> str | None:
     """Why an export may not replace or remove ``path``: not a folder, or not one of ``kind``
-    holding only what its mark owns (:func:`ede.atomic.ownership_problem`)."""
+    holding only what its mark owns (:func:`ede.io.atomic.ownership_problem`)."""
     if not path.is_dir():
         return f"{path}: a file where an export writes {kind} folders; move it out first"
     if not any(path.iterdir()):

@@ -14,7 +14,6 @@ from typing import Any
 import click
 import yaml
 
-from ede.atomic import write_text
 from ede.config import (
     ParamsError,
     name_problem,
@@ -25,6 +24,7 @@ from ede.config import (
     validate_params,
 )
 from ede.errors import first_line
+from ede.io.atomic import write_text
 from ede_pipeline import layout
 from ede_pipeline.common import DEFAULT_PARAMS, PARENT_ENV, BadInput, Failed
 from ede_pipeline.experiments.show import flatten
@@ -265,7 +265,7 @@ def _code_path(workspace: Path) -> Path:
     package to its folder there (``ede_pipeline`` is ``pipeline/``, as ``pyproject.toml``'s
     ``package-dir`` maps it). The tools run the copy's code, frozen when the experiment was
     (re)started, not this checkout's as it is edited meanwhile; and its ``run.json`` files name
-    the copy's commit (:func:`ede.provenance.code_version`)."""
+    the copy's commit (:func:`ede.io.provenance.code_version`)."""
     import tomllib
 
     packages = tomllib.loads(Path("pyproject.toml").read_text())["tool"]["setuptools"][

@@ -13,9 +13,9 @@ from typing import Any
 import click
 import torch
 
-from ede.atomic import write_atomically, write_json
+from ede.analysis.probes import effect_space, exploration
 from ede.config import Params
-from ede.probes import effect_space, exploration
+from ede.io.atomic import write_atomically, write_json
 from ede_pipeline import layout
 from ede_pipeline.common import holding, params_option
 from ede_pipeline.report import numbers, sections

@@ -11,10 +11,10 @@ from typing import Any
 
 import numpy as np
 
-from ede.artifacts import ArtifactError, load_action_embedding
 from ede.config import Algo, Params
-from ede.embedding import ActionEmbedding
-from ede.runs import Curve, RunRejected, RunSpec, read_run
+from ede.method.embedding import ActionEmbedding
+from ede.run.artifacts import ArtifactError, load_action_embedding
+from ede.run.runs import Curve, RunRejected, RunSpec, read_run
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput
 
@@ -190,7 +190,7 @@ def _stores(stores: dict[str, Path], trained_on: dict[str, str]) -> dict[str, di
 
 
 def read_runs(params: Params, inputs: Inputs) -> Runs:
-    """Every run the params name, read (:func:`ede.runs.read_run`) against what it must be
+    """Every run the params name, read (:func:`ede.run.runs.read_run`) against what it must be
     (:func:`_expected`): a run that is not, or is damaged, is excluded and named."""
     runs = Runs()
     for tasks in params.runs.by_family().values():

@@ -1,5 +1,5 @@
 """The report's numbers, computed from the runs read (:mod:`.inputs`) by the results model
-(:mod:`ede.results`, as the results pages compute theirs) and the probes of Figures 6 and 7: each
+(:mod:`ede.analysis.results`, as the results pages compute theirs) and the probes of Figures 6 and 7: each
 family's rows and bands, the aggregates across tasks, the curves for ``dvc plots``, the DVC
 metrics, and the clips of TD3 beside EDE-TD3."""
 
@@ -13,12 +13,12 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from ede.analysis.probes import random_policy_return
+from ede.analysis.results import RANDOM_EPISODES, SCORES, AcrossTasks, Arm, across_tasks, arm, fresh
+from ede.analysis.stats import Band, curve_band
+from ede.analysis.video import NoOffscreenGL, PolicyRejected, fps_of, side_by_side, video_bytes
 from ede.config import Params
-from ede.probes import RANDOM_EPISODES, random_policy_return
-from ede.results import SCORES, AcrossTasks, Arm, across_tasks, arm, fresh
-from ede.runs import Curve
-from ede.stats import Band, curve_band
-from ede.video import NoOffscreenGL, PolicyRejected, fps_of, side_by_side, video_bytes
+from ede.run.runs import Curve
 from ede_pipeline import layout
 from ede_pipeline.report.inputs import Inputs, Key, Runs
 
@@ -64,7 +64,7 @@ def width(params: Params, task: str) -> float:
 
 
 def families(params: Params, runs: Runs) -> list[Family]:
-    """Each family's statistics, per task and algorithm (:func:`ede.results.arm`)."""
+    """Each family's statistics, per task and algorithm (:func:`ede.analysis.results.arm`)."""
     config = params.report
     made = []
     for family, tasks in params.runs.by_family().items():
@@ -124,7 +124,7 @@ def curve_csv(
 
 
 def across(params: Params, curves: dict[Key, list[Curve]]) -> AcrossTasks | None:
-    """The claim across tasks, as rliable states it (:func:`ede.results.across_tasks`), each
+    """The claim across tasks, as rliable states it (:func:`ede.analysis.results.across_tasks`), each
     task's scores normalised from a random policy's return; None where no task has both
     algorithms' runs."""
     config = params.report
@@ -163,8 +163,8 @@ def pictured(
     probe: Callable[..., Probed],  # (embedding, rng, env_id=task)
 ) -> tuple[Pictured, Probed] | None:
     """What ``probe`` finds of ``family``'s embedding on its source task, from a generator fresh
-    from ``report.seed`` (Figure 6's :func:`ede.probes.effect_space`, Figure 7's
-    :func:`ede.probes.exploration`); None where the family is null (the figure not drawn)."""
+    from ``report.seed`` (Figure 6's :func:`ede.analysis.probes.effect_space`, Figure 7's
+    :func:`ede.analysis.probes.exploration`); None where the family is null (the figure not drawn)."""
     if family is None:
         return None
     embedding, task = inputs.loaded[family], params.families[family].source
@@ -181,7 +181,7 @@ def median_seed(ours: list[Curve], theirs: list[Curve]) -> int | None:
 
 def clips(params: Params, inputs: Inputs, curves: dict[Key, list[Curve]]) -> list[Clip]:
     """Per task, TD3 beside EDE-TD3 of its median seed, one episode each from the same start,
-    as MP4 (:func:`ede.video.side_by_side`); a policy that cannot be played, or a machine
+    as MP4 (:func:`ede.analysis.video.side_by_side`); a policy that cannot be played, or a machine
     without offscreen GL, is a clip's reason to be missing."""
     os.environ.setdefault("MUJOCO_GL", "egl")  # read as the first environment renders
     made = []

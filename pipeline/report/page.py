@@ -9,7 +9,7 @@ import io
 
 from matplotlib.figure import Figure
 
-from ede.stats import Interval
+from ede.analysis.stats import Interval
 
 STYLE = """
 body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }

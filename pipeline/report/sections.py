@@ -8,11 +8,11 @@ import html
 import json
 from typing import Any
 
-from ede import figures
+from ede.analysis import figures
+from ede.analysis.probes import EffectSpace, Exploration
+from ede.analysis.results import SCORES, AcrossTasks
 from ede.config import ALGO_LABELS, Params, ReportConfig
-from ede.probes import EffectSpace, Exploration
-from ede.provenance import describe_software, software_versions
-from ede.results import SCORES, AcrossTasks
+from ede.io.provenance import describe_software, software_versions
 from ede_pipeline import layout
 from ede_pipeline.report.inputs import Inputs, Runs
 from ede_pipeline.report.numbers import Clip, Family, Pictured, Row, clip_name, width
@@ -87,7 +87,7 @@ def _table(rows: list[Row], thresholds: list[float]) -> str:
 
 
 def _fell_back(rows: list[Row]) -> str:
-    """The seeds whose returns fell and stayed below their best (:func:`ede.stats.divergence`,
+    """The seeds whose returns fell and stayed below their best (:func:`ede.analysis.stats.divergence`,
     on the figure's bins): flagged, not hidden."""
     flagged = [
         f"{ALGO_LABELS[algo]} seed {seed} (best {verdict.best:.4g} "

@@ -46,7 +46,7 @@ report draws them) and prints, per task, in Markdown:
   on the final return and on the area;
 - each algorithm's mean over seeds of a seed's last quarter of bins, with its bootstrap interval
   (the asymptote, as far as the budget shows it);
-- per seed, whether it diverged (:func:`ede.stats.divergence`: its last quarter of bins all below
+- per seed, whether it diverged (:func:`ede.analysis.stats.divergence`: its last quarter of bins all below
   its best earlier bin by more than half of what it had gained by then);
 
 and, per family, over the paper's tasks (where they span two families and there are tasks beyond
@@ -75,9 +75,9 @@ one line and exit code 2 (:class:`ede_pipeline.common.BadInput`), before anythin
 run is bad where its folder is not named ``seed<N>`` (a copy ``seed00`` beside ``seed0`` would
 count seed 0 twice), its ``run.json`` names another task, algorithm or seed than its folder, a
 file of it is not the one its ``run.json`` records the SHA-256 of (a ``run.json`` that records
-none is one of the runs published before checksums, :mod:`ede.early_runs`, byte for byte), its
+none is one of the runs published before checksums, :mod:`ede.run.early_runs`, byte for byte), its
 seed is not one ``source.json`` names, its files are another run's (a copy under another folder,
-task or variant, whatever its ``run.json`` says; :func:`ede.runs.same_files`), or it was made with
+task or variant, whatever its ``run.json`` says; :func:`ede.run.runs.same_files`), or it was made with
 other params than its task's other runs (those of both algorithms, and of EDE-TD3's between its
-runs; :func:`ede.runs.unshared_params`).
+runs; :func:`ede.run.runs.unshared_params`).
 """

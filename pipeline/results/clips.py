@@ -17,10 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ede.atomic import NotWritten
-from ede.config import ALGO_LABELS, ALGOS, Params
-from ede.runs import POLICY
-from ede.video import (
+from ede.analysis.video import (
     NoOffscreenGL,
     PolicyRejected,
     fps_of,
@@ -28,6 +25,9 @@ from ede.video import (
     side_by_side,
     trained_embedding,
 )
+from ede.config import ALGO_LABELS, ALGOS, Params
+from ede.io.atomic import NotWritten
+from ede.run.runs import POLICY
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, Failed
 from ede_pipeline.published import Source, published_runs, read_source, task_folders

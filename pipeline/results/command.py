@@ -10,13 +10,17 @@ import click
 import gymnasium
 from matplotlib.figure import Figure
 
-from ede.atomic import write_text, writing_files
+from ede.analysis.figures import learning_curves, performance_profile
+from ede.analysis.probes import (
+    ZERO_EPISODES,
+    random_policy_return,
+    zero_action_return,
+)
+from ede.analysis.results import RANDOM_EPISODES, across_tasks
+from ede.analysis.stats import Band
+from ede.analysis.video import VIDEO_KIND, write_video
 from ede.config import ALGOS, Params
-from ede.figures import learning_curves, performance_profile
-from ede.probes import RANDOM_EPISODES, ZERO_EPISODES, random_policy_return, zero_action_return
-from ede.results import across_tasks
-from ede.stats import Band
-from ede.video import VIDEO_KIND, write_video
+from ede.io.atomic import write_text, writing_files
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, hold, hold_outputs, params_option
 from ede_pipeline.published import TaskRuns, read_ablations, read_runs
@@ -31,7 +35,7 @@ from ede_pipeline.results.sections import (
     task_section,
 )
 
-FIGURE_KIND = "results figure"  # what a figure's mark says drew it (ede.atomic.writing_files)
+FIGURE_KIND = "results figure"  # what a figure's mark says drew it (ede.io.atomic.writing_files)
 
 
 def references(tasks: list[str], params) -> dict[str, tuple[float, float, float]]:

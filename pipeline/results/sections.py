@@ -1,5 +1,5 @@
 """The results page's sections in Markdown: per task its tables, across tasks the aggregates, per
-fidelity ablation the variant against the default (the statistics: :mod:`ede.results`)."""
+fidelity ablation the variant against the default (the statistics: :mod:`ede.analysis.results`)."""
 
 from __future__ import annotations
 
@@ -7,11 +7,19 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ede.analysis.probes import ZERO_EPISODES
+from ede.analysis.results import (
+    RANDOM_EPISODES,
+    SCORES,
+    AcrossTasks,
+    Arm,
+    arm,
+    disjoint,
+    improvement_on_task,
+)
+from ede.analysis.stats import Band
 from ede.config import ALGO_LABELS, ALGOS, Params
-from ede.probes import RANDOM_EPISODES, ZERO_EPISODES
-from ede.results import SCORES, AcrossTasks, Arm, arm, disjoint, improvement_on_task
-from ede.runs import Curve
-from ede.stats import Band
+from ede.run.runs import Curve
 from ede_pipeline.published import TaskRuns, seed_list
 
 
@@ -35,7 +43,7 @@ class Glance(NamedTuple):
     budget: str
     seeds: str
     final: dict[str, str]  # per algorithm label, the final return's interval
-    improvement: dict[str, str]  # P(EDE-TD3 > TD3) per score (ede.results.SCORES)
+    improvement: dict[str, str]  # P(EDE-TD3 > TD3) per score (ede.analysis.results.SCORES)
     bins: tuple[int, int, int] | None  # EDE-TD3's interval above TD3's, below, of all bins
     diverged: str  # TD3's seeds that diverged, of its seeds
 
@@ -67,7 +75,7 @@ def summary_table(
 ) -> tuple[list[str], dict[str, Arm]]:
     """A table of one row per arm (its name: its runs and its second column): final return, area
     under the curve and the steps to reach each threshold, with bootstrap intervals over the
-    runs; and each arm's statistics (:func:`ede.results.arm`, its band binned per ``width``)."""
+    runs; and each arm's statistics (:func:`ede.analysis.results.arm`, its band binned per ``width``)."""
     lines = [
         f"| {first} | {second} | final return | area under the curve |"
         + "".join(f" steps to reach {t:g} |" for t in thresholds),

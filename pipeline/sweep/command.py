@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import click
 from click.core import ParameterSource
 
-from ede.atomic import MARK, NotOurs, claim, place, unwritable
+from ede.io.atomic import MARK, NotOurs, claim, place, unwritable
 from ede_pipeline.common import DEFAULT_PARAMS, BadInput, Failed, check_outputs, read_params
 from ede_pipeline.sweep.execute import (
     Executor,
@@ -54,7 +54,7 @@ LOGS = Path(".dvc") / "tmp" / "sweep"  # DVC's own git-ignored scratch folder
 LOGS_KIND = "folder of sweep logs"
 # What a sweep writes into its logs folder, each job's: its log, its attempts (attempts_file) and
 # its run's progress file (progress_file, EDE_PROGRESS); and beside each what a writer of a file
-# may put there (ede.atomic, ede.locks): its temporary, its lock, its mark and the mark's
+# may put there (ede.io.atomic, ede.io.locks): its temporary, its lock, its mark and the mark's
 # temporary. The folder's mark owns them all, so that the next sweep writes there again; a file
 # of any other name is a user's.
 LOGS_OWN = tuple(

@@ -17,7 +17,11 @@ import torch
 from click.testing import CliRunner
 from safetensors.torch import load_file, save_file
 
-from ede.artifacts import (
+from ede.config import load_params
+from ede.io.atomic import sha256
+from ede.io.rollouts import Whitening
+from ede.method.embedding import ActionDecoder, Encoder, EncoderResult, Predictor
+from ede.run.artifacts import (
     ArtifactError,
     ArtifactMeta,
     DecoderMeta,
@@ -27,10 +31,6 @@ from ede.artifacts import (
     save_decoder,
     save_encoder,
 )
-from ede.atomic import sha256
-from ede.config import load_params
-from ede.embedding import ActionDecoder, Encoder, EncoderResult, Predictor
-from ede.rollouts import Whitening
 from ede_pipeline.cli import main
 
 TASK, STATES, ACTIONS = "ede/Point-v0", 4, 2

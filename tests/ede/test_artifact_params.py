@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from ede.artifacts import (
+from ede.config import DecoderConfig, EmbeddingConfig
+from ede.io.rollouts import Whitening
+from ede.method.embedding import ActionDecoder, Encoder, EncoderResult, Predictor
+from ede.run.artifacts import (
     DecoderMeta,
     EncoderMeta,
     load_action_embedding,
@@ -17,9 +20,6 @@ from ede.artifacts import (
     save_decoder,
     save_encoder,
 )
-from ede.config import DecoderConfig, EmbeddingConfig
-from ede.embedding import ActionDecoder, Encoder, EncoderResult, Predictor
-from ede.rollouts import Whitening
 
 K, ACTIONS, STATES = 3, 2, 4
 LOW, HIGH = -np.ones(ACTIONS), np.ones(ACTIONS)

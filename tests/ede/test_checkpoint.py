@@ -1,4 +1,4 @@
-"""A run's checkpoint (``ede.checkpoint``): read verifies it all before anything live changes."""
+"""A run's checkpoint (``ede.run.checkpoint``): read verifies it all before anything live changes."""
 
 from __future__ import annotations
 
@@ -12,12 +12,12 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from ede import checkpoint
-from ede.atomic import sha256
-from ede.checkpoint import CheckpointError
 from ede.config import EdeTD3Config, TD3Config
-from ede.runs import RunSpec
-from ede.training import _Group
+from ede.io.atomic import sha256
+from ede.run import checkpoint
+from ede.run.checkpoint import CheckpointError
+from ede.run.runs import RunSpec
+from ede.run.training import _Group
 
 CPU = torch.device("cpu")
 CONFIG = TD3Config(

@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from ede.config import EdeTD3Config, TD3Config
-from ede.nets import flush_denormals, flushes_denormals
-from ede.runs import RunSpec
-from ede.td3 import Agent
-from ede.training import _Group, train_run
+from ede.method.agent import Agent
+from ede.method.nets import flush_denormals, flushes_denormals
+from ede.run.runs import RunSpec
+from ede.run.training import _Group, train_run
 
 SUBNORMAL = 1e-40  # below fp32's smallest normal number, 1.18e-38
 

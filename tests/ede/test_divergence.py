@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from ede.config import EdeTD3Config, TD3Config
-from ede.runs import RunSpec
+from ede.run.runs import RunSpec
+from ede.run.training import Diverged, train_group, train_run
 from ede.tasks import make
-from ede.training import Diverged, train_group, train_run
 
 CPU = torch.device("cpu")
 SMALL = dict(
@@ -120,7 +120,7 @@ def test_in_a_group_the_diverged_run_stops_and_the_others_finish_as_alone(tmp_pa
 
 
 def test_every_json_written_is_valid_json(tmp_path: Path) -> None:
-    from ede.atomic import write_json
+    from ede.io.atomic import write_json
 
     with pytest.raises(ValueError, match="not JSON compliant"):
         write_json(tmp_path / "x.json", {"final_return": float("nan")})

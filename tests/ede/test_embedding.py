@@ -11,15 +11,9 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from ede.artifacts import (
-    ArtifactError,
-    load_action_embedding,
-    load_encoder,
-    save_decoder,
-    save_encoder,
-)
 from ede.config import DecoderConfig, EmbeddingConfig
-from ede.embedding import (
+from ede.io.rollouts import Rollouts
+from ede.method.embedding import (
     ActionEmbedding,
     EncoderResult,
     gaussian_kl,
@@ -28,7 +22,13 @@ from ede.embedding import (
     train_decoder,
     train_encoder,
 )
-from ede.rollouts import Rollouts
+from ede.run.artifacts import (
+    ArtifactError,
+    load_action_embedding,
+    load_encoder,
+    save_decoder,
+    save_encoder,
+)
 
 SMALL: dict[str, Any] = {"hidden": [64, 64], "lr": 1e-3, "batch_size": 64}
 LOW, HIGH = np.array([-1.0, -1.0]), np.array([1.0, 1.0])
@@ -212,7 +212,7 @@ def test_a_decoder_of_another_encoder_is_refused(
 def test_a_window_stride_of_k_keeps_non_overlapping_windows_from_each_episodes_start(
     point: Rollouts,
 ) -> None:
-    from ede.embedding import strided
+    from ede.method.embedding import strided
 
     every = point.window_starts(4)
     starts = strided(point, every, 4)
@@ -223,7 +223,7 @@ def test_a_window_stride_of_k_keeps_non_overlapping_windows_from_each_episodes_s
 
 
 def test_without_the_state_the_predictor_learns_nothing_from_it(point: Rollouts) -> None:
-    from ede.embedding import Encoder, Predictor
+    from ede.method.embedding import Encoder, Predictor
 
     torch.set_num_threads(1)
     config = EmbeddingConfig(epochs=2, predictor_state=False, **SMALL)

@@ -1,4 +1,4 @@
-"""The member axis (``ede.ensemble``): a member computes the same bits alone and stacked with others,
+"""The member axis (``ede.method.ensemble``): a member computes the same bits alone and stacked with others,
 and the stack's layout round-trips."""
 
 from __future__ import annotations
@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from ede import ensemble
-from ede.nets import initial_mlp
+from ede.method import ensemble
+from ede.method.nets import initial_mlp
 
 CPU = torch.device("cpu")
 SIZES = [5, 32, 24, 3]

@@ -1,6 +1,6 @@
 """Runs trained as a group: every member ends with the outputs it gets alone, and resumes exactly.
 
-Alone and in a group a run computes with the same kernels (``ede.ensemble``), so these
+Alone and in a group a run computes with the same kernels (``ede.method.ensemble``), so these
 compare bits: same code path, different numbers of members."""
 
 from __future__ import annotations
@@ -13,12 +13,14 @@ import numpy as np
 import pytest
 import torch
 
-from ede.atomic import MARK
 from ede.config import EdeTD3Config, TD3Config
-from ede.embedding import ActionEmbedding
-from ede.runs import RunSpec
-from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
-from ede.training import train_group, train_run
+from ede.io.atomic import MARK
+from ede.method.adapters import IdentityAdapter
+from ede.method.agent import Agent
+from ede.method.embedding import ActionEmbedding
+from ede.method.replay import ReplayBuffer
+from ede.run.runs import RunSpec
+from ede.run.training import train_group, train_run
 
 pytestmark = pytest.mark.slow
 
@@ -147,7 +149,7 @@ def test_a_member_masked_out_of_an_update_keeps_its_learner_state_bit_for_bit() 
 
 def test_adding_a_member_or_a_purpose_shifts_no_stream() -> None:
     """Each member's generators are seeded from (its seed, the purpose) alone."""
-    from ede.td3 import PURPOSES, Streams
+    from ede.method.agent import PURPOSES, Streams
 
     alone, third = (
         Streams(7, CPU),
@@ -168,8 +170,8 @@ def test_adding_a_member_or_a_purpose_shifts_no_stream() -> None:
 def point_embedding(point_store: Path) -> object:
     """A small embedding of ede/Point-v0's actions (k = 4), trained for one epoch."""
     from ede.config import DecoderConfig, EmbeddingConfig
-    from ede.embedding import ActionEmbedding, train_decoder, train_encoder
-    from ede.rollouts import Rollouts
+    from ede.io.rollouts import Rollouts
+    from ede.method.embedding import ActionEmbedding, train_decoder, train_encoder
 
     rollouts = Rollouts.open(point_store)
     small = {"hidden": [64, 64], "epochs": 1}

@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from ede.analysis.probes import random_policy_return
+from ede.analysis.stats import across_tasks, global_numpy_seed
 from ede.config import (
     SEED_MAX,
     DecoderConfig,
@@ -20,12 +22,10 @@ from ede.config import (
     TD3Config,
     load_params,
 )
-from ede.embedding import train_decoder, train_encoder
-from ede.probes import random_policy_return
-from ede.rollouts import Rollouts, collect
-from ede.runs import RunSpec
-from ede.stats import across_tasks, global_numpy_seed
-from ede.training import train_run
+from ede.io.rollouts import Rollouts, collect
+from ede.method.embedding import train_decoder, train_encoder
+from ede.run.runs import RunSpec
+from ede.run.training import train_run
 from ede_pipeline.cli import main
 from ede_pipeline.common import BadInput
 from ede_pipeline.train import parse_seeds

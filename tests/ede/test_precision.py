@@ -7,8 +7,10 @@ import pytest
 import torch
 
 from ede.config import TD3Config
-from ede.nets import matmul_precision, product_error
-from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
+from ede.method.adapters import IdentityAdapter
+from ede.method.agent import Agent
+from ede.method.nets import matmul_precision, product_error
+from ede.method.replay import ReplayBuffer
 from tests.support import add_step
 
 PRECISIONS = ["fp32", "bf16-matmul", "bf16"]

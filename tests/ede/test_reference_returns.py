@@ -6,8 +6,8 @@ import gymnasium
 import numpy as np
 import pytest
 
-import ede.probes
-from ede.probes import random_policy_return, zero_action_return
+import ede.analysis.probes
+from ede.analysis.probes import random_policy_return, zero_action_return
 
 
 class Penalised(gymnasium.Env):
@@ -29,7 +29,7 @@ class Penalised(gymnasium.Env):
 
 @pytest.fixture(autouse=True)
 def penalised(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(ede.probes, "make", lambda task: Penalised())
+    monkeypatch.setattr(ede.analysis.probes, "make", lambda task: Penalised())
 
 
 def test_zero_actions_take_the_nearest_action_in_the_box_and_report_their_standard_error() -> None:

@@ -1,5 +1,5 @@
-"""The figures (ede.figures) keep their titles inside the picture, whatever the family's size, and
-draw what they are given; the aggregates across tasks (ede.results) on runs whose answer is known."""
+"""The figures (ede.analysis.figures) keep their titles inside the picture, whatever the family's size, and
+draw what they are given; the aggregates across tasks (ede.analysis.results) on runs whose answer is known."""
 
 from __future__ import annotations
 
@@ -11,14 +11,14 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.text import Text
 
-from ede import figures
-from ede.results import AcrossTasks, across_tasks, improvement_on_task
-from ede.runs import Curve
-from ede.stats import Band, curve_band
+from ede.analysis import figures
+from ede.analysis.results import AcrossTasks, across_tasks, improvement_on_task
+from ede.analysis.stats import Band, curve_band
+from ede.run.runs import Curve
 
 
 def aggregate(*args: Any, **kwargs: Any) -> AcrossTasks:
-    """:func:`ede.results.across_tasks` where the test expects aggregates."""
+    """:func:`ede.analysis.results.across_tasks` where the test expects aggregates."""
     found = across_tasks(*args, **kwargs)
     assert found is not None, "no aggregates across tasks"
     return found

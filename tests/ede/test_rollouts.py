@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import zarr
 
-from ede.rollouts import (
+from ede.io.rollouts import (
     ARRAYS,
     COLLECTOR_VERSION,
     Rollouts,

@@ -1,5 +1,5 @@
-"""A run's folder (ede.runs): written, read back, checked against the run it must be; and what
-run.json records of the code and the machine (ede.provenance)."""
+"""A run's folder (ede.run.runs): written, read back, checked against the run it must be; and what
+run.json records of the code and the machine (ede.io.provenance)."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from ede import provenance
-from ede.atomic import sha256
 from ede.config import Algo, EdeTD3Config, TD3Config
-from ede.runs import (
+from ede.io import provenance
+from ede.io.atomic import sha256
+from ede.run.runs import (
     CHECKSUMMED,
     RunRejected,
     RunSpec,
@@ -98,7 +98,7 @@ def test_run_json_names_the_code_and_the_machine(tmp_path: Path) -> None:
     provenance.code_version.cache_clear()  # read once a process: the checkout's HEAD of now
     finished(tmp_path)
     made = json.loads((tmp_path / "run.json").read_text())
-    root = Path(provenance.__file__).resolve().parents[1]
+    root = Path(provenance.__file__).resolve().parents[2]
     head = subprocess.run(
         ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
     ).stdout.strip()
@@ -212,7 +212,7 @@ def without_checksums(folder: Path, how: str) -> None:
     ("how", "line"),
     [
         ("removed", "records no 'sha256' of the run's files; every run made since runs recorded "
-                    "them does, and those published before are kept unchanged (ede/early_runs.py)"),
+                    "them does, and those published before are kept unchanged (ede/run/early_runs.py)"),
         ("null", "'sha256' is not a SHA-256 by file name (eval.csv, diagnostics.csv, "
                  "metrics.json, policy/policy.safetensors, policy/policy.json)"),
         ("empty", "'sha256' records no SHA-256 of eval.csv, diagnostics.csv, metrics.json; a run "
@@ -239,7 +239,7 @@ def test_the_runs_published_before_checksums_are_read_byte_for_byte_as_published
     tmp_path: Path,
 ) -> None:
     """A committed run without checksums reads as published; one of its files changed does not."""
-    from ede.early_runs import EARLY_RUNS
+    from ede.run.early_runs import EARLY_RUNS
 
     early = [
         made.parent

@@ -7,11 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from ede.stats import (
+from ede.analysis.stats import (
     Interval,
     across_tasks,
     align_curves,
-    area_under_curve,
     bin_curve,
     bootstrap_mean,
     bootstrap_means,
@@ -20,6 +19,7 @@ from ede.stats import (
     separation,
     steps_to_threshold,
 )
+from ede.run.runs import area_under_curve
 
 
 def test_area_under_curve_is_the_trapezoidal_mean_return() -> None:
@@ -113,8 +113,8 @@ def test_a_bin_without_evaluations_is_left_out_and_uneven_steps_bin_by_value() -
 
 
 def test_binned_band_is_the_mean_over_seeds_of_each_seeds_bin_means() -> None:
-    from ede.runs import Curve
-    from ede.stats import curve_band
+    from ede.analysis.stats import curve_band
+    from ede.run.runs import Curve
 
     steps = np.array([0, 1000, 2000, 3000, 4000, 5000])
     curves = [
@@ -131,8 +131,8 @@ def test_binned_band_is_the_mean_over_seeds_of_each_seeds_bin_means() -> None:
 
 
 def test_a_band_over_runs_of_unequal_length_uses_the_seeds_each_point_has() -> None:
-    from ede.runs import Curve
-    from ede.stats import curve_band
+    from ede.analysis.stats import curve_band
+    from ede.run.runs import Curve
 
     steps = np.array([0, 1000, 2000])
     curves = [

@@ -12,18 +12,14 @@ import pytest
 import torch
 
 from ede.config import TD3Config
-from ede.embedding import ActionEmbedding
-from ede.ensemble import Params
-from ede.td3 import (
-    Agent,
-    CodeExecutor,
-    Critic,
-    EmbeddingAdapter,
-    IdentityAdapter,
-    ReplayBuffer,
-    k_step_targets,
-)
-from ede.vector import MemberEnvs
+from ede.method.adapters import EmbeddingAdapter, IdentityAdapter
+from ede.method.agent import Agent
+from ede.method.embedding import ActionEmbedding
+from ede.method.ensemble import Params
+from ede.method.replay import ReplayBuffer
+from ede.method.td3 import Critic, k_step_targets
+from ede.run.executor import CodeExecutor
+from ede.run.vector import MemberEnvs
 from tests.support import add_step
 
 GAMMA = 0.9

@@ -1,6 +1,6 @@
 """Our TD3 update pinned to a peer: stable-baselines3's ``TD3.train`` on the same everything.
 
-At k = 1 (the identity adapter) an :class:`ede.td3.Agent` (one member) must be TD3: given the
+At k = 1 (the identity adapter) an :class:`ede.method.agent.Agent` (one member) must be TD3: given the
 same initial weights, the same replay batches and the same target-smoothing noise, several
 updates — critic steps, delayed actor steps and target moves — must leave the same gradients and
 weights as stable-baselines3's. The two run different kernels for the products — ours batched
@@ -21,9 +21,11 @@ import pytest
 import torch
 
 from ede.config import TD3Config
-from ede.ensemble import Params
+from ede.method.adapters import IdentityAdapter
+from ede.method.agent import Agent
+from ede.method.ensemble import Params
+from ede.method.replay import ReplayBatch
 from ede.tasks import action_bounds, observation_size
-from ede.td3 import Agent, IdentityAdapter, ReplayBatch
 
 sb3 = pytest.importorskip("stable_baselines3")  # a dev dependency: present wherever tests run
 # after the skip above, as its imports need stable-baselines3

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from ede.config import EdeTD3Config, TD3Config
-from ede.runs import RunSpec
-from ede.training import _Group
+from ede.run.runs import RunSpec
+from ede.run.training import _Group
 
 CPU = torch.device("cpu")
 
@@ -105,9 +105,10 @@ def test_diagnostics_are_the_means_of_the_updates_since_the_last_evaluation(
 
 def test_building_an_agent_or_an_embedding_reseeds_nothing_outside(point_store) -> None:
     from ede.config import EmbeddingConfig
-    from ede.embedding import train_encoder
-    from ede.rollouts import Rollouts
-    from ede.td3 import Agent, IdentityAdapter
+    from ede.io.rollouts import Rollouts
+    from ede.method.adapters import IdentityAdapter
+    from ede.method.agent import Agent
+    from ede.method.embedding import train_encoder
 
     torch.manual_seed(1234)
     expected = torch.rand(3)
@@ -125,8 +126,8 @@ def test_a_checkpoint_taken_inside_a_code_resumes_its_remaining_actions(
     point_store, tmp_path
 ) -> None:
     from ede.config import DecoderConfig, EmbeddingConfig
-    from ede.embedding import ActionEmbedding, train_decoder, train_encoder
-    from ede.rollouts import Rollouts
+    from ede.io.rollouts import Rollouts
+    from ede.method.embedding import ActionEmbedding, train_decoder, train_encoder
 
     rollouts = Rollouts.open(point_store)
     small: dict[str, Any] = {"hidden": [8], "epochs": 1}

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from ede.atomic import MARK, write_atomically
-from ede.locks import lock_path
+from ede.io.atomic import MARK, write_atomically
+from ede.io.locks import lock_path
 from ede_pipeline.cli import main
 from tests.faults.conftest import TASK, Workdir, command
 
@@ -131,9 +131,9 @@ def test_another_seeds_checkpoint_is_named_moved_aside_and_not_resumed(
 def test_a_full_disk_keeps_the_previous_checkpoint_and_the_rerun_resumes_from_it(
     workdir: Workdir, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import ede.checkpoint
+    import ede.run.checkpoint
 
-    real, calls = ede.checkpoint.save_tensors, []
+    real, calls = ede.run.checkpoint.save_tensors, []
 
     def fills_up(tensors, path, *args, **kwargs):
         calls.append(path)
@@ -143,7 +143,7 @@ def test_a_full_disk_keeps_the_previous_checkpoint_and_the_rerun_resumes_from_it
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.chdir(workdir.path)
-    monkeypatch.setattr(ede.checkpoint, "save_tensors", fills_up)
+    monkeypatch.setattr(ede.run.checkpoint, "save_tensors", fills_up)
     out = tmp_path / "run"
     result = CliRunner().invoke(main, train_args(out))
     assert result.exit_code == 1, result.output

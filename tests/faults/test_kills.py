@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ede.rollouts import Rollouts
+from ede.io.rollouts import Rollouts
 from tests.faults.conftest import TASK, Workdir, command, stage_args
 
 pytestmark = pytest.mark.slow

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner, Result
 
-from ede.provenance import software_versions
-from ede.rollouts import Rollouts, RolloutsError
+from ede.io.provenance import software_versions
+from ede.io.rollouts import Rollouts, RolloutsError
 from ede_pipeline.cli import main
 
 
@@ -124,7 +124,7 @@ def test_a_store_killed_while_being_written_is_never_accepted(tmp_path: Path) ->
         import sys, time
         import numpy as np
         import zarr
-        from ede import rollouts
+        from ede.io import rollouts
         original = zarr.Group.create_array
         def slow(self, name, **kwargs):
             array = original(self, name, **kwargs)

@@ -10,7 +10,7 @@ import pytest
 import yaml
 from pydantic import BaseModel
 
-from ede.rollouts import Rollouts
+from ede.io.rollouts import Rollouts
 from tests.support import REPO, dvc
 
 

@@ -265,7 +265,7 @@ def test_a_changed_code_keeps_finished_runs_unless_told(tmp_path: Path) -> None:
     assert refused.returncode == 2, refused.stderr
     assert refused.stderr.startswith(
         "Error: experiment one-seed: code its finished runs depend on changed here "
-        "(ede/td3.py), and DVC would run them (1) again; --keep-code "
+        "(ede/method/td3.py), and DVC would run them (1) again; --keep-code "
     ), refused.stderr
     assert len(refused.stderr.strip().splitlines()) == 1, refused.stderr
     assert (workspace / "ede" / "td3.py").read_bytes() == original
@@ -291,7 +291,7 @@ def test_a_changed_code_keeps_finished_runs_unless_told(tmp_path: Path) -> None:
 def test_one_experiment_runs_once_at_a_time(repo: Path) -> None:
     """A second ``experiment run`` of an experiment that runs is refused in one line before it
     touches the working copy (it once rewrote it and left its dvc.lock empty)."""
-    from ede.locks import exclusive
+    from ede.io.locks import exclusive
 
     workspace = repo / ".dvc" / "tmp" / "experiments" / "two-seeds"
     before = sorted(str(p) for p in workspace.parent.rglob("*")) if workspace.exists() else []

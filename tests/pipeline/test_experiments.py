@@ -13,9 +13,9 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from ede.atomic import sha256
 from ede.config import Algo
-from ede.runs import POLICY
+from ede.io.atomic import sha256
+from ede.run.runs import POLICY
 from ede_pipeline.cli import main
 from ede_pipeline.experiments.show import WIDTH, experiment_blocks
 from tests.support import REPO, tool_env
@@ -184,7 +184,7 @@ def test_every_published_run_was_made_with_its_experiments_params(
 
 def _check_runs(folder: Path, params, seeds: list[int]) -> int:
     """Each run of ``seeds`` in ``folder`` has the identity ``params`` give it; how many."""
-    from ede.runs import RunSpec, identity_difference
+    from ede.run.runs import RunSpec, identity_difference
 
     checked = 0
     for record in sorted(folder.glob("*/seed*/run.json")):
@@ -226,9 +226,9 @@ def finished_workspace(
     run's policy/ (its policy.safetensors ``<algo> <seed>``), marked as a run writes it."""
     import torch
 
-    from ede.atomic import write_atomically
     from ede.config import load_params
-    from ede.runs import RunSpec, write_curves, write_finished
+    from ede.io.atomic import write_atomically
+    from ede.run.runs import RunSpec, write_curves, write_finished
     from ede_pipeline import layout
     from tests.support import REPO
 
@@ -434,7 +434,7 @@ def test_an_export_publishes_the_policies_of_the_seeds_it_is_given(
     alone publishes every run's; a narrower one takes away those it no longer plays. A seed the
     experiment has not, a value that is no seed, a seed whose runs have not finished, and a
     decoder that is not the one the runs trained with: one line each, nothing written."""
-    from ede.artifacts import ActionSpaceMeta, DecoderMeta, WhiteningMeta
+    from ede.run.artifacts import ActionSpaceMeta, DecoderMeta, WhiteningMeta
     from ede_pipeline import layout
 
     decoder_meta = DecoderMeta(
@@ -524,7 +524,7 @@ def test_an_experiments_tools_run_the_code_of_its_working_copy(
     (workspace / "params.yaml").write_text("td3: {lr: 0.0003}\n")  # the experiment's params
     monkeypatch.chdir(REPO)  # where `experiment run` runs: pyproject.toml names the packages
     show = (
-        "import json, ede, ede_envs, ede_pipeline; from ede.provenance import code_version; "
+        "import json, ede, ede_envs, ede_pipeline; from ede.io.provenance import code_version; "
         "print(json.dumps([[m.__file__ for m in (ede, ede_envs, ede_pipeline)], code_version()]))"
     )
     capfd.readouterr()
@@ -790,7 +790,7 @@ def test_an_export_refuses_to_remove_a_policy_it_did_not_write(first_published: 
 
 
 def test_an_export_waits_for_no_other_export_to_the_same_place(first_published: Path) -> None:
-    from ede.locks import exclusive
+    from ede.io.locks import exclusive
 
     with exclusive(Path("published")):
         before = published()

@@ -15,7 +15,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from ede.atomic import unwritable
+from ede.io.atomic import unwritable
 from ede_pipeline.cli import main
 from tests.support import REPO
 
@@ -364,7 +364,7 @@ def test_ede_td3_refuses_a_run_folder_inside_its_embedding(workdir: Path) -> Non
 
 def test_the_library_refuses_too(tmp_path: Path) -> None:
     """``write_atomically`` itself keeps off what it did not write, for code that calls it."""
-    from ede.atomic import NotOurs, write_atomically
+    from ede.io.atomic import NotOurs, write_atomically
 
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "NOTES.txt").write_text("mine\n")
@@ -559,7 +559,7 @@ def test_a_link_to_a_folder_is_written_through_and_stays_a_link(workdir: Path) -
 
 
 def test_two_names_of_one_output_share_its_lock(workdir: Path) -> None:
-    from ede.locks import exclusive
+    from ede.io.locks import exclusive
 
     (workdir / "out").mkdir()
     (workdir / "L").symlink_to("out")
@@ -586,7 +586,7 @@ def test_a_file_output_whose_writer_was_killed_before_marking_it_is_still_its_ow
     import subprocess
     import sys
 
-    from ede.atomic import file_problem
+    from ede.io.atomic import file_problem
 
     (workdir / "empty").mkdir()
     args = [*FILE_OUTPUTS["report metrics"], "out.file"]
@@ -784,7 +784,7 @@ def test_the_progress_file_is_the_stages_own_and_replaced_only_as_such(workdir: 
 
 HOLDER = """
 import sys
-from ede.locks import exclusive
+from ede.io.locks import exclusive
 with exclusive(sys.argv[1]):
     print("held", flush=True)
     sys.stdin.read()

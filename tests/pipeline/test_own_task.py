@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 import yaml
 
-from ede.rollouts import Rollouts
+from ede.io.rollouts import Rollouts
 from ede_pipeline import layout
 from tests.support import REPO, dvc, scratch_copy
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner, Result
 
-from ede.artifacts import load_action_embedding
-from ede.provenance import software_versions
+from ede.io.provenance import software_versions
+from ede.run.artifacts import load_action_embedding
 from ede_pipeline.cli import main
 
 

@@ -20,11 +20,11 @@ import torch
 from click.testing import CliRunner, Result
 from safetensors.torch import load_file, save_file
 
-from ede.atomic import sha256
+from ede.analysis.video import MAX_FRAMES, encode
 from ede.config import EdeTD3Config, TD3Config
-from ede.runs import RunSpec, write_policy
-from ede.td3 import Actor
-from ede.video import MAX_FRAMES, encode
+from ede.io.atomic import sha256
+from ede.method.td3 import Actor
+from ede.run.runs import RunSpec, write_policy
 from ede_pipeline.cli import main
 
 TASK = "ede/Point-v0"  # 2 actions, observations of 4, episodes of 100 steps
@@ -293,8 +293,8 @@ def test_a_pages_clip_that_fails_midway_names_itself_as_not_written(tmp_path: Pa
     code = LIMITED + (
         "import numpy as np\n"
         "from pathlib import Path\n"
-        "from ede.atomic import NotWritten\n"
-        "from ede.video import video_bytes\n"
+        "from ede.io.atomic import NotWritten\n"
+        "from ede.analysis.video import video_bytes\n"
         "frames = (np.random.default_rng(n).integers(0, 255, (64, 64, 3), np.uint8)"
         " for n in range(50))\n"
         "try:\n"

@@ -16,12 +16,12 @@ import pytest
 import torch
 from click.testing import CliRunner, Result
 
-from ede.artifacts import save_decoder, save_encoder
 from ede.config import ALGOS, Algo, DecoderConfig, EmbeddingConfig, load_params
-from ede.embedding import train_decoder, train_encoder
-from ede.provenance import describe_software, software_versions
-from ede.rollouts import Rollouts, collect, write_store
-from ede.runs import RunSpec
+from ede.io.provenance import describe_software, software_versions
+from ede.io.rollouts import Rollouts, collect, write_store
+from ede.method.embedding import train_decoder, train_encoder
+from ede.run.artifacts import save_decoder, save_encoder
+from ede.run.runs import RunSpec
 from ede_pipeline import layout
 from ede_pipeline.cli import main
 
@@ -521,9 +521,9 @@ def test_a_tasks_intervals_do_not_depend_on_the_runs_of_tasks_before_it(
 def with_policy(run: Path, algo: Algo, seed: int, embedding: Any, identity: str) -> None:
     """A final policy in ``run`` as train writes it: an untrained actor of the seed's weights,
     acting in the action box (TD3) or in the embedding's code box (EDE-TD3)."""
-    from ede.runs import write_policy
+    from ede.method.td3 import Actor
+    from ede.run.runs import write_policy
     from ede.tasks import action_bounds, make
-    from ede.td3 import Actor
 
     env = make("ede/Point-v0")
     low, high = action_bounds(env)
@@ -553,7 +553,7 @@ def with_policy(run: Path, algo: Algo, seed: int, embedding: Any, identity: str)
 def point_runs(project: Path, embeddings: Path, write_params, **report: Any) -> None:
     """Params of ede/Point-v0 alone, seeds 0-2, its family's embedding, and each run finished
     with a final policy; EDE-TD3's final returns make seed 2 the median."""
-    from ede.artifacts import load_action_embedding
+    from ede.run.artifacts import load_action_embedding
 
     def point(params: dict) -> None:
         params["runs"].update(tasks={"ede/Point-v0": "point"}, seeds=[0, 1, 2])

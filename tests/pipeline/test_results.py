@@ -16,9 +16,9 @@ import torch
 import yaml
 from click.testing import CliRunner
 
-from ede.atomic import sha256
 from ede.config import Algo, EdeTD3Config, TD3Config
-from ede.runs import PUBLISHED, RunSpec, write_curves, write_finished
+from ede.io.atomic import sha256
+from ede.run.runs import PUBLISHED, RunSpec, write_curves, write_finished
 from ede_pipeline import layout
 from ede_pipeline.cli import main
 from tests.support import REPO
@@ -717,7 +717,7 @@ def finished_run(
     td3: TD3Config | None = None,
     ede_td3: EdeTD3Config | None = None,
 ) -> Path:
-    """A run of :data:`TASK` as ``train`` finishes it (:func:`ede.runs.write_finished`: its
+    """A run of :data:`TASK` as ``train`` finishes it (:func:`ede.run.runs.write_finished`: its
     run.json records its params and the SHA-256 of its files), with a published copy's files
     (no policy), and its task's ``source.json`` where it has none yet."""
     folder = layout.run(TASK, algo, seed, runs)
@@ -799,7 +799,7 @@ def test_a_seed_folder_not_named_seed_n_is_refused(tmp_path: Path, name: str) ->
 
 
 def test_the_same_seed_twice_is_refused(tmp_path: Path) -> None:
-    """A copy of td3/seed0 as td3/seed2: its run.json names seed 0 (ede.runs.read_run)."""
+    """A copy of td3/seed0 as td3/seed2: its run.json names seed 0 (ede.run.runs.read_run)."""
     runs = tmp_path / "runs"
     four_runs(runs)
     copy = layout.run(TASK, "td3", 2, runs)
@@ -877,7 +877,7 @@ def test_a_run_whose_checksums_are_turned_off_is_refused(
     tmp_path: Path, sha256s: object, line: str
 ) -> None:
     """Its run.json's sha256 set null or empty, an entry or the key removed: a run made since
-    run.json recorded checksums is not one of the runs published before (ede/early_runs.py)."""
+    run.json recorded checksums is not one of the runs published before (ede/run/early_runs.py)."""
     runs = tmp_path / "runs"
     four_runs(runs)
     record = layout.run(TASK, "td3", 1, runs) / "run.json"

@@ -23,7 +23,7 @@ import pytest
 import yaml
 
 from ede.config import load_params
-from ede.locks import exclusive
+from ede.io.locks import exclusive
 from ede_pipeline.sweep.plan import (
     Job,
     RunId,

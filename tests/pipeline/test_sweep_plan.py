@@ -92,7 +92,7 @@ def test_a_stage_publishes_its_progress_where_the_sweep_asks(
         advance(3)
     assert read_progress(path) == (3, 10, 0)
     assert read_progress(tmp_path / "none") is None
-    # No temporaries and no lock: the file and its mark as a progress writer's (ede.atomic).
+    # No temporaries and no lock: the file and its mark as a progress writer's (ede.io.atomic).
     left = sorted(p.name for p in tmp_path.iterdir())
     assert left == [".run.progress.ede-output.json", "run.progress"]
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from ede.atomic import MARK
+from ede.io.atomic import MARK
 from ede_envs import TASKS
 from ede_pipeline.cli import main
 from ede_pipeline.closure import package_dirs, task_code, task_record

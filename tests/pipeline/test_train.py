@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner, Result
 
-from ede.provenance import code_version, machine, software_versions
+from ede.io.provenance import code_version, machine, software_versions
+from ede.run.training import EVAL_SEED_OFFSET
 from ede.tasks import make
-from ede.training import EVAL_SEED_OFFSET
 from ede_pipeline.cli import main
 from ede_pipeline.progress import PROGRESS_ENV, read_progress
 from tests.support import REPO
@@ -402,7 +402,9 @@ def test_a_groups_memory_estimate_is_what_its_replay_buffer_and_networks_hold() 
     import torch
 
     from ede.config import TD3Config
-    from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
+    from ede.method.adapters import IdentityAdapter
+    from ede.method.agent import Agent
+    from ede.method.replay import ReplayBuffer
     from ede_pipeline.train import group_memory
 
     obs, code, members, capacity, cpu = 7, 3, 5, 300, torch.device("cpu")
@@ -521,7 +523,9 @@ import re, sys
 from pathlib import Path
 import numpy as np, torch
 from ede.config import TD3Config
-from ede.td3 import Agent, IdentityAdapter, ReplayBuffer
+from ede.method.agent import Agent
+from ede.method.adapters import IdentityAdapter
+from ede.method.replay import ReplayBuffer
 torch.set_num_threads(1)
 members, batch, obs, code, cpu = 4, int(sys.argv[1]), 11, 2, torch.device("cpu")
 config = TD3Config.model_validate({"hidden": [400, 300], "batch_size": batch})
@@ -543,7 +547,7 @@ print(status("VmHWM") - before)
 
 
 def test_a_groups_estimate_bounds_what_an_updates_activations_add() -> None:
-    from ede.td3 import Critic
+    from ede.method.td3 import Critic
     from ede_pipeline.train import group_memory
 
     def peak(batch: int) -> int:
@@ -569,7 +573,7 @@ def test_a_groups_environments_are_counted_as_they_are_held() -> None:
     import psutil
     from gymnasium.vector import AsyncVectorEnv
 
-    from ede.vector import MemberEnvs
+    from ede.run.vector import MemberEnvs
     from ede_pipeline.train import ENVS_PER_MEMBER, WORKER_BYTES, environment_memory
 
     assert environment_memory(3, workers=True) == 3 * ENVS_PER_MEMBER * WORKER_BYTES
@@ -600,11 +604,12 @@ def test_a_gpu_groups_environments_are_weighed_against_the_hosts_memory(
     monkeypatch.setattr("ede_pipeline.train.free_memory", lambda device: memory[device.type])
     result = run(
         "train", "--params", str(path), "--task", "ede/Point-v0", "--algo", "td3",
-        "--seeds", "0-7", "--out", "runs/seed{seed}",
+        "--seeds", "0-31", "--out", "runs/seed{seed}",
     )  # fmt: skip
-    bad(result, "--seed 0-7: td3 on ede/Point-v0 for 8 seeds in one process needs about 2.7 GiB ")
-    assert "(environments), more than 80% of the 2.0 GiB of memory available; train at most 4 " in (
-        result.stderr
+    bad(result, "--seed 0-31: td3 on ede/Point-v0 for 32 seeds in one process needs about 3.8 GiB ")
+    assert (
+        "(environments), more than 80% of the 2.0 GiB of memory available; train at most 13 "
+        in (result.stderr)
     )
     assert [p.name for p in tmp_path.iterdir()] == [path.name]
 

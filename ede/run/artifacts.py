@@ -24,12 +24,11 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file
 from torch import nn
 
-from ede.atomic import save_tensors, sha256, write_atomically
-from ede.config.schema import DecoderConfig, EmbeddingConfig
-from ede.config.values import result_neutral
-from ede.embedding import ActionDecoder, ActionEmbedding, Encoder, EncoderResult, Predictor
-from ede.provenance import software_versions
-from ede.rollouts import Whitening
+from ede.config import DecoderConfig, EmbeddingConfig, result_neutral
+from ede.io.atomic import save_tensors, sha256, write_atomically
+from ede.io.provenance import software_versions
+from ede.io.rollouts import Whitening
+from ede.method.embedding import ActionDecoder, ActionEmbedding, Encoder, EncoderResult, Predictor
 
 __all__ = [
     "ArtifactError",
@@ -79,7 +78,7 @@ class ActionSpaceMeta(_Meta):
 class ArtifactMeta(_Meta):
     """What every artifact's metadata records about itself: its provenance and its checksums."""
 
-    software: dict[str, str] = Field(description="the versions that made it (ede.provenance)")
+    software: dict[str, str] = Field(description="the versions that made it (ede.io.provenance)")
     weights_sha256: str = Field(description="the SHA-256 of the weights file")
     meta_sha256: str = Field(description="the SHA-256 of this metadata's result-relevant fields")
 

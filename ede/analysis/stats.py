@@ -10,14 +10,13 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 if TYPE_CHECKING:
-    from ede.runs import Curve
+    from ede.run.runs import Curve
 
 __all__ = [
     "Divergence",
     "Interval",
     "across_tasks",
     "align_curves",
-    "area_under_curve",
     "bin_curve",
     "bootstrap_mean",
     "bootstrap_means",
@@ -27,21 +26,6 @@ __all__ = [
     "separation",
     "steps_to_threshold",
 ]
-
-
-def area_under_curve(steps: np.ndarray, returns: np.ndarray) -> float:
-    """Trapezoidal area under a return curve divided by the steps it spans: its mean return.
-
-    A curve of one point has that point's return; an empty one is NaN.
-    """
-    steps, returns = np.asarray(steps, dtype=float), np.asarray(returns, dtype=float)
-    if len(steps) != len(returns):
-        raise ValueError(f"{len(steps)} steps but {len(returns)} returns")
-    if len(steps) == 0:
-        return float("nan")
-    if len(steps) == 1 or steps[-1] == steps[0]:
-        return float(returns[0])
-    return float(np.trapezoid(returns, steps) / (steps[-1] - steps[0]))
 
 
 def steps_to_threshold(steps: np.ndarray, returns: np.ndarray, threshold: float) -> float:

@@ -17,7 +17,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from ede.atomic import place
+from ede.io.atomic import place
 
 __all__ = ["OutputBusy", "exclusive", "lock_path"]
 

@@ -51,7 +51,7 @@ import zarr
 from zarr.codecs import BloscCodec
 
 import ede_envs
-from ede.atomic import write_atomically
+from ede.io.atomic import write_atomically
 from ede.tasks import unusable
 
 KIND = "rollouts store"  # what its folder is called where a stage refuses to replace another's

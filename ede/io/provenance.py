@@ -68,7 +68,7 @@ def code_version() -> dict[str, Any]:
     copy, as in the image) the commit is ``$EDE_COMMIT`` when set at build time, ``modified``
     unknown (null); with neither, both are null.
     """
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]  # ede/io/provenance.py: the checkout
 
     def git(*args: str) -> str | None:
         done = subprocess.run(

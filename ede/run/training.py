@@ -1,18 +1,18 @@
 """One training run of TD3 or EDE-TD3: the environment loop, evaluation, checkpoints, outputs.
 
-A run is determined by its :class:`ede.runs.RunSpec` and (for EDE-TD3) its embedding. It writes
-its folder's files (:mod:`ede.runs`: ``eval.csv`` and ``diagnostics.csv`` after every
+A run is determined by its :class:`ede.run.runs.RunSpec` and (for EDE-TD3) its embedding. It writes
+its folder's files (:mod:`ede.run.runs`: ``eval.csv`` and ``diagnostics.csv`` after every
 evaluation, ``policy/``, ``run.json`` and, last, ``metrics.json``) and, while it trains,
-``checkpoint/``: everything needed to continue exactly, in the format of :mod:`ede.checkpoint` —
+``checkpoint/``: everything needed to continue exactly, in the format of :mod:`ede.run.checkpoint` —
 the same for a run trained alone and for a member of a group, so either resumes the other. A run
 started where a checkpoint of the same configuration exists continues from it; on CPU a run
 killed at any point and resumed ends with the same ``eval.csv`` returns as an uninterrupted one.
 
-A group of runs (several seeds of one task and algorithm) is one :class:`ede.td3.Agent` with a
+A group of runs (several seeds of one task and algorithm) is one :class:`ede.method.agent.Agent` with a
 member per run; a run alone is a group of one. Each run's outputs are what it gets alone.
 
 This module orchestrates: :class:`_Run` keeps one run's counters, episode and history,
-:class:`_Group` steps every member's environment at once (:class:`ede.vector.MemberEnvs`: one
+:class:`_Group` steps every member's environment at once (:class:`ede.run.vector.MemberEnvs`: one
 batched action per step, one write to the replay buffer) and schedules the batched updates, and
 :class:`_Session` writes one run's outputs.
 """
@@ -31,32 +31,28 @@ import gymnasium
 import numpy as np
 import torch
 
-from ede import checkpoint
-from ede.atomic import claim, remove_stale_temporaries
-from ede.checkpoint import CheckpointError, Episode, Layout
-from ede.config.values import ALGOS
-from ede.embedding import ActionEmbedding
-from ede.nets import flush_denormals
-from ede.runs import (
+from ede.config import ALGOS
+from ede.io.atomic import claim, remove_stale_temporaries
+from ede.method.adapters import ActionAdapter, EmbeddingAdapter, IdentityAdapter
+from ede.method.agent import Agent
+from ede.method.embedding import ActionEmbedding
+from ede.method.nets import flush_denormals
+from ede.method.replay import ReplayBuffer
+from ede.run import checkpoint
+from ede.run.checkpoint import CheckpointError, Layout
+from ede.run.executor import CodeExecutor
+from ede.run.runs import (
     POLICY,
     RUN_KIND,
     RUN_OWNS,
     RunSpec,
+    area_under_curve,
     write_curves,
     write_finished,
     write_policy,
 )
-from ede.stats import area_under_curve
+from ede.run.vector import Episode, MemberEnvs
 from ede.tasks import make
-from ede.td3 import (
-    ActionAdapter,
-    Agent,
-    CodeExecutor,
-    EmbeddingAdapter,
-    IdentityAdapter,
-    ReplayBuffer,
-)
-from ede.vector import MemberEnvs
 
 __all__ = ["Diverged", "evaluate", "train_group", "train_run"]
 
@@ -156,7 +152,7 @@ class _Run:
     # Checkpoints ---------------------------------------------------------------------------
 
     def save(self, path: Path) -> None:
-        """Write this run's checkpoint (:func:`ede.checkpoint.write`): its member's slice of the
+        """Write this run's checkpoint (:func:`ede.run.checkpoint.write`): its member's slice of the
         agent and the replay buffer, its code, episode and history.
 
         Raises:
@@ -180,8 +176,8 @@ class _Run:
         checkpoint.write(path, self.spec, state)
 
     def load(self, path: Path) -> bool:
-        """Continue from the checkpoint at ``path``: :func:`ede.checkpoint.read` verifies it,
-        :func:`ede.checkpoint.apply` restores it. False where there is none.
+        """Continue from the checkpoint at ``path``: :func:`ede.run.checkpoint.read` verifies it,
+        :func:`ede.run.checkpoint.apply` restores it. False where there is none.
 
         Raises:
             CheckpointError: it cannot be used. The agent and the replay buffer are untouched;
@@ -208,7 +204,7 @@ class _Run:
 class _Group:
     """The runs of one task and algorithm that differ in their seeds, as one agent with a
     member per run (M = 1 for a run alone), one replay buffer, and the members' training and
-    evaluation environments as two vector environments (:class:`ede.vector.MemberEnvs`)."""
+    evaluation environments as two vector environments (:class:`ede.run.vector.MemberEnvs`)."""
 
     def __init__(
         self, specs: list[RunSpec], embedding: ActionEmbedding | None, device: torch.device
@@ -249,7 +245,7 @@ class _Group:
 
     def _behaviour(self, obs: np.ndarray, choosing: np.ndarray) -> torch.Tensor:
         """The codes training acts with: uniform for ``td3.start_steps`` steps, then μ(s) +
-        noise (:meth:`ede.td3.Agent.behave`)."""
+        noise (:meth:`ede.method.agent.Agent.behave`)."""
         start_steps = self.runs[0].spec.td3.start_steps
         uniform = self.buffer.count < start_steps
         return self.agent.behave(obs, choosing, uniform)
@@ -366,12 +362,12 @@ def train_group(
     notice: Callable[[str], None] = print,
 ) -> list[dict[str, Any]]:
     """Train runs of one task and algorithm that differ only in their seeds, each into its
-    ``out``, in one process: one agent with a member per run (:class:`ede.td3.Agent`), their
+    ``out``, in one process: one agent with a member per run (:class:`ede.method.agent.Agent`), their
     environments stepped in turn, their updates as one. Each member's outputs are those it gets
     alone. Members due different numbers of updates (per-episode batches of episodes that ended
     apart) are masked in the updates they are not due; members resumed from different steps
     step in turn, the ones behind first, until they are in step.
-    CPU arithmetic flushes subnormal numbers to zero throughout (:func:`ede.nets.flush_denormals`).
+    CPU arithmetic flushes subnormal numbers to zero throughout (:func:`ede.method.nets.flush_denormals`).
 
     Each resumes from its ``out/checkpoint`` when there is one (written alone or in a group).
     A checkpoint that cannot be used (:meth:`_Run.load`) is reported through ``notice`` and
@@ -384,7 +380,7 @@ def train_group(
     Raises:
         CheckpointError: a bad checkpoint under "refuse".
         CheckpointWriteError: a checkpoint could not be written; the previous one is kept
-            (:func:`ede.checkpoint.write`).
+            (:func:`ede.run.checkpoint.write`).
     """
     spec = specs[0]
     if spec.algo not in ALGOS:
@@ -533,7 +529,7 @@ def save_policy(
 ) -> None:
     """Member ``member``'s final actor: ``policy.safetensors`` (the single-network ``Actor``'s
     tensors: ``net.0.weight``, ``net.0.bias``, ..., ``centre``, ``half_range``; an
-    ``ede.nets.mlp`` of ``hidden`` loads ``net.*``) beside ``policy.json``."""
+    ``ede.method.nets.mlp`` of ``hidden`` loads ``net.*``) beside ``policy.json``."""
     write_policy(
         path,
         agent.policy(member),

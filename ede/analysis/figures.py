@@ -1,5 +1,5 @@
 """The figures of the report and the results page, drawn from numbers computed elsewhere
-(:mod:`ede.results`, :mod:`ede.probes`): learning curves with their bands, training diagnostics,
+(:mod:`ede.analysis.results`, :mod:`ede.analysis.probes`): learning curves with their bands, training diagnostics,
 the paper's Figures 6 and 7, and the performance profile across tasks.
 
 Each function returns a matplotlib :class:`~matplotlib.figure.Figure` with an Agg canvas of its
@@ -15,10 +15,10 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ede.config.values import ALGO_LABELS, Algo
-from ede.probes import EffectSpace, Exploration
-from ede.results import Profile
-from ede.stats import Band, align_curves
+from ede.analysis.probes import EffectSpace, Exploration
+from ede.analysis.results import Profile
+from ede.analysis.stats import Band, align_curves
+from ede.config import ALGO_LABELS, Algo
 
 ALGO_COLOURS: dict[Algo, str] = {"td3": "tab:blue", "ede-td3": "tab:red"}
 ALGO_STYLE: dict[str, tuple[str, str]] = {  # label and colour, by algorithm name

@@ -1,7 +1,7 @@
 """The member axis: M runs of TD3 trained as one computation, each member computing what it
 computes alone.
 
-``ede/td3.py`` writes TD3 for one member: a network is a dict of parameters named as an
+``ede/method/td3.py`` writes TD3 for one member: a network is a dict of parameters named as an
 ``nn.Sequential`` of ``nn.Linear`` layers names them (``0.weight`` ``(out, in)``, ``0.bias``
 ``(out,)``, ``2.weight``, ...), and every operation of the update acts on trailing dimensions.
 This module stacks M members on a leading axis — a parameter ``(M, out, in)``, a batch
@@ -39,7 +39,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ede.nets import to_device
+from ede.method.nets import to_device
 
 __all__ = [
     "Adam",

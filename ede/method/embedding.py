@@ -25,8 +25,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from ede.config.schema import DecoderConfig, EmbeddingConfig
-from ede.nets import initial_weights, mlp
-from ede.rollouts import Rollouts, Whitening
+from ede.io.rollouts import Rollouts, Whitening
+from ede.method.nets import initial_weights, mlp
 
 __all__ = [
     "ActionDecoder",
@@ -297,7 +297,7 @@ class ActionEmbedding(nn.Module):
     """E and D behind one face: ``encode(actions) -> z`` and ``decode(z) -> actions``, batched.
 
     ``z`` is always the whitened code, the EDE actor's action space, bounded by ``bound``. Without
-    its encoder (a published decoder alone, :func:`ede.artifacts.load_action_embedding`) it
+    its encoder (a published decoder alone, :func:`ede.run.artifacts.load_action_embedding`) it
     decodes, which is all a trained policy needs to act, and encodes nothing.
     """
 

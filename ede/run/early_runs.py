@@ -1,9 +1,9 @@
 """The runs published before ``run.json`` recorded the SHA-256 of a run's files.
 
-Every run made since commit cb5010c (2026-12-05) records them (:func:`ede.runs.write_finished`),
+Every run made since commit cb5010c (2026-12-05) records them (:func:`ede.run.runs.write_finished`),
 so that a published file edited, or one run copied as another, is refused by name. The runs
 published before (docs/results/, 122 of them) record none; each is named here by its files,
-every byte as published (:func:`ede.runs.early_run`), so that a run whose ``run.json`` has lost
+every byte as published (:func:`ede.run.runs.early_run`), so that a run whose ``run.json`` has lost
 its checksums is not read as one of them: a published run without checksums is one of these,
 unchanged, or is refused.
 """

@@ -5,12 +5,12 @@ group, so either resumes the other:
 
 * ``state.safetensors``: the member's slice of the agent (``agent.*``: networks' parameters by
   name, optimiser moments, update count, diagnostics sums, generator states;
-  :meth:`ede.td3.Agent.state_dict`, opaque here) and of the replay buffer (``buffer.*``: its filled rows and ``buffer.count``, the
-  run's environment steps; :meth:`ede.td3.ReplayBuffer.state_dict`), the code under way
+  :meth:`ede.method.agent.Agent.state_dict`, opaque here) and of the replay buffer (``buffer.*``: its filled rows and ``buffer.count``, the
+  run's environment steps; :meth:`ede.method.replay.ReplayBuffer.state_dict`), the code under way
   (``code``, ``plan``), the current episode's actions (``episode_actions``) and the observation
   their replay must reach (``obs``);
 * ``state.json``: the format version, the run's identity and fingerprint
-  (:meth:`ede.runs.RunSpec.identity`), ``step`` (equal to ``buffer.count``), ``episodes``,
+  (:meth:`ede.run.runs.RunSpec.identity`), ``step`` (equal to ``buffer.count``), ``episodes``,
   ``i`` (steps of the code executed), ``wall_seconds``, ``episode_start``, ``episode_return``,
   the evaluation ``history`` and the training ``diagnostics``;
 * ``checksums.json``: the SHA-256 of the other two.
@@ -24,30 +24,31 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import gymnasium
 import numpy as np
 import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file
 
-from ede.atomic import NotWritten, save_tensors, sha256, write_atomically
 from ede.errors import first_line
-from ede.runs import identity_difference
+from ede.io.atomic import NotWritten, save_tensors, sha256, write_atomically
+from ede.run.runs import identity_difference
+from ede.run.vector import Episode
 
 if TYPE_CHECKING:
-    from ede.runs import RunSpec
-    from ede.td3 import Agent, CodeExecutor, ReplayBuffer
+    from ede.method.agent import Agent
+    from ede.method.replay import ReplayBuffer
+    from ede.run.executor import CodeExecutor
+    from ede.run.runs import RunSpec
 
 __all__ = [
     "VERSION",
     "Checkpoint",
     "CheckpointError",
     "CheckpointWriteError",
-    "Episode",
     "Layout",
     "apply",
     "read",
@@ -78,27 +79,6 @@ class CheckpointError(Exception):
 
 class CheckpointWriteError(Exception):
     """A checkpoint could not be written (a full disk, ...); the previous one is intact."""
-
-
-@dataclass
-class Episode:
-    """The training episode under way, as a checkpoint keeps it: how it started and the actions
-    taken since, which rebuild the environment's state (:meth:`replay`)."""
-
-    start: dict[str, Any]  # {"seed": s} for the first episode, else {"rng": bit generator state}
-    actions: list[np.ndarray] = field(default_factory=list)
-    ret: float = 0.0
-
-    def replay(self, env: gymnasium.Env) -> np.ndarray:
-        """Rebuild the environment's state: the same reset, then the same actions."""
-        if "seed" in self.start:
-            obs, _ = env.reset(seed=self.start["seed"])
-        else:
-            env.unwrapped.np_random.bit_generator.state = self.start["rng"]
-            obs, _ = env.reset()
-        for action in self.actions:
-            obs, *_ = env.step(action)
-        return obs
 
 
 @dataclass(frozen=True, eq=False)

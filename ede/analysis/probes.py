@@ -1,6 +1,6 @@
 """What the report and the results page measure by running the environments themselves: the
 reference returns of every task (uniform random actions', the normalised scores' 0, and zero
-actions'), and the numbers of the paper's Figures 6 and 7 (:mod:`ede.figures` draws them)."""
+actions'), and the numbers of the paper's Figures 6 and 7 (:mod:`ede.analysis.figures` draws them)."""
 
 from __future__ import annotations
 
@@ -11,11 +11,12 @@ import gymnasium
 import numpy as np
 import torch
 
-from ede.embedding import ActionEmbedding
+from ede.method.adapters import EmbeddingAdapter, IdentityAdapter
+from ede.method.embedding import ActionEmbedding
+from ede.run.executor import CodeExecutor
+from ede.run.training import evaluate
+from ede.run.vector import MemberEnvs
 from ede.tasks import action_bounds, make, simulator
-from ede.td3 import CodeExecutor, EmbeddingAdapter, IdentityAdapter
-from ede.training import evaluate
-from ede.vector import MemberEnvs
 
 
 @dataclass
@@ -86,7 +87,7 @@ def exploration(
 ) -> Exploration:
     """Figure 7's numbers: positions over ``episodes`` episodes of uniform random raw actions, and of
     uniform random EDE codes (in [−bound, bound]^D) chosen every k steps and decoded — executed
-    as training executes codes (:class:`ede.td3.CodeExecutor`; raw actions are codes with k = 1).
+    as training executes codes (:class:`ede.run.executor.CodeExecutor`; raw actions are codes with k = 1).
 
     Coverage is the fraction of a ``cells`` × ``cells`` grid over the arena
     ([−half_width, half_width]²) that the positions visit.
@@ -122,7 +123,6 @@ def exploration(
     return Exploration(raw, ede, raw_cov, ede_cov, half_width)
 
 
-RANDOM_EPISODES = 10  # episodes of uniform random actions behind a task's normalised 0
 ZERO_EPISODES = (
     100  # episodes behind a task's zero-action return (its standard error ~10 on Reacher's)
 )
@@ -154,7 +154,7 @@ def _episode_returns(
     task: str, episodes: int, seed: int, act: Callable[[gymnasium.spaces.Box], np.ndarray]
 ) -> np.ndarray:
     """Each episode's return on ``task`` with ``act(action_space)`` as the policy, by the
-    evaluation's own loop (:func:`ede.training.evaluate`)."""
+    evaluation's own loop (:func:`ede.run.training.evaluate`)."""
     env = make(task)
     try:
         space = env.action_space

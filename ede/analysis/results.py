@@ -22,15 +22,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ede.config.schema import ReportConfig
-from ede.config.values import ALGO_LABELS
-from ede.probes import RANDOM_EPISODES
-from ede.runs import Curve
-from ede.stats import (
+from ede.analysis.stats import (
     Band,
     Divergence,
     Interval,
-    area_under_curve,
     bootstrap_mean,
     curve_band,
     divergence,
@@ -39,7 +34,11 @@ from ede.stats import (
     separation,
     steps_to_threshold,
 )
-from ede.stats import across_tasks as rliable_across_tasks
+from ede.analysis.stats import across_tasks as rliable_across_tasks
+from ede.config import ALGO_LABELS, ReportConfig
+from ede.run.runs import Curve, area_under_curve
+
+RANDOM_EPISODES = 10  # episodes of uniform random actions behind a task's normalised 0
 
 # The scores compared across tasks: each one's key in ``AcrossTasks.aggregates`` and its name,
 # and how each is read off a run's curve.

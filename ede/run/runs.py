@@ -1,6 +1,6 @@
 """A run's folder: what determines a run, the files it writes, and how they are read back.
 
-A run (task × algorithm × seed) trains into its own folder (:mod:`ede.training` writes it). This
+A run (task × algorithm × seed) trains into its own folder (:mod:`ede.run.training` writes it). This
 module is the one place that knows the folder's files:
 
 * ``eval.csv``: :data:`EVAL_COLUMNS` after every evaluation (the first at step 0);
@@ -11,11 +11,11 @@ module is the one place that knows the folder's files:
   the software, the code (commit, and whether the tree differed from it) and the machine (CPU
   model, the instruction sets that change results, torch's threads), and the SHA-256 of each of
   its result files (:data:`CHECKSUMMED`) as it wrote them (the runs published before it recorded
-  them record none: :data:`ede.early_runs.EARLY_RUNS` names each by its files);
+  them record none: :data:`ede.run.early_runs.EARLY_RUNS` names each by its files);
 * ``metrics.json``: final and best return, area under the curve, steps per second, episodes;
   written last, so a run with ``metrics.json`` is finished;
 * ``policy/``: the final actor (``policy.safetensors`` beside ``policy.json``);
-* ``checkpoint/`` while it trains (:mod:`ede.checkpoint`).
+* ``checkpoint/`` while it trains (:mod:`ede.run.checkpoint`).
 
 :func:`read_run` reads a finished run back for the report and the results page, checked against
 the identity it must have (:func:`identity_difference`, which the checkpoint uses too) and against
@@ -33,19 +33,18 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
-from safetensors import SafetensorError
-from safetensors.torch import load_file
 
-from ede.atomic import save_tensors, sha256, write_atomically, write_json, write_text
-from ede.config.schema import EdeTD3Config, TD3Config
-from ede.config.values import Algo, result_neutral
-from ede.early_runs import EARLY_RUNS
+from ede.config import Algo, EdeTD3Config, TD3Config, result_neutral
 from ede.errors import first_line
-from ede.provenance import code_version, machine, software_versions
+from ede.io.atomic import save_tensors, sha256, write_atomically, write_json, write_text
+from ede.io.provenance import code_version, machine, software_versions
+from ede.run.early_runs import EARLY_RUNS
+
+if TYPE_CHECKING:  # torch loads only where a policy is read: the results model stays free of it
+    import torch
 
 __all__ = [
     "CHECKSUMMED",
@@ -59,6 +58,7 @@ __all__ = [
     "Run",
     "RunRejected",
     "RunSpec",
+    "area_under_curve",
     "identity_difference",
     "read_policy",
     "read_run",
@@ -256,6 +256,9 @@ def read_policy(run_dir: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]
         RunRejected: no policy there (a published copy keeps none), or a file damaged or not the
             run's, naming the file.
     """
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
     policy = run_dir / POLICY
     missing = [n for n in ("policy.safetensors", "policy.json") if not (policy / n).is_file()]
     if missing:
@@ -320,6 +323,22 @@ class Curve:
     returns: np.ndarray
 
 
+def area_under_curve(steps: np.ndarray, returns: np.ndarray) -> float:
+    """Trapezoidal area under a return curve divided by the steps it spans: its mean return
+    (``metrics.json``'s ``auc``, and the results' area under the curve).
+
+    A curve of one point has that point's return; an empty one is NaN.
+    """
+    steps, returns = np.asarray(steps, dtype=float), np.asarray(returns, dtype=float)
+    if len(steps) != len(returns):
+        raise ValueError(f"{len(steps)} steps but {len(returns)} returns")
+    if len(steps) == 0:
+        return float("nan")
+    if len(steps) == 1 or steps[-1] == steps[0]:
+        return float(returns[0])
+    return float(np.trapezoid(returns, steps) / (steps[-1] - steps[0]))
+
+
 class RunRejected(ValueError):
     """A finished run's folder that must not be averaged: one line saying which file and why."""
 
@@ -353,7 +372,7 @@ def read_run(run_dir: Path, expected: dict[str, Any], published: bool = False) -
 
     A run read to be ``published`` (``experiment export``, ``results``) must record its
     checksums too, unless it is one of the runs published before runs recorded any
-    (:data:`ede.early_runs.EARLY_RUNS`), every byte as published; an EDE-TD3 run's embedding
+    (:data:`ede.run.early_runs.EARLY_RUNS`), every byte as published; an EDE-TD3 run's embedding
     must be a SHA-256 (a published folder keeps the embedding under its first characters).
 
     Raises:
@@ -429,7 +448,7 @@ def _check_files(run_dir: Path, made: dict[str, Any], published: bool) -> dict[s
         if published and early_run(found) not in EARLY_RUNS:
             raise RunRejected(
                 f"{where}: records no 'sha256' of the run's files; every run made since runs "
-                "recorded them does, and those published before are kept unchanged (ede/early_runs.py)"
+                "recorded them does, and those published before are kept unchanged (ede/run/early_runs.py)"
             )
         return found
     recorded = made["sha256"]
@@ -464,7 +483,7 @@ def _check_files(run_dir: Path, made: dict[str, Any], published: bool) -> dict[s
 
 
 def early_run(checksums: Mapping[str, str]) -> str:
-    """What :data:`ede.early_runs.EARLY_RUNS` knows a run by: the SHA-256 of the SHA-256 of each
+    """What :data:`ede.run.early_runs.EARLY_RUNS` knows a run by: the SHA-256 of the SHA-256 of each
     of its published files (:data:`PUBLISHED`, ``run.json`` included) there, by name."""
     return hashlib.sha256(json.dumps(dict(checksums), sort_keys=True).encode()).hexdigest()
 

@@ -1,6 +1,6 @@
 """A group's environments: one per member, stepped together as one gymnasium vector environment.
 
-The M members of a group (:mod:`ede.training`) each act in an environment of their own; the
+The M members of a group (:mod:`ede.run.training`) each act in an environment of their own; the
 group steps all of them with one call of a gymnasium ``VectorEnv`` — ``SyncVectorEnv`` in this
 process, or ``AsyncVectorEnv`` with a worker process per environment where there are cores to
 spare (``td3.env_workers``). Either way a member's episode is the one it has alone: its
@@ -18,6 +18,7 @@ the process that holds the environment (``restore``).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
@@ -25,10 +26,30 @@ import gymnasium
 import numpy as np
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
 
-from ede.checkpoint import Episode
 from ede.tasks import make
 
-__all__ = ["MemberEnv", "MemberEnvs"]
+__all__ = ["Episode", "MemberEnv", "MemberEnvs"]
+
+
+@dataclass
+class Episode:
+    """The training episode under way, as a checkpoint keeps it: how it started and the actions
+    taken since, which rebuild the environment's state (:meth:`replay`)."""
+
+    start: dict[str, Any]  # {"seed": s} for the first episode, else {"rng": bit generator state}
+    actions: list[np.ndarray] = field(default_factory=list)
+    ret: float = 0.0
+
+    def replay(self, env: gymnasium.Env) -> np.ndarray:
+        """Rebuild the environment's state: the same reset, then the same actions."""
+        if "seed" in self.start:
+            obs, _ = env.reset(seed=self.start["seed"])
+        else:
+            env.unwrapped.np_random.bit_generator.state = self.start["rng"]
+            obs, _ = env.reset()
+        for action in self.actions:
+            obs, *_ = env.step(action)
+        return obs
 
 
 class MemberEnv(gymnasium.Wrapper):

@@ -1,7 +1,7 @@
 """A trained policy's episodes as frames: what it does, step by step (``ede-pipeline render``).
 
 The policy acts as in its run's evaluations: deterministic μ(s), a code every k steps decoded into
-k actions (:class:`ede.td3.CodeExecutor`; TD3's code is the action, k = 1), each episode from the
+k actions (:class:`ede.run.executor.CodeExecutor`; TD3's code is the action, k = 1), each episode from the
 start its run's final evaluation used. Each step's frame is MuJoCo's offscreen rendering
 (``render_mode="rgb_array"``: ``MUJOCO_GL=egl`` or ``osmesa`` where there is no display), marked
 with the episode, its return so far and, for EDE-TD3, the steps where a code starts.
@@ -34,16 +34,18 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError, model_validator
 
-from ede.artifacts import ArtifactError, load_action_embedding
-from ede.atomic import NotWritten, writing_files
 from ede.config import ALGO_LABELS, SEED_MAX, Algo
-from ede.embedding import ActionEmbedding
 from ede.errors import first_line
-from ede.runs import RunRejected, identity_difference, read_policy
+from ede.io.atomic import NotWritten, writing_files
+from ede.method.adapters import ActionAdapter, EmbeddingAdapter, IdentityAdapter
+from ede.method.embedding import ActionEmbedding
+from ede.method.td3 import Actor
+from ede.run.artifacts import ArtifactError, load_action_embedding
+from ede.run.executor import CodeExecutor
+from ede.run.runs import RunRejected, identity_difference, read_policy
+from ede.run.training import EVAL_SEED_OFFSET
+from ede.run.vector import MemberEnvs
 from ede.tasks import make
-from ede.td3 import ActionAdapter, Actor, CodeExecutor, EmbeddingAdapter, IdentityAdapter
-from ede.training import EVAL_SEED_OFFSET
-from ede.vector import MemberEnvs
 
 CODE_MARK = (255, 196, 0)  # the bar along a frame's top where a code starts
 
@@ -61,7 +63,7 @@ class Frame(NamedTuple):
 def actor_of(
     meta: Mapping[str, Any], tensors: Mapping[str, torch.Tensor], obs_size: int
 ) -> Callable[[np.ndarray, np.ndarray], torch.Tensor]:
-    """μ of a run's final policy (:func:`ede.runs.read_policy`), as :class:`CodeExecutor` calls
+    """μ of a run's final policy (:func:`ede.run.runs.read_policy`), as :class:`CodeExecutor` calls
     a policy: observations ``(M, O)`` to codes ``(M, C)``."""
     low, high = (torch.tensor(meta[key], dtype=torch.float32) for key in ("code_low", "code_high"))
     actor = Actor(obs_size, low, high, list(meta["hidden"]))
@@ -148,11 +150,11 @@ def annotate(frame: Frame, k: int, label: str) -> np.ndarray:
     return np.asarray(image)
 
 
-# What follows plays a run's final policy (``policy/``, :func:`ede.runs.read_policy`) into frames
+# What follows plays a run's final policy (``policy/``, :func:`ede.run.runs.read_policy`) into frames
 # and encodes them: the library of ``ede-pipeline render``, the report's clips and the results
 # pages' clips. Its refusals are :class:`PolicyRejected` (the commands' bad input) and
 # :class:`NoOffscreenGL` (a failure of the machine); a video that cannot be written whole is
-# :class:`ede.atomic.NotWritten`.
+# :class:`ede.io.atomic.NotWritten`.
 
 
 class PolicyRejected(ValueError):
@@ -165,7 +167,7 @@ class NoOffscreenGL(RuntimeError):
     to install."""
 
 
-VIDEO_KIND = "video"  # what a video's mark says made it (ede.atomic.writing_files)
+VIDEO_KIND = "video"  # what a video's mark says made it (ede.io.atomic.writing_files)
 FORMATS = (".mp4", ".gif")
 
 # The most frames one video holds. An MP4's frames go to the encoder as they are made, so its
@@ -182,13 +184,13 @@ MAX_FRAMES = {".mp4": 10_000, ".gif": 1_000}
 # A disk with less room than this is full for a video (ffmpeg writes in blocks of 256 KiB).
 FULL = 2**20
 
-# The keys of a run's identity (ede.runs.RunSpec.identity) that say which run a policy is and how
+# The keys of a run's identity (ede.run.runs.RunSpec.identity) that say which run a policy is and how
 # it acts: a policy is its run's where those its policy.json and its run.json both hold agree.
 IDENTITY = ("task", "algo", "seed", "embedding")
 
 
 class PolicyMeta(BaseModel):
-    """What ``policy.json`` says of its actor (:func:`ede.training.save_policy`), as rendering
+    """What ``policy.json`` says of its actor (:func:`ede.run.training.save_policy`), as rendering
     reads it; its other keys (the run's identity) are checked against ``run.json``."""
 
     model_config = ConfigDict(extra="allow")
@@ -220,7 +222,7 @@ class PolicyMeta(BaseModel):
 
 
 def policy_of(run: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
-    """The run's final policy (:func:`ede.runs.read_policy`), checked to be one this command can
+    """The run's final policy (:func:`ede.run.runs.read_policy`), checked to be one this command can
     play: ``policy.json`` describes an actor, of the run its ``run.json`` describes, and
     ``policy.safetensors`` holds that actor's tensors, each of its shape.
 
@@ -246,7 +248,11 @@ def policy_of(run: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
             raise PolicyRejected(
                 f"{described}: not the policy of the run its run.json describes ({difference})"
             )
-    sizes = [observation_size(checked.task), *checked.hidden, checked.code_size]  # ede.td3.Actor's
+    sizes = [
+        observation_size(checked.task),
+        *checked.hidden,
+        checked.code_size,
+    ]  # ede.method.td3.Actor's
     wanted = {
         f"net.{2 * j}.{part}": (n_out, n_in) if part == "weight" else (n_out,)
         for j, (n_in, n_out) in enumerate(pairwise(sizes))

@@ -1,0 +1,1 @@
+"""What the runs say: statistics, the results model, probes, figures and video."""
