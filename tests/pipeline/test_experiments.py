@@ -534,7 +534,7 @@ def test_an_experiments_tools_run_the_code_of_its_working_copy(
         (workspace / folder).resolve() for folder in ("ede", "envs", "pipeline")
     ]
     assert code == {"commit": head, "modified": False}
-    (workspace / "ede" / "nets.py").write_text("# edited\n", encoding="utf-8")
+    (workspace / "ede" / "method" / "nets.py").write_text("# edited\n", encoding="utf-8")
     assert run_tool(workspace, "python", "-c", show) == 0
     assert json.loads(capfd.readouterr().out.strip().splitlines()[-1])[1]["modified"] is True
 
