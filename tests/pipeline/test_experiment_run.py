@@ -143,7 +143,9 @@ def test_a_killed_experiment_resumes_is_recorded_and_exports_its_runs(repo: Path
     # The workspace keeps this checkout's params and code; the experiment's changes on top.
     params = yaml.safe_load((workspace / "params.yaml").read_text())
     assert params["runs"]["seeds"] == [0, 1] and params["runs"]["algos"] == ["td3"]
-    assert (workspace / "ede" / "td3.py").read_bytes() == (repo / "ede" / "td3.py").read_bytes()
+    assert (workspace / "ede" / "method" / "td3.py").read_bytes() == (
+        repo / "ede" / "method" / "td3.py"
+    ).read_bytes()
 
     listed = dvc(repo, "exp", "show", "--json")
     assert listed.returncode == 0, listed.stderr
@@ -254,7 +256,7 @@ def test_a_changed_code_keeps_finished_runs_unless_told(tmp_path: Path) -> None:
     workspace = repo / ".dvc" / "tmp" / "experiments" / "one-seed"
     finished = workspace / "data" / "runs" / TASK / "td3" / "seed0"
     made = (finished / "metrics.json").read_bytes()
-    code = repo / "ede" / "td3.py"
+    code = repo / "ede" / "method" / "td3.py"
     original = code.read_bytes()
     code.write_bytes(original + b"\n# edited after the run\n")  # not committed: it counts
     params = repo / "params.yaml"
@@ -268,13 +270,13 @@ def test_a_changed_code_keeps_finished_runs_unless_told(tmp_path: Path) -> None:
         "(ede/method/td3.py), and DVC would run them (1) again; --keep-code "
     ), refused.stderr
     assert len(refused.stderr.strip().splitlines()) == 1, refused.stderr
-    assert (workspace / "ede" / "td3.py").read_bytes() == original
+    assert (workspace / "ede" / "method" / "td3.py").read_bytes() == original
     assert (finished / "metrics.json").read_bytes() == made
 
     kept = ok(experiment(repo, "run", "one-seed", "--keep-code", "--jobs", "1"))
     assert re.search(r"sweep: 0 of \d+ stages out of date", kept), kept[-3000:]
     assert "this checkout's params.yaml differs from its commit's (td3.lr) and is not used" in kept
-    assert (workspace / "ede" / "td3.py").read_bytes() == original
+    assert (workspace / "ede" / "method" / "td3.py").read_bytes() == original
     assert (finished / "metrics.json").read_bytes() == made
 
     again = ok(
@@ -283,7 +285,7 @@ def test_a_changed_code_keeps_finished_runs_unless_told(tmp_path: Path) -> None:
     assert "is not used" not in again
     # The run, and the report made from it.
     assert re.search(r"sweep: 2 of \d+ stages out of date", again), again[-3000:]
-    assert (workspace / "ede" / "td3.py").read_bytes() == code.read_bytes()
+    assert (workspace / "ede" / "method" / "td3.py").read_bytes() == code.read_bytes()
     assert json.loads((finished / "run.json").read_text())["params"]["td3"]["lr"] == 0.005
     assert json.loads((finished / "run.json").read_text())["code"]["modified"] is True
 
