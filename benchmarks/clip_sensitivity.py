@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ede.analysis.video import adapter_of, frames_of, trained_embedding
+from ede.analysis.policy import adapter_of, trained_embedding
+from ede.analysis.video import frames_of
 from ede.config import ALGOS, load_params
 from ede.run.runs import POLICY, read_policy
 from ede_pipeline import layout

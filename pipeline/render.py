@@ -33,18 +33,15 @@ from pathlib import Path
 import click
 import numpy as np
 
+from ede.analysis.policy import PolicyRejected, adapter_of, policy_of, trained_embedding
 from ede.analysis.video import (
     FORMATS,
     MAX_FRAMES,
     VIDEO_KIND,
     NoOffscreenGL,
-    PolicyRejected,
-    adapter_of,
     episode_steps,
     fps_of,
     frames_of,
-    policy_of,
-    trained_embedding,
     write_video,
 )
 from ede.config import Params

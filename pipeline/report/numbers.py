@@ -13,10 +13,11 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from ede.analysis.policy import PolicyRejected
 from ede.analysis.probes import random_policy_return
 from ede.analysis.results import RANDOM_EPISODES, SCORES, AcrossTasks, Arm, across_tasks, arm, fresh
 from ede.analysis.stats import Band, curve_band
-from ede.analysis.video import NoOffscreenGL, PolicyRejected, fps_of, side_by_side, video_bytes
+from ede.analysis.video import NoOffscreenGL, fps_of, side_by_side, video_bytes
 from ede.config import Params
 from ede.run.runs import Curve
 from ede_pipeline import layout

@@ -17,14 +17,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ede.analysis.video import (
-    NoOffscreenGL,
-    PolicyRejected,
-    fps_of,
-    policy_of,
-    side_by_side,
-    trained_embedding,
-)
+from ede.analysis.policy import PolicyRejected, policy_of, trained_embedding
+from ede.analysis.video import NoOffscreenGL, fps_of, side_by_side
 from ede.config import ALGO_LABELS, ALGOS, Params
 from ede.io.atomic import NotWritten
 from ede.run.runs import POLICY
