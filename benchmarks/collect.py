@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ede.io.rollouts import collect, write_store
+from ede.io.rollouts import write_store
+from ede.run.collect import collect
 from ede.tasks import action_bounds, make
 
 

@@ -20,9 +20,10 @@ import numpy as np
 import torch
 
 from ede.config import load_params
-from ede.io.rollouts import Rollouts, collect, write_store
+from ede.io.rollouts import Rollouts, write_store
 from ede.method.embedding import train_decoder, train_encoder
 from ede.method.nets import mlp
+from ede.run.collect import collect
 
 
 def reference_epoch(rollouts: Rollouts, k: int, hidden: list[int], batch_size: int) -> float:

@@ -13,7 +13,7 @@ from ede.config import Params, episode_length
 from ede.io.provenance import software_versions
 from ede.io.rollouts import KIND as ROLLOUTS
 from ede.io.rollouts import Rollouts, RolloutsError, state_source, write_store
-from ede.io.rollouts import collect as collect_steps
+from ede.run.collect import collect as collect_steps
 from ede.tasks import action_bounds, make
 from ede_pipeline import layout
 from ede_pipeline.common import (

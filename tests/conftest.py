@@ -54,7 +54,8 @@ def write_params(tmp_path: Path, committed_params: dict[str, Any]) -> Callable[.
 @pytest.fixture(scope="session")
 def point_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A small rollouts store of ``ede/Point-v0`` (40 episodes), written once per session."""
-    from ede.io.rollouts import collect, write_store
+    from ede.io.rollouts import write_store
+    from ede.run.collect import collect
 
     path = tmp_path_factory.mktemp("point") / "rollouts.zarr"
     arrays = collect("ede/Point-v0", steps=4_000, num_envs=1, seed=0, workers=1)

@@ -22,8 +22,9 @@ from ede.config import (
     TD3Config,
     load_params,
 )
-from ede.io.rollouts import Rollouts, collect
+from ede.io.rollouts import Rollouts
 from ede.method.embedding import train_decoder, train_encoder
+from ede.run.collect import collect
 from ede.run.runs import RunSpec
 from ede.run.training import train_run
 from ede_pipeline.cli import main

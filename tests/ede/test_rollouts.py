@@ -14,11 +14,11 @@ from ede.io.rollouts import (
     COLLECTOR_VERSION,
     Rollouts,
     RolloutsError,
-    collect,
     state_of,
     state_source,
     write_store,
 )
+from ede.run.collect import collect
 from ede.tasks import action_bounds, make, simulator
 
 ATTRS = {
