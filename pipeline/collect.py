@@ -14,6 +14,7 @@ from ede.io.provenance import software_versions
 from ede.io.rollouts import KIND as ROLLOUTS
 from ede.io.rollouts import Rollouts, RolloutsError, state_source, write_store
 from ede.run.collect import collect as collect_steps
+from ede.run.collect import row_bytes
 from ede.tasks import action_bounds, make
 from ede_pipeline import layout
 from ede_pipeline.common import (
@@ -45,7 +46,7 @@ def collect(params: Params, family: str, out: Path | None, workers: int | None) 
     env_id = params.families[family].source
     config = params.collect
     num_envs = config.num_envs or default_num_envs(config.steps, episode_length(env_id))
-    check_collect_memory(env_id, config.steps, config.seed)
+    check_collect_memory(env_id, config.steps)
     with holding((out, ROLLOUTS)), progress(config.steps, f"collect {family}") as advance:
         arrays = collect_steps(
             env_id, config.steps, num_envs, config.seed, workers, advance, config.saturated_episodes
@@ -54,16 +55,16 @@ def collect(params: Params, family: str, out: Path | None, workers: int | None) 
     click.echo(f"{out}: {len(arrays['reward'])} steps, {int(arrays['episode'][-1]) + 1} episodes")
 
 
-def check_collect_memory(env_id: str, steps: int, seed: int) -> None:
+def check_collect_memory(env_id: str, steps: int) -> None:
     """Refuse more steps than this machine can hold, before any work: collect keeps every
-    episode's rows, then their concatenation (twice the store's rows), measured on one episode;
-    pretrain loads the store whole again.
+    episode's rows, then their concatenation (twice the store's rows), a row's size read from the
+    task's spaces and state (:func:`ede.run.collect.row_bytes`, no episode stepped); pretrain loads
+    the store whole again.
 
     Raises:
         BadInput: naming the key, the steps, the memory they need and what is available.
     """
-    one = collect_steps(env_id, 1, 1, seed, workers=1)  # one episode, at least one step
-    row = sum(array.nbytes for array in one.values()) // len(one["reward"])
+    row = row_bytes(env_id)
     need, free = 2 * steps * row, available_memory()
     if need > USABLE_SHARE * free:
         raise BadInput(

@@ -23,9 +23,9 @@ from gymnasium.spaces import Box
 
 import ede_envs
 from ede.io.rollouts import ARRAYS, state_of, state_source
-from ede.tasks import unusable
+from ede.tasks import make, unusable
 
-__all__ = ["collect"]
+__all__ = ["collect", "row_bytes"]
 
 
 @dataclass(frozen=True)
@@ -229,10 +229,30 @@ def collect(
     return _concatenate([episode for episodes in per_job for episode in episodes])
 
 
+# The dtypes of the columns :func:`_concatenate` makes; an observation and an action keep their
+# spaces' dtypes, and a state is float64 (:func:`ede.io.rollouts.state_of`).
+_COUNTED = {"reward": np.float64, "episode": np.int64, "t": np.int32}
+
+
 def _concatenate(episodes: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
     lengths = np.array([len(e["reward"]) for e in episodes])
     arrays = {key: np.concatenate([e[key] for e in episodes]) for key in episodes[0]}
-    arrays["episode"] = np.repeat(np.arange(len(episodes), dtype=np.int64), lengths)
-    arrays["t"] = np.concatenate([np.arange(n, dtype=np.int32) for n in lengths])
-    arrays["reward"] = arrays["reward"].astype(np.float64)
+    arrays["episode"] = np.repeat(np.arange(len(episodes), dtype=_COUNTED["episode"]), lengths)
+    arrays["t"] = np.concatenate([np.arange(n, dtype=_COUNTED["t"]) for n in lengths])
+    arrays["reward"] = arrays["reward"].astype(_COUNTED["reward"])
     return {key: arrays[key] for key in ARRAYS}
+
+
+def row_bytes(env_id: str) -> int:
+    """The bytes of one row (one step) of what :func:`collect` returns for ``env_id``, read from
+    its spaces and from its state after one reset, without taking a step."""
+    env = make(env_id)
+    try:
+        obs, _ = env.reset(seed=0)
+        state = state_of(env, obs)
+        observation, action = env.observation_space, env.action_space
+    finally:
+        env.close()
+    assert isinstance(observation, Box) and isinstance(action, Box)  # or unusable (ede.tasks)
+    vectors = sum(space.dtype.itemsize * space.shape[0] for space in (observation, action))
+    return vectors + state.nbytes + sum(np.dtype(dtype).itemsize for dtype in _COUNTED.values())

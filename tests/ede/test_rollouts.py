@@ -18,7 +18,7 @@ from ede.io.rollouts import (
     state_source,
     write_store,
 )
-from ede.run.collect import collect
+from ede.run.collect import collect, row_bytes
 from ede.tasks import action_bounds, make, simulator
 
 ATTRS = {
@@ -150,6 +150,15 @@ def test_saturated_episodes_are_bang_bang_and_chosen_episode_by_episode() -> Non
     assert np.all((everything == low) | (everything == high))
     with pytest.raises(ValueError, match=r"saturated is a share of episodes in \[0, 1\], got 1\.5"):
         collect("ede/Point-v0", 200, 1, seed=0, workers=1, saturated=1.5)
+
+
+@pytest.mark.parametrize("env_id", ["ede/Pusher-v0", "Pendulum-v1"])
+def test_a_rows_size_read_from_the_spaces_is_what_collect_records_a_step(env_id: str) -> None:
+    """The collect stage sizes its memory check by :func:`row_bytes`, stepping nothing: a task
+    whose state is its physics (22 values beside 23 observed) and one whose float32 observation
+    is its float64 state."""
+    arrays = collect(env_id, steps=1, num_envs=1, seed=0, workers=1)  # one whole episode
+    assert row_bytes(env_id) * len(arrays["reward"]) == sum(a.nbytes for a in arrays.values())
 
 
 @pytest.mark.parametrize("k", [1, 2, 4])
