@@ -33,5 +33,6 @@ what DVC holds.
 
 The package: :mod:`.workspace` (an experiment's file, params and working copy),
 :mod:`.command` (``experiment list`` and ``experiment run``), :mod:`.export` (``experiment
-export``) and :mod:`.show` (``experiment show``).
+export``; what it publishes, checked: :mod:`.export_plan`; the writing, all or nothing:
+:mod:`.export_write`) and :mod:`.show` (``experiment show``).
 """

@@ -21,12 +21,14 @@ from ede.analysis.stats import Band
 from ede.analysis.video import VIDEO_KIND, write_video
 from ede.config import ALGOS, Params
 from ede.io.atomic import write_text, writing_files
+from ede.run.runs import Curve
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput, hold, hold_outputs, params_option
 from ede_pipeline.published import TaskRuns, read_ablations, read_runs
 from ede_pipeline.results.clips import CLIP, clips, refused
 from ede_pipeline.results.pages import fill_pages, read_pages
 from ede_pipeline.results.sections import (
+    Glance,
     Section,
     ablation_sections,
     across_section,
@@ -61,6 +63,15 @@ class Drawn(NamedTuple):
     sections: list[Section]
     figures: dict[str, Figure]
 
+    def figure(self, name: str, made: Figure, figures: Path) -> None:
+        """``made`` as figure ``name``, and a line where it stands saying where it goes (the
+        folder ``figures``)."""
+        self.figures[name] = made
+        self.sections.append(Section(None, f"Figure: {figures / f'{name}.png'}\n"))
+
+
+Curves = dict[tuple[str, str], list[Curve]]  # each (task, algorithm)'s runs
+
 
 def draw(params: Params, runs: Path, bins: int, ablations: Path, figures: Path) -> Drawn:
     """Read and check the runs in ``runs`` (and the fidelity ablations in ``ablations``, where
@@ -68,28 +79,34 @@ def draw(params: Params, runs: Path, bins: int, ablations: Path, figures: Path) 
     figure; the aggregates across tasks and the performance profile; the tasks at a glance; per
     ablation its sections and, run with both algorithms, its figure (``figures`` is where the
     sections say the figures go). Nothing is written."""
-    report = params.report
     families = read_runs(runs, params)
     found_ablations = read_ablations(ablations, runs) if ablations.is_dir() else []
     curves_of = {
         family: {(f.task, a): c for f in found for a, c in f.curves.items()}
         for family, found in families.items()
     }
-    both = {
-        task
-        for curves in curves_of.values()
-        for (task, _) in curves
-        if all((task, a) in curves for a in ALGOS)
-    }
     refs = references([f.task for found in families.values() for f in found], params)
-    lows = {task: refs[task][0] for task in both}
     planned = {f.task: f.source.seeds for found in families.values() for f in found}
     drawn = Drawn([], {})
+    glance = _families(drawn, families, curves_of, refs, bins, params, figures)
+    _across_tasks(drawn, curves_of, refs, planned, params)
+    if glance:
+        drawn.sections.append(at_a_glance(glance, params.report.confidence))
+    _ablations(drawn, found_ablations, bins, params, figures)
+    return drawn
 
-    def figure(name: str, made: Figure) -> None:
-        drawn.figures[name] = made
-        drawn.sections.append(Section(None, f"Figure: {figures / f'{name}.png'}\n"))
 
+def _families(
+    drawn: Drawn,
+    families: dict[str, list[TaskRuns]],
+    curves_of: dict[str, Curves],
+    refs: dict[str, tuple[float, float, float]],
+    bins: int,
+    params: Params,
+    figures: Path,
+) -> list[Glance]:
+    """Per family, each task's section and the family's figure, added to ``drawn``; the rows at
+    a glance of its tasks with runs of both algorithms."""
     glance = []
     for family, found in families.items():
         source = params.families[family].source if family in params.families else found[0].task
@@ -112,10 +129,17 @@ def draw(params: Params, runs: Path, bins: int, ablations: Path, figures: Path) 
             [f.task for f in found],
             bands,
             {key: len(runs) for key, runs in curves_of[family].items()},
-            report.confidence,
+            params.report.confidence,
             {f.task: f.budget / bins for f in found},
         )
-        figure(family, made)
+        drawn.figure(family, made, figures)
+    return glance
+
+
+def _aggregated(curves_of: dict[str, Curves], params: Params) -> list[tuple[str, Curves]]:
+    """The sets of runs aggregated across tasks, each with its title: each family's; the
+    paper's tasks, where other families' are beside them; the transfer tasks; every task, where
+    there is more than one family."""
     everything = {key: c for curves in curves_of.values() for key, c in curves.items()}
     sets = [(f"the {family} family", curves) for family, curves in curves_of.items()]
     paper = [family for family in curves_of if family in params.families]
@@ -126,7 +150,28 @@ def draw(params: Params, runs: Path, bins: int, ablations: Path, figures: Path) 
     transfer = {k: c for f in paper for k, c in curves_of[f].items() if k[0] in targets}
     if len({task for task, _ in transfer}) > 1:
         sets.append(("the transfer tasks", transfer))
-    for title, curves in sets + [("every task", everything)] * (len(curves_of) > 1):
+    return sets + [("every task", everything)] * (len(curves_of) > 1)
+
+
+def _across_tasks(
+    drawn: Drawn,
+    curves_of: dict[str, Curves],
+    refs: dict[str, tuple[float, float, float]],
+    planned: dict[str, list[int]],
+    params: Params,
+) -> None:
+    """Each set's aggregates across tasks (:func:`_aggregated`: of its tasks with every planned
+    run of both algorithms finished) and the performance profile of every task's, added to
+    ``drawn``."""
+    report = params.report
+    both = {
+        task
+        for curves in curves_of.values()
+        for (task, _) in curves
+        if all((task, a) in curves for a in ALGOS)
+    }
+    lows = {task: refs[task][0] for task in both}
+    for title, curves in _aggregated(curves_of, params):
         tasks, waiting = complete_tasks(curves, both, planned)
         aggregates = across_tasks(
             curves,
@@ -142,10 +187,19 @@ def draw(params: Params, runs: Path, bins: int, ablations: Path, figures: Path) 
                 drawn.figures["performance-profile"] = performance_profile(
                     profile, len(aggregates.tasks), aggregates.runs
                 )
-    if glance:
-        drawn.sections.append(at_a_glance(glance, params.report.confidence))
+
+
+def _ablations(
+    drawn: Drawn,
+    found: list[tuple[str, TaskRuns, TaskRuns]],
+    bins: int,
+    params: Params,
+    figures: Path,
+) -> None:
+    """Per fidelity ablation its sections, and the figure of each variant run with both
+    algorithms, added to ``drawn``."""
     kept: dict[str, list[tuple[TaskRuns, dict[str, Band]]]] = {}
-    for variant, ours, theirs in found_ablations:
+    for variant, ours, theirs in found:
         sections, variant_bands = ablation_sections(variant, ours, theirs, bins, params)
         drawn.sections.extend(sections)
         if set(ours.curves) == set(ALGOS):  # both algorithms: drawn as a family is
@@ -156,12 +210,11 @@ def draw(params: Params, runs: Path, bins: int, ablations: Path, figures: Path) 
             [k.task for k, _ in variant_runs],
             {(k.task, a): band for k, bands in variant_runs for a, band in bands.items()},
             {(k.task, a): len(c) for k, _ in variant_runs for a, c in k.curves.items()},
-            report.confidence,
+            params.report.confidence,
             {k.task: k.budget / bins for k, _ in variant_runs},
             title=f"the {variant} variant (a fidelity ablation)",
         )
-        figure(f"ablation-{variant}", made)
-    return drawn
+        drawn.figure(f"ablation-{variant}", made, figures)
 
 
 def save_figures(figures: Path, drawn: dict[str, Figure]) -> None:

@@ -127,15 +127,7 @@ def task_section(
     reach each of its ``thresholds``; the disjoint bins; per seed, whether it diverged. And each
     algorithm's band, for the family's figure, and, with runs of both, its row at a glance.
     ``paper_budget`` is None beyond the paper."""
-    budget, width = found.budget, found.budget / bins
-    if paper_budget is None:
-        origin = f"{family} family, its own (beyond the paper). {budget:,} steps a run"
-    else:
-        role = "the family's source task" if found.task == source else "transferred"
-        origin = (
-            f"{family} family, embedding learned on {source} ({role}). {budget:,} steps a "
-            f"run, {budget / paper_budget:.1%} of the paper's {paper_budget:,}"
-        )
+    width = found.budget / bins
     arms = {
         ALGO_LABELS[a]: (runs, seed_list([c.seed for c in runs]))
         for a, runs in found.curves.items()
@@ -145,7 +137,8 @@ def task_section(
     lines = [
         f"### {found.task}",
         "",
-        f"{origin}; {found.source.made_at()}; curves binned per {width:,.0f} steps."
+        f"{_origin(found, family, source, paper_budget)}; {found.source.made_at()}; curves "
+        f"binned per {width:,.0f} steps."
         + (f" Its embedding, held out: {found.embedding}." if found.embedding else "")
         + f" References: uniform random actions {refs[0]:.4g} ({RANDOM_EPISODES} episodes), "
         f"zero actions {refs[1]:.4g} ± {refs[2]:.2g} ({ZERO_EPISODES} episodes, ± standard error).",
@@ -157,37 +150,72 @@ def task_section(
     ]
     glance = None
     if len(arms) == 2:
-        labels = (ALGO_LABELS["ede-td3"], ALGO_LABELS["td3"])
-        lines += disjoint_bins(stats, labels, width, params.report.confidence)
-        report = params.report
-        improvement = improvement_on_task(
-            found.curves["ede-td3"],
-            found.curves["td3"],
-            report.confidence,
-            report.bootstrap_samples,
-            report.seed,
-        )
-        lines += [
-            "P(EDE-TD3 > TD3) over this task's seeds (rliable, as the aggregates across tasks): "
-            + " and ".join(f"{improvement[s]} on the {label}" for s, label in SCORES.items())
-            + ".",
-            "",
-        ]
-        sign = disjoint(*(stats[label] for label in labels))
-        diverged = [d for d in by_algo["td3"].divergence if d is not None]
-        glance = Glance(
-            found.task,
-            f"{budget:,}"
-            + (f" ({budget / paper_budget:.1%} of the paper's)" if paper_budget else " (its own)"),
-            seed_list(sorted({c.seed for runs in found.curves.values() for c in runs})),
-            {label: str(stats[label].final) for label in labels},
-            {score: str(interval) for score, interval in improvement.items()},
-            (0, 0, 0)
-            if sign is None
-            else (int((sign > 0).sum()), int((sign < 0).sum()), len(sign)),
-            f"{sum(d.diverged for d in diverged)} of {len(diverged)}",
-        )
+        compared, glance = _ede_against_td3(found, stats, width, paper_budget, params)
+        lines += compared
+    lines += _divergence(by_algo)
+    bands = {algo: found.band for algo, found in by_algo.items() if found.band is not None}
+    return Section(found.task, "\n".join(lines) + "\n"), bands, glance
+
+
+def _origin(found: TaskRuns, family: str, source: str, paper_budget: int | None) -> str:
+    """Where a task's runs come from: its family, where its embedding was learned, and its
+    budget against the paper's (``paper_budget``; None beyond the paper)."""
+    budget = found.budget
+    if paper_budget is None:
+        return f"{family} family, its own (beyond the paper). {budget:,} steps a run"
+    role = "the family's source task" if found.task == source else "transferred"
+    return (
+        f"{family} family, embedding learned on {source} ({role}). {budget:,} steps a "
+        f"run, {budget / paper_budget:.1%} of the paper's {paper_budget:,}"
+    )
+
+
+def _ede_against_td3(
+    found: TaskRuns,
+    stats: dict[str, Arm],
+    width: float,
+    paper_budget: int | None,
+    params: Params,
+) -> tuple[list[str], Glance]:
+    """A task with runs of both algorithms: the lines setting EDE-TD3 against TD3 (the bins
+    where their intervals are disjoint, the probability of improvement over its seeds), and its
+    row at a glance."""
+    labels = (ALGO_LABELS["ede-td3"], ALGO_LABELS["td3"])
+    lines = disjoint_bins(stats, labels, width, params.report.confidence)
+    report = params.report
+    improvement = improvement_on_task(
+        found.curves["ede-td3"],
+        found.curves["td3"],
+        report.confidence,
+        report.bootstrap_samples,
+        report.seed,
+    )
     lines += [
+        "P(EDE-TD3 > TD3) over this task's seeds (rliable, as the aggregates across tasks): "
+        + " and ".join(f"{improvement[s]} on the {label}" for s, label in SCORES.items())
+        + ".",
+        "",
+    ]
+    sign = disjoint(*(stats[label] for label in labels))
+    diverged = [d for d in stats[ALGO_LABELS["td3"]].divergence if d is not None]
+    budget = found.budget
+    glance = Glance(
+        found.task,
+        f"{budget:,}"
+        + (f" ({budget / paper_budget:.1%} of the paper's)" if paper_budget else " (its own)"),
+        seed_list(sorted({c.seed for runs in found.curves.values() for c in runs})),
+        {label: str(stats[label].final) for label in labels},
+        {score: str(interval) for score, interval in improvement.items()},
+        (0, 0, 0) if sign is None else (int((sign > 0).sum()), int((sign < 0).sum()), len(sign)),
+        f"{sum(d.diverged for d in diverged)} of {len(diverged)}",
+    )
+    return lines, glance
+
+
+def _divergence(by_algo: dict[str, Arm]) -> list[str]:
+    """Whether each algorithm's runs diverged: the last quarter's mean over seeds, and per seed
+    its first bin, its best before the last quarter and its last quarter."""
+    lines = [
         "The last quarter's mean over seeds (each seed's in the table below; the asymptote, as "
         "far as this budget shows it): "
         + ", ".join(
@@ -208,8 +236,7 @@ def task_section(
                 else f"| {ALGO_LABELS[algo]} | {seed} | {d.first:.1f} | {d.best:.1f} at "
                 f"{d.best_step / 1000:g}K | {d.tail:.1f} | {'**yes**' if d.diverged else 'no'} |"
             )
-    bands = {algo: found.band for algo, found in by_algo.items() if found.band is not None}
-    return Section(found.task, "\n".join(lines) + "\n"), bands, glance
+    return lines
 
 
 def complete_tasks(
