@@ -17,7 +17,7 @@ import pytest
 from click.testing import CliRunner, Result
 
 from ede.io.provenance import code_version, machine, software_versions
-from ede.run.training import EVAL_SEED_OFFSET
+from ede.run.evaluation import EVAL_SEED_OFFSET
 from ede.tasks import make
 from ede_pipeline.cli import main
 from ede_pipeline.progress import PROGRESS_ENV, read_progress
