@@ -1,6 +1,7 @@
-"""How a run is evaluated: its deterministic policy μ(s), ``td3.eval_episodes`` episodes in
-each member's evaluation environment, seeded apart from its training episodes
-(:data:`EVAL_SEED_OFFSET`). The probes of the analysis and the videos play policies the same way.
+"""How a run is evaluated: its deterministic policy μ(s), ``td3.eval_episodes`` episodes in each
+member's evaluation environment, seeded apart from its training episodes (episode e of seed s
+resets with ``EVAL_SEED_OFFSET·(s+1) + e``, :meth:`ede.run.group.Group.evaluate`). The probes of
+the analysis and the videos play policies the same way.
 """
 
 from __future__ import annotations
