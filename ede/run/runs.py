@@ -12,8 +12,9 @@ A run (task × algorithm × seed, :class:`ede.run.spec.RunSpec`) trains into its
   machine (CPU model, the instruction sets that change results, torch's threads), and the SHA-256
   of each of its result files (:data:`CHECKSUMMED`) as it wrote them (the runs published before it
   recorded them record none: :data:`ede.run.early_runs.EARLY_RUNS` names each by its files);
-* ``metrics.json``: final and best return, area under the curve, steps per second, episodes;
-  written last, so a run with ``metrics.json`` is finished;
+* ``metrics.json``: final and best return, area under the curve, steps per second (of the last
+  session and of the whole run), episodes, the step the last session resumed from; written last,
+  so a run with ``metrics.json`` is finished;
 * ``policy/``: the final actor (``policy.safetensors`` beside ``policy.json``);
 * ``checkpoint/`` while it trains (:mod:`ede.run.checkpoint`).
 

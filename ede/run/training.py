@@ -212,7 +212,9 @@ class _Session:
         return f"{self.run.failed}; stopped there, no metrics.json written; {last}"
 
     def finish(self, keep_checkpoint: bool) -> dict[str, Any]:
-        """The run's final outputs; ``metrics.json`` last."""
+        """The run's final outputs; ``metrics.json`` last: its steps per second are this
+        session's (``steps_per_second``, from ``resumed_from_step``) and the whole run's
+        (``whole_run_steps_per_second``)."""
         run, out, spec = self.run, self.out, self.run.spec
         self.clock()
         write_curves(out, run.history, run.diagnostics)
@@ -220,11 +222,16 @@ class _Session:
         returns = np.array([row["mean_return"] for row in run.history])
         session_steps = run.step - self.steps_at_start
         session_seconds = time.perf_counter() - self.started
+        # The run's wall time: every session's up to the checkpoint the next one resumed from
+        # (checkpointed with it), and this one's; a killed session's time after its last
+        # checkpoint is not counted, as its steps are not: they are taken again.
+        run_seconds = self.wall_at_start + session_seconds
         metrics = {
             "final_return": float(returns[-1]),
             "best_return": float(returns.max()),
             "auc": area_under_curve(steps, returns),
             "steps_per_second": session_steps / session_seconds if session_steps else None,
+            "whole_run_steps_per_second": run.step / run_seconds,
             "episodes": run.episodes,
             "resumed_from_step": self.steps_at_start if self.resumed else None,
         }
