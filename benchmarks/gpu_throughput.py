@@ -98,7 +98,7 @@ def group(args: tuple[Row, str, bool, int, str, int]) -> float:
     """One process's group: its members' environment steps per second, timed."""
     row, device, tiny, steps, compile, warmup = args
     from ede.config import EdeTD3Config
-    from ede.run.runs import RunSpec
+    from ede.run.spec import RunSpec
     from ede.run.training import train_group
 
     torch.set_num_threads(1)

@@ -56,7 +56,7 @@ def measure(algo: Algo, members: int, steps: int, whole: bool = False) -> dict[s
     the group's aggregate steps per second (with ``whole``, the update on: a whole run's)."""
     from ede.config import EdeTD3Config, TD3Config
     from ede.method.agent import Agent
-    from ede.run.runs import RunSpec
+    from ede.run.spec import RunSpec
     from ede.run.training import train_group
     from ede.tasks import make
 

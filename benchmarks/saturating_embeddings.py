@@ -35,7 +35,7 @@ import yaml
 from through_embedding import at_bound, episode, load_actor
 
 from ede.run.artifacts import load_action_embedding
-from ede.run.training import EVAL_SEED_OFFSET
+from ede.run.evaluation import EVAL_SEED_OFFSET
 from ede.tasks import action_bounds, make, observation_size
 from ede_pipeline.experiments.workspace import experiment_params
 

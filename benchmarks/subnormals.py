@@ -27,8 +27,8 @@ from ede.method.agent import Agent
 from ede.method.ensemble import Adam
 from ede.method.nets import flush_denormals
 from ede.method.replay import ReplayBatch
-from ede.run.runs import RunSpec
-from ede.run.training import _Group
+from ede.run.group import Group
+from ede.run.spec import RunSpec
 
 SMALLEST_NORMAL = torch.finfo(torch.float32).tiny
 
@@ -60,7 +60,7 @@ def main() -> None:
     config = TD3Config(
         hidden=[400, 300], batch_size=100, update_schedule="step", buffer_size=args.steps
     )
-    group = _Group(
+    group = Group(
         [RunSpec(args.task, "td3", 0, args.steps, config, EdeTD3Config())],
         None,
         torch.device("cpu"),

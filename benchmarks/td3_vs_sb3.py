@@ -38,8 +38,10 @@ from ede.analysis.stats import bootstrap_mean
 from ede.config import EdeTD3Config, TD3Config
 from ede.method.adapters import IdentityAdapter
 from ede.method.agent import Agent
-from ede.run.runs import RunSpec, area_under_curve
-from ede.run.training import EVAL_SEED_OFFSET, evaluate, train_run
+from ede.run.evaluation import EVAL_SEED_OFFSET, evaluate
+from ede.run.runs import area_under_curve
+from ede.run.spec import RunSpec
+from ede.run.training import train_run
 from ede.run.vector import MemberEnvs
 from ede.tasks import action_bounds, observation_size
 

@@ -5,7 +5,7 @@
 ``DIR`` holds a ``train`` stage's layout (``runs/<task>/td3/seed<N>/policy/`` and
 ``families/<family>/embedding/``), as ``ede-pipeline experiment run NAME`` leaves it in
 ``.dvc/tmp/experiments/NAME/data``. Each TD3 run's final actor μ is evaluated twice from the starts its own
-final evaluation used (``ede.run.training``: episode e of seed s resets with
+final evaluation used (``ede.run.evaluation``: episode e of seed s resets with
 ``EVAL_SEED_OFFSET·(s+1) + e``):
 
 - *as is*: μ(s) at every step — the run's last evaluation, again (printed beside it: a check that
@@ -39,8 +39,8 @@ from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 from ede.analysis.video import actor_of
 from ede.method.embedding import ActionEmbedding
 from ede.run.artifacts import load_action_embedding
+from ede.run.evaluation import EVAL_SEED_OFFSET
 from ede.run.runs import read_policy
-from ede.run.training import EVAL_SEED_OFFSET
 from ede.tasks import action_bounds, make, observation_size
 from ede_pipeline import layout
 

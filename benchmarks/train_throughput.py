@@ -79,7 +79,7 @@ from ede.config import Algo, EdeTD3Config, Precision, TD3Config
 from ede.io.rollouts import Whitening
 from ede.method.embedding import ActionDecoder, ActionEmbedding, Encoder
 from ede.method.nets import product_error
-from ede.run.runs import RunSpec
+from ede.run.spec import RunSpec
 from ede.run.training import train_group
 
 TASK = "Reacher-v5"

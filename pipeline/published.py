@@ -15,15 +15,8 @@ from pathlib import Path
 
 from ede.config import ALGOS
 from ede.io.provenance import INSTRUCTION_SETS
-from ede.run.runs import (
-    Curve,
-    Run,
-    RunRejected,
-    read_run,
-    recorded_task,
-    same_files,
-    unshared_params,
-)
+from ede.run.runs import Curve, Run, RunRejected, read_run, recorded_task, same_files
+from ede.run.spec import unshared_params
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput
 
@@ -157,7 +150,7 @@ def published_runs(root: Path, task: str) -> list[tuple[Path, Run]]:
 
 def read_folder(root: Path, task: str) -> TaskRuns | None:
     """A task's finished runs under ``root`` (:func:`published_runs`), made with the same params
-    (:func:`ede.run.runs.unshared_params`), with its ``source.json`` and embedding figures; None
+    (:func:`ede.run.spec.unshared_params`), with its ``source.json`` and embedding figures; None
     where no run is finished."""
     folder = layout.task_runs(task, root)
     curves: dict[str, list[Curve]] = {}

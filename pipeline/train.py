@@ -17,8 +17,10 @@ from ede.method.nets import pick_device
 from ede.method.td3 import Critic
 from ede.run.artifacts import ArtifactError, load_action_embedding, params_mismatches
 from ede.run.checkpoint import CheckpointError, CheckpointWriteError
-from ede.run.runs import RUN_KIND, RunSpec
-from ede.run.training import Diverged, env_workers, train_group
+from ede.run.group import env_workers
+from ede.run.runs import RUN_KIND
+from ede.run.spec import RunSpec
+from ede.run.training import Diverged, train_group
 from ede.tasks import action_bounds, make
 from ede_pipeline import layout
 from ede_pipeline.common import (
@@ -192,7 +194,7 @@ NETWORK_COPIES = 7
 ACTIVATION_COPIES = 2
 
 # Host memory each environment of a member holds (a member has two: training and evaluation,
-# ede.run.training._Group): in this process, a MuJoCo model and its data, 0.6 to 0.9 MiB measured for
+# ede.run.group.Group): in this process, a MuJoCo model and its data, 0.6 to 0.9 MiB measured for
 # ede/Point-v0, ede/Pusher-v0 and ede/Striker-v0; or, with td3.env_workers (AsyncVectorEnv), a
 # worker process of its own that imports ede's tasks, gymnasium and MuJoCo, not torch
 # (ede.run.vector imports none of the method): 35 to 39 MiB unique to it (USS; 70 MiB RSS, the
@@ -263,8 +265,8 @@ def check_group_memory(
         k, plan_step = params.embedding.k, params.ede_td3.plan_step_input
     actor = [obs_size, *td3.hidden, code_size]
     critic = Critic(obs_size, code_size, k, td3.hidden, plan_step, td3.critic_action_repeat).sizes
-    capacity = min(td3.buffer_size, params.runs.budgets[task])  # as ede.run.training sizes it
-    workers = env_workers(td3.env_workers, members, device)  # as ede.run.training chooses
+    capacity = min(td3.buffer_size, params.runs.budgets[task])  # as ede.run.group sizes it
+    workers = env_workers(td3.env_workers, members, device)  # as ede.run.group chooses
     tensors = group_memory(
         1, capacity, obs_size, code_size, [actor, critic, critic], td3.batch_size
     )

@@ -21,7 +21,8 @@ from ede.errors import first_line
 from ede.method.adapters import ActionAdapter, EmbeddingAdapter, IdentityAdapter
 from ede.method.embedding import ActionEmbedding
 from ede.run.artifacts import ArtifactError, load_action_embedding
-from ede.run.runs import RunRejected, identity_difference, read_policy
+from ede.run.runs import RunRejected, read_policy
+from ede.run.spec import identity_difference
 from ede.tasks import make
 
 
@@ -30,7 +31,7 @@ class PolicyRejected(ValueError):
     made to render: one line naming the file or the task and what is wrong."""
 
 
-# The keys of a run's identity (ede.run.runs.RunSpec.identity) that say which run a policy is and how
+# The keys of a run's identity (ede.run.spec.RunSpec.identity) that say which run a policy is and how
 # it acts: a policy is its run's where those its policy.json and its run.json both hold agree.
 IDENTITY = ("task", "algo", "seed", "embedding")
 

@@ -13,8 +13,8 @@ import torch
 
 from ede.method.adapters import EmbeddingAdapter, IdentityAdapter
 from ede.method.embedding import ActionEmbedding
+from ede.run.evaluation import evaluate
 from ede.run.executor import CodeExecutor
-from ede.run.training import evaluate
 from ede.run.vector import MemberEnvs
 from ede.tasks import action_bounds, make, simulator
 
@@ -154,7 +154,7 @@ def _episode_returns(
     task: str, episodes: int, seed: int, act: Callable[[gymnasium.spaces.Box], np.ndarray]
 ) -> np.ndarray:
     """Each episode's return on ``task`` with ``act(action_space)`` as the policy, by the
-    evaluation's own loop (:func:`ede.run.training.evaluate`)."""
+    evaluation's own loop (:func:`ede.run.evaluation.evaluate`)."""
     env = make(task)
     try:
         space = env.action_space

@@ -39,8 +39,8 @@ from ede.io.atomic import NotWritten, writing_files
 from ede.method.adapters import ActionAdapter
 from ede.method.embedding import ActionEmbedding
 from ede.method.td3 import Actor
+from ede.run.evaluation import EVAL_SEED_OFFSET
 from ede.run.executor import CodeExecutor
-from ede.run.training import EVAL_SEED_OFFSET
 from ede.run.vector import MemberEnvs
 from ede.tasks import make
 

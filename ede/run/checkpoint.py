@@ -10,7 +10,7 @@ group, so either resumes the other:
   (``code``, ``plan``), the current episode's actions (``episode_actions``) and the observation
   their replay must reach (``obs``);
 * ``state.json``: the format version, the run's identity and fingerprint
-  (:meth:`ede.run.runs.RunSpec.identity`), ``step`` (equal to ``buffer.count``), ``episodes``,
+  (:meth:`ede.run.spec.RunSpec.identity`), ``step`` (equal to ``buffer.count``), ``episodes``,
   ``i`` (steps of the code executed), ``wall_seconds``, ``episode_start``, ``episode_return``,
   the evaluation ``history`` and the training ``diagnostics``;
 * ``checksums.json``: the SHA-256 of the other two.
@@ -35,14 +35,14 @@ from safetensors.torch import load_file
 
 from ede.errors import first_line
 from ede.io.atomic import NotWritten, save_tensors, sha256, write_atomically
-from ede.run.runs import identity_difference
+from ede.run.spec import identity_difference
 from ede.run.vector import Episode
 
 if TYPE_CHECKING:
     from ede.method.agent import Agent
     from ede.method.replay import ReplayBuffer
     from ede.run.executor import CodeExecutor
-    from ede.run.runs import RunSpec
+    from ede.run.spec import RunSpec
 
 __all__ = [
     "VERSION",

@@ -3,10 +3,23 @@
 Every run made since commit cb5010c (2026-12-05) records them (:func:`ede.run.runs.write_finished`),
 so that a published file edited, or one run copied as another, is refused by name. The runs
 published before (docs/results/, 122 of them) record none; each is named here by its files,
-every byte as published (:func:`ede.run.runs.early_run`), so that a run whose ``run.json`` has lost
+every byte as published (:func:`early_run`), so that a run whose ``run.json`` has lost
 its checksums is not read as one of them: a published run without checksums is one of these,
 unchanged, or is refused.
 """
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Mapping
+
+
+def early_run(checksums: Mapping[str, str]) -> str:
+    """What :data:`EARLY_RUNS` knows a run by: the SHA-256 of the SHA-256 of each of its
+    published files (:data:`ede.run.runs.PUBLISHED`, ``run.json`` included) there, by name."""
+    return hashlib.sha256(json.dumps(dict(checksums), sort_keys=True).encode()).hexdigest()
+
 
 EARLY_RUNS = frozenset(
     {

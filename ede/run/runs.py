@@ -1,26 +1,26 @@
-"""A run's folder: what determines a run, the files it writes, and how they are read back.
+"""A run's folder: the files it writes, and how they are read back and checked.
 
-A run (task × algorithm × seed) trains into its own folder (:mod:`ede.run.training` writes it). This
-module is the one place that knows the folder's files:
+A run (task × algorithm × seed, :class:`ede.run.spec.RunSpec`) trains into its own folder
+(:mod:`ede.run.training` writes it). This module is the one place that knows the folder's files:
 
 * ``eval.csv``: :data:`EVAL_COLUMNS` after every evaluation (the first at step 0);
 * ``diagnostics.csv``: :data:`DIAGNOSTIC_COLUMNS`, the means over the updates since the previous
   evaluation (mean_q: Q_1(s, μ(s), 0) on the actor's batches);
-* ``run.json``: what made the run — its identity (:meth:`RunSpec.identity`: task, algorithm,
-  seed, budget, the params that change its result, the embedding's checksum), the versions of
-  the software, the code (commit, and whether the tree differed from it) and the machine (CPU
-  model, the instruction sets that change results, torch's threads), and the SHA-256 of each of
-  its result files (:data:`CHECKSUMMED`) as it wrote them (the runs published before it recorded
-  them record none: :data:`ede.run.early_runs.EARLY_RUNS` names each by its files);
-* ``metrics.json``: final and best return, area under the curve, steps per second, episodes;
-  written last, so a run with ``metrics.json`` is finished;
+* ``run.json``: what made the run — its identity (:meth:`ede.run.spec.RunSpec.identity`: task,
+  algorithm, seed, budget, the params that change its result, the embedding's checksum), the
+  versions of the software, the code (commit, and whether the tree differed from it) and the
+  machine (CPU model, the instruction sets that change results, torch's threads), and the SHA-256
+  of each of its result files (:data:`CHECKSUMMED`) as it wrote them (the runs published before it
+  recorded them record none: :data:`ede.run.early_runs.EARLY_RUNS` names each by its files);
+* ``metrics.json``: final and best return, area under the curve, steps per second (of the last
+  session and of the whole run), episodes, the step the last session resumed from; written last,
+  so a run with ``metrics.json`` is finished;
 * ``policy/``: the final actor (``policy.safetensors`` beside ``policy.json``);
 * ``checkpoint/`` while it trains (:mod:`ede.run.checkpoint`).
 
 :func:`read_run` reads a finished run back for the report and the results page, checked against
-the identity it must have (:func:`identity_difference`, which the checkpoint uses too) and against
-the checksums its ``run.json`` records; :func:`unshared_params` finds the run of a task made with
-other params than its others, :func:`same_files` two runs that are one.
+the identity it must have (:func:`ede.run.spec.identity_difference`) and against the checksums its
+``run.json`` records; :func:`same_files` finds two runs that are one.
 """
 
 from __future__ import annotations
@@ -37,11 +37,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ede.config import Algo, EdeTD3Config, TD3Config, result_neutral
 from ede.errors import first_line
 from ede.io.atomic import save_tensors, sha256, write_atomically, write_json, write_text
 from ede.io.provenance import code_version, machine, software_versions
-from ede.run.early_runs import EARLY_RUNS
+from ede.run.early_runs import EARLY_RUNS, early_run
+from ede.run.spec import RunSpec, identity_difference
 
 if TYPE_CHECKING:  # torch loads only where a policy is read: the results model stays free of it
     import torch
@@ -57,13 +57,10 @@ __all__ = [
     "Curve",
     "Run",
     "RunRejected",
-    "RunSpec",
     "area_under_curve",
-    "identity_difference",
     "read_policy",
     "read_run",
     "same_files",
-    "unshared_params",
     "write_curves",
     "write_finished",
     "write_policy",
@@ -95,125 +92,6 @@ CHECKSUMMED = (
     "policy/policy.safetensors",
     "policy/policy.json",
 )
-
-
-@dataclass(frozen=True)
-class RunSpec:
-    """What determines a run."""
-
-    task: str
-    algo: Algo
-    seed: int
-    budget: int  # environment steps
-    td3: TD3Config
-    ede_td3: EdeTD3Config
-    embedding_id: str = ""  # the decoder's weights checksum, for EDE-TD3
-
-    def identity(self) -> dict[str, Any]:
-        return {
-            "task": self.task,
-            "algo": self.algo,
-            "seed": self.seed,
-            "budget": self.budget,
-            "params": {  # what changes the result: not where or how fast it runs
-                "td3": self.td3.model_dump(mode="json", exclude=set(result_neutral(TD3Config))),
-                "ede_td3": self.ede_td3.model_dump(mode="json"),
-            },
-            "embedding": self.embedding_id,
-        }
-
-    def fingerprint(self) -> str:
-        text = json.dumps(self.identity(), sort_keys=True, allow_nan=False)
-        return hashlib.sha256(text.encode()).hexdigest()
-
-
-def identity_difference(
-    found: Any, expected: Mapping[str, Any], said: str = "the params say"
-) -> str | None:
-    """How a recorded identity differs from ``expected`` (any of :meth:`RunSpec.identity`'s keys),
-    the first key that does, in words: ``seed is 0, expected 1``, ``made with td3.lr = 0.01, but
-    the params say 0.001`` (``said`` names where ``expected``'s params come from); None where
-    every key of ``expected`` agrees."""
-    if not isinstance(found, dict):
-        return "its identity is not recorded"
-    for key, value in expected.items():
-        if found.get(key) == value:
-            continue
-        if key == "embedding":
-            return "made with another embedding than the family's (its decoder's checksum differs)"
-        recorded = found.get(key)
-        if key == "params" and isinstance(recorded, dict) and isinstance(value, dict):
-            for section in sorted(set(recorded) | set(value)):
-                ours, theirs = recorded.get(section) or {}, value.get(section) or {}
-                for name in sorted(set(ours) | set(theirs)) if isinstance(ours, dict) else []:
-                    if ours.get(name) != theirs.get(name):
-                        return (
-                            f"made with {section}.{name} = {json.dumps(ours.get(name))}, but "
-                            f"{said} {json.dumps(theirs.get(name))}"
-                        )
-        return f"{key} is {json.dumps(recorded)}, expected {json.dumps(value)}"
-    return None
-
-
-# Per section of run.json's params, the keys that leave a result alone.
-_NEUTRAL = {"td3": result_neutral(TD3Config), "ede_td3": result_neutral(EdeTD3Config)}
-
-
-def unshared_params(runs: Sequence[tuple[Path, Mapping[str, Any]]]) -> str | None:
-    """The first of a task's ``runs`` (each its folder and its ``run.json``) made with other
-    params than a run before it, in one line naming its folder, the key and both values
-    (:func:`identity_difference`); None where they agree. Every run shares td3's params (both
-    algorithms train with them), the EDE-TD3 runs ede_td3's too; keys that leave a result alone
-    (:func:`ede.config.result_neutral`, which an older ``run.json`` may record) are set aside."""
-    first: dict[str, tuple[Path, Mapping[str, Any]]] = {}  # the first run, and of each algorithm
-    for folder, made in runs:
-        for which in ("any", str(made.get("algo"))):
-            earlier, theirs = first.setdefault(which, (folder, made))
-            both = {made.get("algo"), theirs.get("algo")} == {"ede-td3"}
-            sections = ("td3", "ede_td3") if both else ("td3",)
-            difference = identity_difference(
-                _result_params(made, sections),
-                _result_params(theirs, sections),
-                said=f"{earlier} was made with",
-            )
-            if difference is not None:
-                return (
-                    f"{folder / 'run.json'}: {difference}; a task's runs share every param "
-                    "that changes a result"
-                )
-    return None
-
-
-def same_files(runs: Sequence[tuple[Path, Run]]) -> str | None:
-    """The first of ``runs`` (each its folder and its :func:`read_run`) whose ``eval.csv`` is
-    byte for byte a run's before it, in one line naming both: one run copied under another
-    folder, whatever its folder or its ``run.json`` says (a run's curve holds its wall times, so
-    no two runs write the same one); None where every run's is its own."""
-    first: dict[str, Path] = {}
-    for folder, run in runs:
-        digest = run.sha256["eval.csv"]
-        if (earlier := first.setdefault(digest, folder)) != folder:
-            return (
-                f"{folder}: the same run as {earlier} (their eval.csv's SHA-256 are both "
-                f"{digest[:12]}…); a run is published once, in the folder of its own seed"
-            )
-    return None
-
-
-def _result_params(made: Mapping[str, Any], sections: tuple[str, ...]) -> dict[str, Any]:
-    """The params ``sections`` of a ``run.json`` that change a result, as an identity's."""
-    params = made.get("params")
-    if not isinstance(params, dict):
-        return {"params": params}
-    kept = {}
-    for section in sections:
-        values = params.get(section)
-        kept[section] = (
-            {k: v for k, v in values.items() if k not in _NEUTRAL[section]}
-            if isinstance(values, dict)
-            else values
-        )
-    return {"params": kept}
 
 
 # Writing ----------------------------------------------------------------------------------------
@@ -425,6 +303,22 @@ def recorded_task(run_dir: Path) -> str:
     return made["task"]
 
 
+def same_files(runs: Sequence[tuple[Path, Run]]) -> str | None:
+    """The first of ``runs`` (each its folder and its :func:`read_run`) whose ``eval.csv`` is
+    byte for byte a run's before it, in one line naming both: one run copied under another
+    folder, whatever its folder or its ``run.json`` says (a run's curve holds its wall times, so
+    no two runs write the same one); None where every run's is its own."""
+    first: dict[str, Path] = {}
+    for folder, run in runs:
+        digest = run.sha256["eval.csv"]
+        if (earlier := first.setdefault(digest, folder)) != folder:
+            return (
+                f"{folder}: the same run as {earlier} (their eval.csv's SHA-256 are both "
+                f"{digest[:12]}…); a run is published once, in the folder of its own seed"
+            )
+    return None
+
+
 def _run_json(path: Path) -> dict[str, Any]:
     try:
         made = json.loads(path.read_text())
@@ -480,12 +374,6 @@ def _check_files(run_dir: Path, made: dict[str, Any], published: bool) -> dict[s
                 f"records {digest[:12]}…)"
             )
     return {name: digest for name, digest in recorded.items() if (run_dir / name).is_file()}
-
-
-def early_run(checksums: Mapping[str, str]) -> str:
-    """What :data:`ede.run.early_runs.EARLY_RUNS` knows a run by: the SHA-256 of the SHA-256 of each
-    of its published files (:data:`PUBLISHED`, ``run.json`` included) there, by name."""
-    return hashlib.sha256(json.dumps(dict(checksums), sort_keys=True).encode()).hexdigest()
 
 
 def _is_sha256(value: Any) -> bool:

@@ -1,6 +1,6 @@
 """A group's environments: one per member, stepped together as one gymnasium vector environment.
 
-The M members of a group (:mod:`ede.run.training`) each act in an environment of their own; the
+The M members of a group (:mod:`ede.run.group`) each act in an environment of their own; the
 group steps all of them with one call of a gymnasium ``VectorEnv`` — ``SyncVectorEnv`` in this
 process, or ``AsyncVectorEnv`` with a worker process per environment where there are cores to
 spare (``td3.env_workers``). Either way a member's episode is the one it has alone: its

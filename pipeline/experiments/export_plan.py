@@ -273,9 +273,10 @@ def _published_beside(task: str, runs: list[tuple], to: Path) -> list[tuple[Path
     those there read and checked as ``results`` reads them
     (:func:`ede_pipeline.published.published_runs`: folders named seed<N>, files those their
     run.json records, seeds source.json names, no run twice), and the ones that stay made with
-    the same params as ``runs`` (:func:`ede.run.runs.unshared_params`), and no run of ``runs`` one
+    the same params as ``runs`` (:func:`ede.run.spec.unshared_params`), and no run of ``runs`` one
     of them (:func:`ede.run.runs.same_files`). Raises :class:`BadInput` where not."""
-    from ede.run.runs import same_files, unshared_params
+    from ede.run.runs import same_files
+    from ede.run.spec import unshared_params
     from ede_pipeline.published import published_runs
 
     published = published_runs(to, task)
@@ -322,7 +323,8 @@ def finished_runs(workspace: Path, params: Params) -> tuple[dict, list[str]]:
     """Every finished run of ``params`` in ``workspace``, checked as a published run, by (task,
     algo, seed): its folder and :class:`ede.run.runs.Run`; and one line per run that cannot be
     published."""
-    from ede.run.runs import RunRejected, RunSpec, read_run
+    from ede.run.runs import RunRejected, read_run
+    from ede.run.spec import RunSpec
 
     finished, problems = {}, []
     for task, algo, seed in itertools.product(

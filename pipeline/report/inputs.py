@@ -14,7 +14,8 @@ import numpy as np
 from ede.config import Algo, Params
 from ede.method.embedding import ActionEmbedding
 from ede.run.artifacts import ArtifactError, load_action_embedding
-from ede.run.runs import Curve, RunRejected, RunSpec, read_run
+from ede.run.runs import Curve, RunRejected, read_run
+from ede.run.spec import RunSpec
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput
 

@@ -79,5 +79,5 @@ none is one of the runs published before checksums, :mod:`ede.run.early_runs`, b
 seed is not one ``source.json`` names, its files are another run's (a copy under another folder,
 task or variant, whatever its ``run.json`` says; :func:`ede.run.runs.same_files`), or it was made with
 other params than its task's other runs (those of both algorithms, and of EDE-TD3's between its
-runs; :func:`ede.run.runs.unshared_params`).
+runs; :func:`ede.run.spec.unshared_params`).
 """

@@ -16,8 +16,8 @@ from ede.config import EdeTD3Config, TD3Config
 from ede.io.atomic import sha256
 from ede.run import checkpoint
 from ede.run.checkpoint import CheckpointError
-from ede.run.runs import RunSpec
-from ede.run.training import _Group
+from ede.run.group import Group
+from ede.run.spec import RunSpec
 
 CPU = torch.device("cpu")
 CONFIG = TD3Config(
@@ -30,10 +30,10 @@ def spec(seed: int = 0, config: TD3Config = CONFIG) -> RunSpec:
     return RunSpec("ede/Point-v0", "td3", seed, 1_000, config, EdeTD3Config())
 
 
-def trained(steps: int, config: TD3Config = CONFIG) -> _Group:
+def trained(steps: int, config: TD3Config = CONFIG) -> Group:
     """A run alone of ede/Point-v0's TD3 after ``steps`` steps (and their updates), then an
     evaluation."""
-    group = _Group([spec(config=config)], None, CPU)
+    group = Group([spec(config=config)], None, CPU)
     for _ in range(steps):
         group.advance()
     group.evaluate(np.ones(1, dtype=bool))
@@ -69,10 +69,10 @@ def edit_tensors(path: Path, edit: Callable[[dict[str, torch.Tensor]], None]) ->
 
 
 def read(path: Path, run: RunSpec | None = None) -> checkpoint.Checkpoint:
-    return checkpoint.read(path, run or spec(), _Group([spec()], None, CPU).layout)
+    return checkpoint.read(path, run or spec(), Group([spec()], None, CPU).layout)
 
 
-def learner_state(group: _Group) -> dict[str, torch.Tensor]:
+def learner_state(group: Group) -> dict[str, torch.Tensor]:
     return {f"agent.{k}": v for k, v in group.agent.state_dict(0).items()} | {
         f"buffer.{k}": v for k, v in group.buffer.state_dict(0).items()
     }
@@ -94,7 +94,7 @@ def test_read_gives_back_what_the_run_held(saved: Path) -> None:
 
 
 def test_a_resumed_run_steps_on_as_the_run_it_was_saved_from(saved: Path) -> None:
-    ahead, resumed = trained(SAVED_AT), _Group([spec()], None, CPU)
+    ahead, resumed = trained(SAVED_AT), Group([spec()], None, CPU)
     assert resumed.runs[0].load(saved) and resumed.runs[0].step == SAVED_AT
     for _ in range(10):
         ahead.advance()
@@ -155,7 +155,7 @@ def test_another_format_version_is_refused(copy: Path) -> None:
 def test_a_tensor_of_other_hidden_sizes_is_refused_by_name_and_shape(copy: Path) -> None:
     narrower = trained(0, CONFIG.model_copy(update={"hidden": [8, 8]})).agent.state_dict(0)
     name = "actor.0.weight"
-    expected = _Group([spec()], None, CPU).agent.state_dict(0)[name].shape
+    expected = Group([spec()], None, CPU).agent.state_dict(0)[name].shape
     edit_tensors(copy, lambda tensors: tensors.update({f"agent.{name}": narrower[name]}))
     shape = ", ".join(map(str, narrower[name].shape))
     with pytest.raises(

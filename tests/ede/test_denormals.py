@@ -11,8 +11,9 @@ import torch
 from ede.config import EdeTD3Config, TD3Config
 from ede.method.agent import Agent
 from ede.method.nets import flush_denormals, flushes_denormals
-from ede.run.runs import RunSpec
-from ede.run.training import _Group, train_run
+from ede.run.group import Group
+from ede.run.spec import RunSpec
+from ede.run.training import train_run
 
 SUBNORMAL = 1e-40  # below fp32's smallest normal number, 1.18e-38
 
@@ -83,7 +84,7 @@ def test_flushing_changes_no_weight_where_moments_sink_below_normal() -> None:
     spec = RunSpec("ede/Point-v0", "td3", 0, 1_500, config, EdeTD3Config())
     agents = []
     for flush in (False, True):
-        group = _Group([spec], None, torch.device("cpu"))
+        group = Group([spec], None, torch.device("cpu"))
         with flush_denormals() if flush else nullcontext():
             while group.advance():
                 pass

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from ede.config import EdeTD3Config, TD3Config
-from ede.run.runs import RunSpec
+from ede.run.spec import RunSpec
 from ede.run.training import Diverged, train_group, train_run
 from ede.tasks import make
 

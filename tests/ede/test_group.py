@@ -19,7 +19,7 @@ from ede.method.adapters import IdentityAdapter
 from ede.method.agent import Agent
 from ede.method.embedding import ActionEmbedding
 from ede.method.replay import ReplayBuffer
-from ede.run.runs import RunSpec
+from ede.run.spec import RunSpec
 from ede.run.training import train_group, train_run
 
 pytestmark = pytest.mark.slow

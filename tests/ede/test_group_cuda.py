@@ -20,7 +20,7 @@ import torch
 from safetensors.torch import load_file
 
 from ede.config import EdeTD3Config, TD3Config
-from ede.run.runs import RunSpec
+from ede.run.spec import RunSpec
 from ede.run.training import train_group, train_run
 from tests.support import SEEDS as MEMBERS
 from tests.support import updated_agent

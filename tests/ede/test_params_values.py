@@ -25,7 +25,7 @@ from ede.config import (
 from ede.io.rollouts import Rollouts
 from ede.method.embedding import train_decoder, train_encoder
 from ede.run.collect import collect
-from ede.run.runs import RunSpec
+from ede.run.spec import RunSpec
 from ede.run.training import train_run
 from ede_pipeline.cli import main
 from ede_pipeline.common import BadInput

@@ -17,15 +17,13 @@ from ede.io.atomic import sha256
 from ede.run.runs import (
     CHECKSUMMED,
     RunRejected,
-    RunSpec,
-    identity_difference,
     read_run,
     same_files,
-    unshared_params,
     write_curves,
     write_finished,
     write_policy,
 )
+from ede.run.spec import RunSpec, identity_difference, unshared_params
 from tests.support import REPO
 
 SPEC = RunSpec("ede/Point-v0", "td3", 3, 2_000, TD3Config(), EdeTD3Config())

@@ -9,15 +9,15 @@ import pytest
 import torch
 
 from ede.config import EdeTD3Config, TD3Config
-from ede.run.runs import RunSpec
-from ede.run.training import _Group
+from ede.run.group import Group
+from ede.run.spec import RunSpec
 
 CPU = torch.device("cpu")
 
 
 def run_of(config: TD3Config, budget: int = 1_000):
     """A run alone (a group of one) of ede/Point-v0's TD3, and its group."""
-    group = _Group([RunSpec("ede/Point-v0", "td3", 0, budget, config, EdeTD3Config())], None, CPU)
+    group = Group([RunSpec("ede/Point-v0", "td3", 0, budget, config, EdeTD3Config())], None, CPU)
     return group.runs[0], group
 
 
@@ -146,17 +146,17 @@ def test_a_checkpoint_taken_inside_a_code_resumes_its_remaining_actions(
         "test",
     )
 
-    def actions_after(group: _Group, steps: int) -> list[np.ndarray]:
+    def actions_after(group: Group, steps: int) -> list[np.ndarray]:
         for _ in range(steps):
             group.advance()
         return group.runs[0].episode.actions[-steps:]
 
-    group = _Group([spec], embedding, CPU)
+    group = Group([spec], embedding, CPU)
     run = group.runs[0]
     actions_after(group, 6)
     assert group.executor.i[0] == 2  # two actions of the second code are left
     run.save(tmp_path / "checkpoint")
-    again = _Group([spec], embedding, CPU)
+    again = Group([spec], embedding, CPU)
     resumed = again.runs[0]
     assert resumed.load(tmp_path / "checkpoint")
     assert resumed.step == run.step

@@ -184,7 +184,7 @@ def test_every_published_run_was_made_with_its_experiments_params(
 
 def _check_runs(folder: Path, params, seeds: list[int]) -> int:
     """Each run of ``seeds`` in ``folder`` has the identity ``params`` give it; how many."""
-    from ede.run.runs import RunSpec, identity_difference
+    from ede.run.spec import RunSpec, identity_difference
 
     checked = 0
     for record in sorted(folder.glob("*/seed*/run.json")):
@@ -228,7 +228,8 @@ def finished_workspace(
 
     from ede.config import load_params
     from ede.io.atomic import write_atomically
-    from ede.run.runs import RunSpec, write_curves, write_finished
+    from ede.run.runs import write_curves, write_finished
+    from ede.run.spec import RunSpec
     from ede_pipeline import layout
     from tests.support import REPO
 

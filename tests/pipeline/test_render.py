@@ -24,7 +24,8 @@ from ede.analysis.video import MAX_FRAMES, encode
 from ede.config import EdeTD3Config, TD3Config
 from ede.io.atomic import sha256
 from ede.method.td3 import Actor
-from ede.run.runs import RunSpec, write_policy
+from ede.run.runs import write_policy
+from ede.run.spec import RunSpec
 from ede_pipeline.cli import main
 
 TASK = "ede/Point-v0"  # 2 actions, observations of 4, episodes of 100 steps

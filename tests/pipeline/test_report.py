@@ -22,7 +22,7 @@ from ede.io.rollouts import Rollouts, write_store
 from ede.method.embedding import train_decoder, train_encoder
 from ede.run.artifacts import save_decoder, save_encoder
 from ede.run.collect import collect
-from ede.run.runs import RunSpec
+from ede.run.spec import RunSpec
 from ede_pipeline import layout
 from ede_pipeline.cli import main
 

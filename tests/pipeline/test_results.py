@@ -18,7 +18,8 @@ from click.testing import CliRunner
 
 from ede.config import Algo, EdeTD3Config, TD3Config
 from ede.io.atomic import sha256
-from ede.run.runs import PUBLISHED, RunSpec, write_curves, write_finished
+from ede.run.runs import PUBLISHED, write_curves, write_finished
+from ede.run.spec import RunSpec
 from ede_pipeline import layout
 from ede_pipeline.cli import main
 from tests.support import REPO

@@ -17,7 +17,7 @@ import pytest
 from click.testing import CliRunner, Result
 
 from ede.io.provenance import code_version, machine, software_versions
-from ede.run.training import EVAL_SEED_OFFSET
+from ede.run.evaluation import EVAL_SEED_OFFSET
 from ede.tasks import make
 from ede_pipeline.cli import main
 from ede_pipeline.progress import PROGRESS_ENV, read_progress
@@ -197,6 +197,15 @@ def test_a_run_killed_midway_resumes_to_the_same_returns(
     assert len((reference / "diagnostics.csv").read_text().splitlines()) > 2
     metrics = json.loads((killed / "metrics.json").read_text())
     assert metrics["resumed_from_step"] == state["step"]
+    # Its rate over the whole run: both sessions' walls (the first's as its checkpoint carried
+    # it), at least the wall its last evaluation recorded; a run never resumed has one rate.
+    whole = BUDGET / metrics["whole_run_steps_per_second"]
+    session = (BUDGET - state["step"]) / metrics["steps_per_second"]
+    assert state["wall_seconds"] > 0 and whole == pytest.approx(state["wall_seconds"] + session)
+    with open(killed / "eval.csv", newline="") as handle:
+        assert whole >= float(list(csv.DictReader(handle))[-1]["wall_seconds"]) - 0.001
+    alone = json.loads((reference / "metrics.json").read_text())
+    assert alone["whole_run_steps_per_second"] == alone["steps_per_second"]
     assert json.loads((killed / "run.json").read_text())["params"]["td3"]["precision"] == precision
 
 
