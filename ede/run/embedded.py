@@ -41,7 +41,7 @@ class EmbeddedActions(
     """A task whose actions are codes of ``embedding``, each executed as k raw actions.
 
     Action space: ``Box(-b, b, (D,), float32)`` with b = ``embedding.bound`` × ``bound_scale``,
-    exactly the box EDE-TD3's actor acts in (``ede.bound_scale`` in params.yaml). Observation
+    exactly the box EDE-TD3's actor acts in (``ede_td3.bound_scale`` in params.yaml). Observation
     space, reset and rendering: the task's own.
 
     ``step(code)``: a code outside the box is clipped into it, as EDE-TD3 clips its own codes
