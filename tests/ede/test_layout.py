@@ -1,9 +1,11 @@
 """``ede/`` is in folders by role, and its imports run one way (docs/pipeline.md, "The code").
 
 errors/tasks → config → io → method → run → analysis, and the pipeline above them all: a module
-imports only from its own layer or the layers before it, and no module reaches itself again
-through its imports — read from the source (``ede_pipeline.closure.imports_of``), so imports under
-``TYPE_CHECKING`` and inside functions count as much as the others.
+imports only from its own layer or the layers before it (``ede/__init__.py``, the package's face,
+comes after them all: it hands out ``ede.EmbeddedActions`` of ``ede.run`` on first use), and no
+module reaches itself again through its imports — read from the source
+(``ede_pipeline.closure.imports_of``), so imports under ``TYPE_CHECKING`` and inside functions
+count as much as the others.
 """
 
 from __future__ import annotations
@@ -21,12 +23,13 @@ EDE = DIRS["ede"]
 # Each layer: the modules and folders of ede/ it holds; a module may import from its own layer
 # and the ones before it.
 LAYERS = [
-    ("errors and tasks", {"ede", "ede.errors", "ede.tasks"}),
+    ("errors and tasks", {"ede.errors", "ede.tasks"}),
     ("config", {"ede.config"}),
     ("io", {"ede.io"}),
     ("method", {"ede.method"}),
     ("run", {"ede.run"}),
     ("analysis", {"ede.analysis"}),
+    ("the package's face", {"ede"}),
 ]
 
 
