@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import copy
 import os
+import shutil
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -16,7 +18,7 @@ from typing import Any
 import pytest
 import yaml
 
-from tests.support import REPO
+from tests.support import REPO, dvc, ok, one_task_upstream, train_record
 
 # Render headless (Mesa's EGL needs no GPU or display); `MUJOCO_GL=osmesa pytest` overrides.
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -49,6 +51,33 @@ def write_params(tmp_path: Path, committed_params: dict[str, Any]) -> Callable[.
         return path
 
     return write
+
+
+@pytest.fixture(scope="session")
+def built_once(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> Callable[[str, Callable[[Path], None]], Path]:
+    """``built_once(name, build)``: a folder ``build(folder)`` filled once for the whole session,
+    whichever of pytest-xdist's worker processes asks first; the others wait for it and get the
+    same folder (a session fixture alone runs once a worker). Its users only read it: a test that
+    writes copies it first."""
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):  # each worker's basetemp is a folder of the run's
+        root = root.parent
+
+    def get(name: str, build: Callable[[Path], None]) -> Path:
+        from filelock import FileLock
+
+        folder, done = root / name, root / f"{name}.built"
+        with FileLock(root / f"{name}.lock"):
+            if not done.exists():
+                shutil.rmtree(folder, ignore_errors=True)  # a build that failed before
+                folder.mkdir()
+                build(folder)
+                done.touch()
+        return folder
+
+    return get
 
 
 @pytest.fixture(scope="session")
@@ -95,3 +124,39 @@ def tiny_pipeline() -> Callable[[dict[str, Any]], None]:
     """Shrinks params (plain data, in place) to every stage at the smallest size that still
     exercises it."""
     return _tiny_pipeline
+
+
+REACHER = "ede/ReacherVertical-v0"  # the task of the sweeps' runs below
+
+
+@pytest.fixture(scope="session")
+def reacher_upstream(
+    built_once: Callable[[str, Callable[[Path], None]], Path],
+    tiny_pipeline: Callable[[dict[str, Any]], None],
+) -> Path:
+    """A scratch copy at the tiny pipeline whose runs, both algorithms on ``REACHER`` (1,000 steps,
+    a checkpoint every 200), have their embedding made and no run yet
+    (:func:`tests.support.one_task_upstream`); made once a session, and copied by whoever runs."""
+
+    def make(folder: Path) -> None:
+        one_task_upstream(folder / "repo", tiny_pipeline, REACHER)
+
+    return built_once("reacher-upstream", make) / "repo"
+
+
+@pytest.fixture(scope="session")
+def reacher_reference(
+    built_once: Callable[[str, Callable[[Path], None]], Path], reacher_upstream: Path
+) -> tuple[dict[str, Any], float]:
+    """What ``dvc repro train`` of :func:`reacher_upstream`'s runs records
+    (:func:`tests.support.train_record`), and the seconds it took; made once a session."""
+
+    def train(folder: Path) -> None:
+        copy = folder / "repo"
+        shutil.copytree(reacher_upstream, copy, symlinks=True)
+        start = time.perf_counter()
+        ok(dvc(copy, "repro", "train"))
+        (folder / "seconds").write_text(str(time.perf_counter() - start))
+
+    folder = built_once("reacher-reference", train)
+    return train_record(folder / "repo"), float((folder / "seconds").read_text())

@@ -43,6 +43,13 @@ def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
     params_file = repo_copy / "params.yaml"
     params = yaml.safe_load(params_file.read_text())
     tiny_pipeline(params)
+    # Every family, and of the tasks those whose edits are tried below, a task of each family's
+    # that is not its source (collect steps the source): every stage runs, at 6 runs of 10.
+    params["runs"]["tasks"] = {
+        task: family
+        for task, family in params["runs"]["tasks"].items()
+        if task in ("ede/ReacherTurn-v0", "ede/ReacherPush-v0", "ede/Striker-v0")
+    }
     params_file.write_text(yaml.safe_dump(params, sort_keys=False))
 
     first = dvc(repo_copy, "repro")

@@ -11,7 +11,7 @@ its workers per node, one GCS), and a sweep of two short runs (one reacher task,
   then the sweep process is killed mid-run and started again, and it resumes what was left;
 
 and in each case the runs' records (``dvc.lock`` entries and returns, wall times set aside) equal
-those of an undisturbed sweep on this machine: on CPU a resumed run ends as an uninterrupted one.
+those of ``dvc repro`` on this machine: on CPU a resumed run ends as an uninterrupted one.
 The executor alone, on the same cluster, shows that only a lost run is started again: a command
 that fails is reported once, as it ended.
 
@@ -44,7 +44,7 @@ import pytest
 from ede_pipeline import layout
 from ede_pipeline.sweep.on_ray import RayExecutor, check_ray_address
 from ede_pipeline.sweep.plan import Job
-from tests.support import BIN, dvc, ok, one_task_upstream, run, tool_env, train_record
+from tests.support import BIN, dvc, ok, tool_env, train_record
 
 pytestmark = pytest.mark.slow
 
@@ -56,20 +56,10 @@ WAIT = 120.0  # seconds any one awaited event may take before the test fails
 
 
 @pytest.fixture(scope="module")
-def upstream(
-    tmp_path_factory: pytest.TempPathFactory, tiny_pipeline: Callable[[dict[str, Any]], None]
-) -> Path:
-    """A copy whose embedding is made (collect, pretrain) and no run yet."""
-    return one_task_upstream(tmp_path_factory.mktemp("cluster") / "upstream", tiny_pipeline, TASK)
-
-
-@pytest.fixture(scope="module")
-def undisturbed(upstream: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    """The record of a sweep that nothing disturbs (local processes, both runs at once)."""
-    copy = tmp_path_factory.mktemp("undisturbed") / "repo"
-    shutil.copytree(upstream, copy, symlinks=True)
-    ok(run(copy, BIN / "ede-pipeline", "sweep", "--jobs", "2", timeout=600))
-    return train_record(copy)
+def undisturbed(reacher_reference: tuple[dict[str, Any], float]) -> dict[str, Any]:
+    """The record of the same runs that nothing disturbs (``dvc repro``, one at a time, which a
+    local sweep records too: tests/pipeline/test_sweep.py)."""
+    return reacher_reference[0]
 
 
 def free_port() -> int:
@@ -198,9 +188,9 @@ def finished(sweep: subprocess.Popen[bytes], output: Path) -> str:
 
 
 @pytest.fixture
-def copy_of_upstream(upstream: Path, tmp_path: Path) -> Path:
+def copy_of_upstream(reacher_upstream: Path, tmp_path: Path) -> Path:
     copy = tmp_path / "repo"
-    shutil.copytree(upstream, copy, symlinks=True)
+    shutil.copytree(reacher_upstream, copy, symlinks=True)
     return copy
 
 
