@@ -165,10 +165,17 @@ def read_policy(run_dir: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]
     return meta, tensors
 
 
-def write_finished(out: Path, spec: RunSpec, metrics: dict[str, Any], device: torch.device) -> None:
+def write_finished(
+    out: Path,
+    spec: RunSpec,
+    metrics: dict[str, Any],
+    device: torch.device,
+    software: Mapping[str, str] | None = None,
+) -> None:
     """``run.json``, with the SHA-256 of each result file there (:data:`CHECKSUMMED`;
     ``metrics.json``'s as it is about to be written), then ``metrics.json``: from then on the run
-    is finished."""
+    is finished. ``software``: versions to record beside :func:`software_versions`'
+    (stable-baselines3's, for its runs)."""
     text = json.dumps(metrics, indent=2, allow_nan=False) + "\n"
     checksums = {
         name: sha256(out / name)
@@ -180,7 +187,7 @@ def write_finished(out: Path, spec: RunSpec, metrics: dict[str, Any], device: to
         out / "run.json",
         {
             **spec.identity(),
-            "software": software_versions(),
+            "software": {**software_versions(), **(software or {})},
             "code": code_version(),
             "machine": machine(device),
             "sha256": checksums,
