@@ -18,6 +18,7 @@ from ede.method.nets import pick_device
 from ede.method.td3 import Critic
 from ede.run.artifacts import ArtifactError, load_action_embedding, params_mismatches
 from ede.run.checkpoint import CheckpointError, CheckpointWriteError
+from ede.run.embedded import EmbeddedActions
 from ede.run.group import env_workers
 from ede.run.runs import RUN_KIND
 from ede.run.sb3 import train_sb3
@@ -124,6 +125,12 @@ def train(
         )
         if mismatches:
             raise BadInput("\n".join(mismatches))
+        try:  # a decoder of another action space than the task's: one line naming both
+            EmbeddedActions(make(task), embedding).close()
+        except ArtifactError as error:
+            raise BadInput(
+                str(error).replace("the embedding", str(decoder or folder / "decoder"), 1)
+            ) from None
         embedding_id = meta.identity
     torch.set_num_threads(config.threads)
     budget = params.runs.budgets[task]

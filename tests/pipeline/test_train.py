@@ -773,6 +773,9 @@ def test_a_stable_baselines3_arm_trains_into_a_complete_run_folder(
     diagnostics = run_.diagnostics
     assert diagnostics is not None and diagnostics["updates"].sum() > 0
     assert not (out / "checkpoint").exists()
+    video = in_workdir / f"sb3-{algo}.gif"
+    bad(run("render", str(out), "--out", str(video)), "not stable-baselines3's actors")
+    assert not video.exists()
 
 
 def test_an_ede_space_arm_makes_one_update_per_raw_step(in_workdir: Path, sb3_params: str) -> None:
