@@ -868,3 +868,15 @@ def test_an_sb3_arm_refuses_an_embedding_of_other_params(in_workdir: Path, sb3_p
         "made with embedding.k = 4, but params.yaml has embedding.k = 2",
     )
     assert not out.exists()
+
+
+def test_several_seeds_of_an_sb3_arm_train_one_after_another_each_as_alone(
+    in_workdir: Path, sb3_params: str
+) -> None:
+    task = ["--task", "ede/Point-v0", "--algo", "sb3-td3-ede", "--params", sb3_params]
+    group = run("train", *task, "--seeds", "1-2", "--out", "sb3-seeds/seed{seed}")
+    assert group.exit_code == 0, group.output
+    alone = run("train", *task, "--seed", "2", "--out", "sb3-seeds/alone")
+    assert alone.exit_code == 0, alone.output
+    assert returns_of(in_workdir / "sb3-seeds/seed2") == returns_of(in_workdir / "sb3-seeds/alone")
+    assert returns_of(in_workdir / "sb3-seeds/seed1") != returns_of(in_workdir / "sb3-seeds/alone")
