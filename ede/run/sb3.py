@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from importlib.metadata import version
 from pathlib import Path
 from typing import Any
@@ -179,6 +180,7 @@ class _Run:
             write_curves(out, self.history, self.diagnostics)
             if now < spec.budget and _crossed(before, now, td3.checkpoint_every):
                 self.save(out / "checkpoint")
+        now = self.steps.steps
         self.wall = wall_at_start + time.perf_counter() - started
         seconds = time.perf_counter() - started
         metrics = run_metrics(
@@ -198,9 +200,13 @@ class _Run:
         """One step of the agent (a code, or a raw action), stored, and the updates it makes due."""
         model, td3 = self.model, self.spec.td3
         warm = self.steps.steps < td3.start_steps  # uniform codes for the start steps
-        action, buffer_action = model._sample_action(
-            model.num_timesteps + 1 if warm else 0, model.action_noise
-        )
+        actor = f"the actor's {'code' if self.spec.algo in EMBEDDED_ALGOS else 'action'}"
+        with self._finite(self.steps.steps + 1, actor):
+            action, buffer_action = model._sample_action(
+                model.num_timesteps + 1 if warm else 0, model.action_noise
+            )
+        if not np.isfinite(action).all():  # the wrapper and the tasks refuse such actions
+            self._diverged(self.steps.steps + 1, actor)
         obs, reward, terminated, truncated, info = self.env.step(action[0])
         model.num_timesteps += 1
         ran = int(info.get("steps", 1))
@@ -233,7 +239,8 @@ class _Run:
         assert buffer is not None
         if self.steps.steps < td3.start_steps or buffer.size() < td3.batch_size or not steps:
             return
-        model.train(gradient_steps=steps, batch_size=td3.batch_size)
+        with self._finite(self.steps.steps, "an update's numbers"):
+            model.train(gradient_steps=steps, batch_size=td3.batch_size)
         values = model.logger.name_to_value
         self.sums["updates"] += steps
         self.sums["critic"] += steps * values["train/critic_loss"]
@@ -251,12 +258,11 @@ class _Run:
             return torch.as_tensor(model.predict(obs, deterministic=True)[0], dtype=torch.float32)
 
         seeds = [EVAL_SEED_OFFSET * (spec.seed + 1)]
-        returns = evaluate(self.eval_envs, policy, self.adapter, spec.td3.eval_episodes, seeds)[0]
+        with self._finite(step, "the evaluation's actor"):
+            episodes = spec.td3.eval_episodes
+            returns = evaluate(self.eval_envs, policy, self.adapter, episodes, seeds)[0]
         if not np.isfinite(returns).all():
-            raise Diverged(
-                f"{spec.task} {spec.algo} seed {spec.seed}: diverged at step {step}: the "
-                "evaluation's return is not finite; stopped there, no metrics.json written"
-            )
+            self._diverged(step, "the evaluation's return")
         self.history.append(
             {
                 "step": step,
@@ -279,6 +285,25 @@ class _Run:
                 }
             )
             self.sums = dict.fromkeys(sums, 0.0)
+
+    @contextmanager
+    def _finite(self, step: int, quantity: str) -> Iterator[None]:
+        """Stop the run where SB3 meets numbers that are not finite: torch's distributions
+        (SAC's) refuse them with a ValueError."""
+        try:
+            yield
+        except ValueError as error:
+            if "invalid values" not in str(error):
+                raise
+            self._diverged(step, quantity)
+
+    def _diverged(self, step: int, quantity: str) -> None:
+        """Stop the run: its numbers are no longer finite (its last checkpoint is kept)."""
+        spec = self.spec
+        raise Diverged(
+            f"{spec.task} {spec.algo} seed {spec.seed}: diverged at step {step}: {quantity} is "
+            "not finite; stopped there, no metrics.json written"
+        )
 
     def _policy_meta(self) -> dict[str, Any]:
         adapter = self.adapter

@@ -880,3 +880,22 @@ def test_several_seeds_of_an_sb3_arm_train_one_after_another_each_as_alone(
     assert alone.exit_code == 0, alone.output
     assert returns_of(in_workdir / "sb3-seeds/seed2") == returns_of(in_workdir / "sb3-seeds/alone")
     assert returns_of(in_workdir / "sb3-seeds/seed1") != returns_of(in_workdir / "sb3-seeds/alone")
+
+
+@pytest.mark.parametrize("algo", ["sb3-td3-ede", "sb3-sac"])
+def test_an_sb3_run_that_diverges_fails_in_one_line_without_metrics(
+    in_workdir: Path, sb3_params: str, algo: str
+) -> None:
+    import yaml
+
+    params = yaml.safe_load((in_workdir / sb3_params).read_text())
+    params["td3"]["lr"] = 1.0e30
+    (in_workdir / "params-sb3-lr.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    out = in_workdir / f"sb3-diverging-{algo}"
+    result = sb3_train("params-sb3-lr.yaml", algo, out)
+    assert result.exit_code == 1 and result.exception is not None  # click's exit, no traceback
+    lines = [line for line in result.stderr.splitlines() if line.startswith("Error: ")]
+    assert len(lines) == 1, repr(result.exception)  # beside the progress line
+    assert lines[0].startswith(f"Error: ede/Point-v0 {algo} seed 0: diverged at step"), lines
+    assert "Traceback" not in result.output
+    assert not (out / "metrics.json").exists()
