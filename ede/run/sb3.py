@@ -77,7 +77,8 @@ def train_sb3(
     Raises:
         CheckpointError: a bad checkpoint under "refuse".
         CheckpointWriteError: a checkpoint could not be written; the previous one is kept.
-        Diverged: an evaluation's return is not finite; the last checkpoint is kept.
+        Diverged: the actor, an update or an evaluation met numbers that are not finite; the
+            last checkpoint is kept.
     """
     if spec.algo not in SB3_ALGOS:
         raise ValueError(f"{spec.algo!r} is not one of stable-baselines3's algorithms")
@@ -174,10 +175,12 @@ class _Run:
             if progress is not None:
                 progress(now - before)
             self.wall = wall_at_start + time.perf_counter() - started
-            due = [b for b in _crossed(before, now, td3.eval_every)]
-            for boundary in due + ([now] if now == spec.budget and now not in due else []):
+            due = _crossed(before, now, td3.eval_every)
+            due += [now] if now == spec.budget and now not in due else []
+            for boundary in due:
                 self._evaluate(boundary)
-            write_curves(out, self.history, self.diagnostics)
+            if due:
+                write_curves(out, self.history, self.diagnostics)
             if now < spec.budget and _crossed(before, now, td3.checkpoint_every):
                 self.save(out / "checkpoint")
         now = self.steps.steps
