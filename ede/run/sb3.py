@@ -91,9 +91,11 @@ def train_sb3(
         run.resume(path)
     except CheckpointError as error:
         if bad_checkpoint == "refuse":
+            run.close()
             raise CheckpointError(f"{path}: {error}") from None
         aside = move_aside(path)
         notice(f"{path}: {error}; moved aside to {aside.name}, starting over")
+        run.close()  # its model may be half restored: a fresh one starts over
         run = _Run(spec, embedding)
     try:
         return run.train(out, progress, keep_checkpoint)

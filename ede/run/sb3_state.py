@@ -40,6 +40,14 @@ __all__ = ["VERSION", "read", "restore", "write"]
 
 VERSION = "sb3-1"
 BUFFER = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
+STATE = {  # state.json's values beside its version and identity, and their JSON types
+    "step": int,
+    "model": dict,
+    "counters": dict,
+    "rng": dict,
+    "episode_start": dict,
+    "run": dict,
+}
 
 
 def write(
@@ -108,6 +116,9 @@ def read(path: Path, spec: RunSpec) -> tuple[dict[str, Any], dict[str, torch.Ten
     if state.get("fingerprint") != spec.fingerprint():
         difference = identity_difference(state.get("identity"), spec.identity())
         raise CheckpointError(f"another run's: {difference or 'made by another configuration'}")
+    for key, kind in STATE.items():
+        if not isinstance(state.get(key), kind):
+            raise CheckpointError(f"state.json: {key} is missing or not a {kind.__name__}")
     return state, tensors
 
 
