@@ -23,7 +23,7 @@ import torch
 
 from ede.analysis.policy import adapter_of, trained_embedding
 from ede.analysis.video import frames_of
-from ede.config import ALGOS, load_params
+from ede.config import PAPER_ALGOS, load_params
 from ede.run.runs import POLICY, read_policy
 from ede_pipeline import layout
 from ede_pipeline.published import published_runs, task_folders
@@ -75,7 +75,7 @@ def main() -> None:
         seeds = sorted({seed for _, seed in kept})
         if not seeds:
             continue
-        for algo in ALGOS:
+        for algo in PAPER_ALGOS:
             run = kept[(algo, seeds[0])]
             exact, *jittered = returns(run, [0.0] + [args.scale] * args.draws, rng)
             moved = max(abs(ret - exact) for ret in jittered)

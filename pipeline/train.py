@@ -1,4 +1,5 @@
-"""Stage 4, ``ede-pipeline train``: one TD3 or EDE-TD3 run of one task and seed."""
+"""Stage 4, ``ede-pipeline train``: one run of one task, algorithm and seed (TD3 or EDE-TD3, or
+stable-baselines3's agents beside them: :mod:`ede.run.sb3`)."""
 
 from __future__ import annotations
 
@@ -12,13 +13,15 @@ import click
 import numpy as np
 import torch
 
-from ede.config import ALGOS, SEED_RANGE, Params, is_seed
+from ede.config import ALGO_LABELS, ALGOS, EMBEDDED_ALGOS, SB3_ALGOS, SEED_RANGE, Params, is_seed
 from ede.method.nets import pick_device
 from ede.method.td3 import Critic
 from ede.run.artifacts import ArtifactError, load_action_embedding, params_mismatches
 from ede.run.checkpoint import CheckpointError, CheckpointWriteError
+from ede.run.embedded import EmbeddedActions
 from ede.run.group import env_workers
 from ede.run.runs import RUN_KIND
+from ede.run.sb3 import train_sb3
 from ede.run.spec import RunSpec
 from ede.run.training import Diverged, train_group
 from ede.tasks import action_bounds, make
@@ -39,15 +42,17 @@ from ede_pipeline.progress import progress
 
 @click.command()
 @click.option("--task", required=True, help="A task of params.yaml's runs.tasks.")
-@click.option("--algo", required=True, help="td3 or ede-td3.")
+@click.option(
+    "--algo", required=True, help=f"One of {', '.join(ALGOS)} (params.yaml's runs.algos)."
+)
 @click.option(
     "--seed",
     "--seeds",
     "seeds",
     required=True,
     help="The run's seed (0 to 2**32 - 1), or several (0,1,2,3 or 0-3): the runs of one task and "
-    "algorithm trained in one process, their updates batched, each with the "
-    "outputs it gets alone.",
+    "algorithm trained in one process, their updates batched (stable-baselines3's: one after "
+    "another), each with the outputs it gets alone.",
 )
 @click.option(
     "--out",
@@ -93,13 +98,14 @@ def train(
         )
     family = params.runs.tasks[task]
     config = params.td3
-    try:
-        device = pick_device(config.device)
+    try:  # stable-baselines3's agents train on the CPU, one seed after another
+        device = pick_device("cpu" if algo in SB3_ALGOS else config.device)
     except ValueError as error:
         raise BadInput(str(error)) from None
-    check_group_memory(params, task, algo, seeds, len(seed_list), device)
+    together = 1 if algo in SB3_ALGOS else len(seed_list)
+    check_group_memory(params, task, algo, seeds, together, device)
     embedding, embedding_id = None, ""
-    if algo == "ede-td3":
+    if algo in EMBEDDED_ALGOS:
         folder = layout.embedding(family)
         try:
             meta, embedding = load_action_embedding(
@@ -107,7 +113,7 @@ def train(
             )
         except ArtifactError as error:
             raise BadInput(
-                f"{error} (EDE-TD3 on {task} needs the {family} family's embedding)"
+                f"{error} ({ALGO_LABELS[algo]} on {task} needs the {family} family's embedding)"
             ) from None
         if meta.family != family:
             raise BadInput(
@@ -119,6 +125,12 @@ def train(
         )
         if mismatches:
             raise BadInput("\n".join(mismatches))
+        try:  # a decoder of another action space than the task's: one line naming both
+            EmbeddedActions(make(task), embedding).close()
+        except ArtifactError as error:
+            raise BadInput(
+                str(error).replace("the embedding", str(decoder or folder / "decoder"), 1)
+            ) from None
         embedding_id = meta.identity
     torch.set_num_threads(config.threads)
     budget = params.runs.budgets[task]
@@ -136,9 +148,17 @@ def train(
             for run_dir in outs:
                 locks.enter_context(holding((run_dir, RUN_KIND), inputs=inputs))
             with progress(budget * len(specs), label, resumable=True) as advance:
-                results = train_group(
-                    specs, outs, embedding, device, advance, keep_checkpoint, bad_checkpoint, notice
-                )
+                if algo in SB3_ALGOS:
+                    results = [
+                        train_sb3(spec, run_dir, embedding, advance, keep_checkpoint,
+                                  bad_checkpoint, notice)
+                        for spec, run_dir in zip(specs, outs, strict=True)
+                    ]  # fmt: skip
+                else:
+                    results = train_group(
+                        specs, outs, embedding, device, advance, keep_checkpoint, bad_checkpoint,
+                        notice,
+                    )  # fmt: skip
     except CheckpointError as error:
         raise BadInput(f"{error} (--bad-checkpoint refuse)") from None
     except CheckpointWriteError as error:
@@ -258,7 +278,7 @@ def check_group_memory(
     action_size = action_bounds(env)[0].size
     env.close()
     td3 = params.td3
-    if algo == "td3":
+    if algo not in EMBEDDED_ALGOS:
         code_size, k, plan_step = action_size, 1, "onehot"
     else:
         code_size = params.embedding.dim or action_size

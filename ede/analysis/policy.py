@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError, model_validator
 
-from ede.config import SEED_MAX, Algo
+from ede.config import ALGO_LABELS, SB3_ALGOS, SEED_MAX, Algo
 from ede.errors import first_line
 from ede.method.adapters import ActionAdapter, EmbeddingAdapter, IdentityAdapter
 from ede.method.embedding import ActionEmbedding
@@ -81,6 +81,11 @@ def policy_of(run: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
     except RunRejected as error:
         raise PolicyRejected(str(error)) from None
     described = run / "policy/policy.json"
+    if meta.get("algo") in SB3_ALGOS:  # their actor is SB3's network, not ours
+        raise PolicyRejected(
+            f"{described}: a {ALGO_LABELS[meta['algo']]} run; TD3's and EDE-TD3's policies are "
+            "played, not stable-baselines3's actors"
+        )
     try:
         checked = PolicyMeta.model_validate(meta)
     except ValidationError as error:

@@ -23,6 +23,7 @@ from ede.config.schema import (
     RunsConfig,
     TD3Config,
 )
+from ede.config.values import EMBEDDED_ALGOS, SB3_ALGOS
 from ede.config.wording import both, listed
 
 __all__ = [
@@ -175,7 +176,8 @@ def scale_problems(
                 "windows the rollouts can give: every epoch would be one "
                 "partial batch"
             )
-    # EDE-TD3 samples k-step sequences: n stored steps hold n - (k - 1) of them.
+    # EDE-TD3 samples k-step sequences: n stored steps hold n - (k - 1) of them. (The agents of
+    # stable-baselines3 sample single transitions, a code's in the EDE space: batch_size of them.)
     extra = embedding.k - 1 if "ede-td3" in runs.algos else 0
     batch = f"td3.batch_size {td3.batch_size}" + (
         f" + embedding.k {embedding.k} - 1 (ede-td3's k-step samples)" if extra else ""
@@ -194,6 +196,14 @@ def scale_problems(
                 f"{first_update} = max(td3.start_steps {td3.start_steps}, "
                 f"{batch}), the step of the first update: the run would never "
                 "update"
+            )
+        coded = sorted(set(runs.algos) & EMBEDDED_ALGOS & SB3_ALGOS)
+        if coded and budget < td3.batch_size * embedding.k:
+            problems.append(
+                f"runs.budgets.{task}: got {budget}; expected at least "
+                f"{td3.batch_size * embedding.k} = td3.batch_size {td3.batch_size} × "
+                f"embedding.k {embedding.k}: {', '.join(coded)} store one transition a code "
+                "and would never update"
             )
         if budget < td3.eval_every:
             problems.append(

@@ -14,8 +14,8 @@ from typing import Any, Literal
 from pydantic import Field, field_validator, model_validator
 
 from ede.config.values import (
-    ALGOS,
     MAX_INT,
+    PAPER_ALGOS,
     RESULT_NEUTRAL,
     Algo,
     Device,
@@ -244,7 +244,7 @@ class RunsConfig(Section):
         description="the tasks to train on, each with its family: the family whose "
         "embedding EDE-TD3 acts in there (its source, or a target it transfers to)",
     )
-    algos: list[Algo] = Field(default_factory=lambda: list(ALGOS), min_length=1)
+    algos: list[Algo] = Field(default_factory=lambda: list(PAPER_ALGOS), min_length=1)
     seeds: list[Seed] = Field(min_length=1)
     budgets: dict[TaskId, PositiveInt] = Field(
         description="environment steps per task: every task of runs.tasks, and any other "

@@ -20,10 +20,13 @@ from pydantic.config import JsonDict
 __all__ = [
     "ALGOS",
     "ALGO_LABELS",
+    "EMBEDDED_ALGOS",
     "MAX_INT",
     "NAME_LENGTH",
     "NAME_RULE",
+    "PAPER_ALGOS",
     "RESULT_NEUTRAL",
+    "SB3_ALGOS",
     "SEED_MAX",
     "SEED_RANGE",
     "Algo",
@@ -45,9 +48,24 @@ __all__ = [
     "task_id_problem",
 ]
 
-Algo = Literal["td3", "ede-td3"]
+# The paper's two algorithms, ours, and stable-baselines3's agents beside them (docs/any-agent.md):
+# its TD3 and SAC acting in the family's EDE space through ``ede.EmbeddedActions`` (a code every k
+# steps, learning from k-step transitions), and its SAC on raw actions.
+Algo = Literal["td3", "ede-td3", "sb3-td3-ede", "sb3-sac-ede", "sb3-sac"]
 ALGOS: tuple[Algo, ...] = typing.get_args(Algo)
-ALGO_LABELS: dict[str, str] = {"td3": "TD3", "ede-td3": "EDE-TD3"}  # as the paper writes them
+ALGO_LABELS: dict[str, str] = {  # the paper's two as the paper writes them
+    "td3": "TD3",
+    "ede-td3": "EDE-TD3",
+    "sb3-td3-ede": "SB3 TD3 (EDE space)",
+    "sb3-sac-ede": "SB3 SAC (EDE space)",
+    "sb3-sac": "SB3 SAC",
+}
+PAPER_ALGOS: tuple[Algo, ...] = ("td3", "ede-td3")
+"""The pair the paper compares, and params.yaml's default ``runs.algos``."""
+EMBEDDED_ALGOS: frozenset[Algo] = frozenset({"ede-td3", "sb3-td3-ede", "sb3-sac-ede"})
+"""The algorithms that act in their family's embedding (and so need it, and record its checksum)."""
+SB3_ALGOS: frozenset[Algo] = frozenset({"sb3-td3-ede", "sb3-sac-ede", "sb3-sac"})
+"""The algorithms stable-baselines3 trains (:mod:`ede.run.sb3`): one run a process, never a group."""
 
 # The mark of a setting that decides where or how fast a stage runs, never what it computes (a
 # field's ``json_schema_extra``). :func:`result_neutral` reads it: run identities and the embedding

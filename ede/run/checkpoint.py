@@ -52,7 +52,9 @@ __all__ = [
     "Layout",
     "apply",
     "read",
+    "read_files",
     "write",
+    "write_files",
 ]
 
 VERSION = 5  # 2: diagnostics; 3: checksums, identity; 4: a member's slice; 5: named parameters
@@ -137,9 +139,7 @@ def read(path: Path, spec: RunSpec, layout: Layout) -> Checkpoint:
             (its checksum), unreadable, an older format, another run's (the first identity key
             that differs), or a value or tensor missing, unexpected or of another shape or type.
     """
-    if not path.is_dir():
-        raise CheckpointError("not a folder")
-    state = _verified_state(path)
+    state, tensors = read_files(path)
     if state.get("version") != VERSION:
         raise CheckpointError(
             f"format version {state.get('version')}, this version reads {VERSION}"
@@ -157,10 +157,6 @@ def read(path: Path, spec: RunSpec, layout: Layout) -> Checkpoint:
             raise CheckpointError(
                 f"state.json: {key} is missing or not a {getattr(kind, '__name__', 'number')}"
             )
-    try:
-        tensors = load_file(path / "state.safetensors")
-    except (SafetensorError, OSError) as error:
-        raise CheckpointError(f"state.safetensors not readable ({first_line(error)})") from None
     _check_tensors(tensors, state, layout)
     return Checkpoint(
         agent=_part(tensors, "agent"),
@@ -247,6 +243,18 @@ def write(path: Path, spec: RunSpec, checkpoint: Checkpoint) -> None:
         "diagnostics": [_to_json(row) for row in checkpoint.diagnostics],
     }
 
+    write_files(path, tensors, state)
+
+
+def write_files(path: Path, tensors: Mapping[str, torch.Tensor], state: dict[str, Any]) -> None:
+    """A checkpoint's three files at ``path``, atomically: ``tensors`` as ``state.safetensors``,
+    ``state`` as ``state.json`` and their SHA-256 as ``checksums.json`` (:func:`write`, and the
+    stable-baselines3 runs' checkpoints, :mod:`ede.run.sb3`).
+
+    Raises:
+        CheckpointWriteError: they could not be written; the previous checkpoint is intact.
+    """
+
     def fill(tmp: Path) -> None:
         save_tensors(
             {k: v.detach().cpu().clone() for k, v in tensors.items()}, tmp / "state.safetensors"
@@ -262,6 +270,22 @@ def write(path: Path, spec: RunSpec, checkpoint: Checkpoint) -> None:
         raise CheckpointWriteError(
             f"{path}: not written ({reason}); the previous checkpoint is kept"
         ) from None
+
+
+def read_files(path: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """A checkpoint's ``state.json`` and tensors (:func:`write_files`), each file verified
+    against its checksum; nothing else is checked.
+
+    Raises:
+        CheckpointError: ``path`` not a folder, a file missing, damaged or unreadable.
+    """
+    if not path.is_dir():
+        raise CheckpointError("not a folder")
+    state = _verified_state(path)
+    try:
+        return state, load_file(path / "state.safetensors")
+    except (SafetensorError, OSError) as error:
+        raise CheckpointError(f"state.safetensors not readable ({first_line(error)})") from None
 
 
 def _to_json(row: dict[str, float]) -> dict[str, float | None]:

@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ede.config import EMBEDDED_ALGOS
 from ede.errors import first_line
 from ede.io.atomic import save_tensors, sha256, write_atomically, write_json, write_text
 from ede.io.provenance import code_version, machine, software_versions
@@ -165,10 +166,17 @@ def read_policy(run_dir: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]
     return meta, tensors
 
 
-def write_finished(out: Path, spec: RunSpec, metrics: dict[str, Any], device: torch.device) -> None:
+def write_finished(
+    out: Path,
+    spec: RunSpec,
+    metrics: dict[str, Any],
+    device: torch.device,
+    software: Mapping[str, str] | None = None,
+) -> None:
     """``run.json``, with the SHA-256 of each result file there (:data:`CHECKSUMMED`;
     ``metrics.json``'s as it is about to be written), then ``metrics.json``: from then on the run
-    is finished."""
+    is finished. ``software``: versions to record beside :func:`software_versions`'
+    (stable-baselines3's, for its runs)."""
     text = json.dumps(metrics, indent=2, allow_nan=False) + "\n"
     checksums = {
         name: sha256(out / name)
@@ -180,7 +188,7 @@ def write_finished(out: Path, spec: RunSpec, metrics: dict[str, Any], device: to
         out / "run.json",
         {
             **spec.identity(),
-            "software": software_versions(),
+            "software": {**software_versions(), **(software or {})},
             "code": code_version(),
             "machine": machine(device),
             "sha256": checksums,
@@ -250,8 +258,8 @@ def read_run(run_dir: Path, expected: dict[str, Any], published: bool = False) -
 
     A run read to be ``published`` (``experiment export``, ``results``) must record its
     checksums too, unless it is one of the runs published before runs recorded any
-    (:data:`ede.run.early_runs.EARLY_RUNS`), every byte as published; an EDE-TD3 run's embedding
-    must be a SHA-256 (a published folder keeps the embedding under its first characters).
+    (:data:`ede.run.early_runs.EARLY_RUNS`), every byte as published; the embedding of a run acting
+    in one (:data:`ede.config.EMBEDDED_ALGOS`) must be a SHA-256 (a published folder keeps the embedding under its first characters).
 
     Raises:
         RunRejected: the first problem found, naming the file.
@@ -264,7 +272,7 @@ def read_run(run_dir: Path, expected: dict[str, Any], published: bool = False) -
         raise RunRejected(f"{run_dir / 'run.json'}: {difference}")
     checksums = _check_files(run_dir, made, published)
     embedding = made.get("embedding")
-    if published and made.get("algo") == "ede-td3" and not _is_sha256(embedding):
+    if published and made.get("algo") in EMBEDDED_ALGOS and not _is_sha256(embedding):
         raise RunRejected(
             f"{run_dir / 'run.json'}: 'embedding' is {json.dumps(embedding)}; expected the "
             "SHA-256 of the decoder the run acted through (64 hexadecimal digits)"

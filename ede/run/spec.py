@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ede.config import Algo, EdeTD3Config, TD3Config, result_neutral
+from ede.config import EMBEDDED_ALGOS, Algo, EdeTD3Config, TD3Config, result_neutral
 
 __all__ = ["RunSpec", "identity_difference", "unshared_params"]
 
@@ -87,14 +87,15 @@ _NEUTRAL = {"td3": result_neutral(TD3Config), "ede_td3": result_neutral(EdeTD3Co
 def unshared_params(runs: Sequence[tuple[Path, Mapping[str, Any]]]) -> str | None:
     """The first of a task's ``runs`` (each its folder and its ``run.json``) made with other
     params than a run before it, in one line naming its folder, the key and both values
-    (:func:`identity_difference`); None where they agree. Every run shares td3's params (both
-    algorithms train with them), the EDE-TD3 runs ede_td3's too; keys that leave a result alone
+    (:func:`identity_difference`); None where they agree. Every run shares td3's params (every
+    algorithm trains with them), the runs acting in the embedding
+    (:data:`ede.config.EMBEDDED_ALGOS`) ede_td3's too; keys that leave a result alone
     (:func:`ede.config.result_neutral`, which an older ``run.json`` may record) are set aside."""
     first: dict[str, tuple[Path, Mapping[str, Any]]] = {}  # the first run, and of each algorithm
     for folder, made in runs:
         for which in ("any", str(made.get("algo"))):
             earlier, theirs = first.setdefault(which, (folder, made))
-            both = {made.get("algo"), theirs.get("algo")} == {"ede-td3"}
+            both = {made.get("algo"), theirs.get("algo")} <= EMBEDDED_ALGOS
             sections = ("td3", "ede_td3") if both else ("td3",)
             difference = identity_difference(
                 _result_params(made, sections),

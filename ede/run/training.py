@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ede.config import ALGOS
+from ede.config import PAPER_ALGOS
 from ede.io.atomic import claim, remove_stale_temporaries
 from ede.method.adapters import ActionAdapter
 from ede.method.agent import Agent
@@ -49,7 +49,7 @@ from ede.run.runs import (
 )
 from ede.run.spec import RunSpec
 
-__all__ = ["Diverged", "train_group", "train_run"]
+__all__ = ["Diverged", "move_aside", "run_metrics", "train_group", "train_run"]
 
 
 class Diverged(Exception):
@@ -107,8 +107,8 @@ def train_group(
             (:func:`ede.run.checkpoint.write`).
     """
     spec = specs[0]
-    if spec.algo not in ALGOS:
-        raise ValueError(f"unknown algorithm {spec.algo!r}; expected one of {', '.join(ALGOS)}")
+    if spec.algo not in PAPER_ALGOS:  # stable-baselines3's train alone: ede.run.sb3
+        raise ValueError(f"{spec.algo!r}: expected one of {', '.join(PAPER_ALGOS)}")
     if spec.algo == "ede-td3" and embedding is None:
         raise ValueError("ede-td3 needs the family's action embedding")
     alike = all(replace(s, seed=0) == replace(spec, seed=0) for s in specs)
@@ -193,7 +193,7 @@ class _Session:
         except CheckpointError as error:
             if bad_checkpoint == "refuse":
                 raise CheckpointError(f"{path}: {error}") from None
-            aside = _move_aside(path)
+            aside = move_aside(path)
             notice(f"{path}: {error}; moved aside to {aside.name}, starting over")
             run, resumed = group.restart(index), False
         return cls(group, index, out, resumed, steps_at_start=run.step, wall_at_start=run.wall)
@@ -218,23 +218,16 @@ class _Session:
         run, out, spec = self.run, self.out, self.run.spec
         self.clock()
         write_curves(out, run.history, run.diagnostics)
-        steps = np.array([row["step"] for row in run.history], dtype=float)
-        returns = np.array([row["mean_return"] for row in run.history])
-        session_steps = run.step - self.steps_at_start
         session_seconds = time.perf_counter() - self.started
-        # The run's wall time: every session's up to the checkpoint the next one resumed from
-        # (checkpointed with it), and this one's; a killed session's time after its last
-        # checkpoint is not counted, as its steps are not: they are taken again.
-        run_seconds = self.wall_at_start + session_seconds
-        metrics = {
-            "final_return": float(returns[-1]),
-            "best_return": float(returns.max()),
-            "auc": area_under_curve(steps, returns),
-            "steps_per_second": session_steps / session_seconds if session_steps else None,
-            "whole_run_steps_per_second": run.step / run_seconds,
-            "episodes": run.episodes,
-            "resumed_from_step": self.steps_at_start if self.resumed else None,
-        }
+        metrics = run_metrics(
+            run.history,
+            run.episodes,
+            run.step,
+            run.step - self.steps_at_start,
+            session_seconds,
+            self.wall_at_start + session_seconds,
+            self.steps_at_start if self.resumed else None,
+        )
         save_policy(out / POLICY, self.group.agent, self.index, spec, self.group.adapter)
         write_finished(out, spec, metrics, self.group.device)
         path = out / "checkpoint"
@@ -244,7 +237,35 @@ class _Session:
         return metrics
 
 
-def _move_aside(path: Path) -> Path:
+def run_metrics(
+    history: list[dict[str, float]],
+    episodes: int,
+    step: int,
+    session_steps: int,
+    session_seconds: float,
+    run_seconds: float,
+    resumed_from: int | None,
+) -> dict[str, Any]:
+    """A finished run's ``metrics.json``: from its evaluations (``history``), its ``episodes`` and
+    ``step``, the steps and seconds of this session and the run's wall time (``run_seconds``):
+    every session's up to the checkpoint the next one resumed from (checkpointed with it), and
+    this one's; a killed session's time after its last checkpoint is not counted, as its steps
+    are not: they are taken again."""
+    steps = np.array([row["step"] for row in history], dtype=float)
+    returns = np.array([row["mean_return"] for row in history])
+    return {
+        "final_return": float(returns[-1]),
+        "best_return": float(returns.max()),
+        "auc": area_under_curve(steps, returns),
+        "steps_per_second": session_steps / session_seconds if session_steps else None,
+        "whole_run_steps_per_second": step / run_seconds,
+        "episodes": episodes,
+        "resumed_from_step": resumed_from,
+    }
+
+
+def move_aside(path: Path) -> Path:
+    """Rename a checkpoint that cannot be used to ``<name>.bad-<time>``, kept for a look."""
     stamp = time.strftime("%Y%m%d-%H%M%S")
     aside = path.with_name(f"{path.name}.bad-{stamp}")
     n = 1

@@ -9,7 +9,7 @@ import itertools
 import json
 from pathlib import Path
 
-from ede.config import ALGO_LABELS, Params
+from ede.config import ALGO_LABELS, EMBEDDED_ALGOS, Params
 from ede.io.atomic import sha256
 from ede.run.runs import POLICY, PUBLISHED, Run
 from ede_pipeline import layout
@@ -130,7 +130,7 @@ def _embeddings(
     """The embeddings ``runs``' EDE-TD3 runs act through, by their checksum's first 12
     characters, each with whether its decoder goes with it: where one of ``playable``'s seeds
     acts through it."""
-    acting = {seed: run.made["embedding"] for algo, seed, _, run in runs if algo == "ede-td3"}
+    acting = {seed: run.made["embedding"] for algo, seed, _, run in runs if algo in EMBEDDED_ALGOS}
     return {
         checksum[:12]: any(s in (playable or ()) for s, c in acting.items() if c == checksum)
         for checksum in acting.values()
@@ -165,7 +165,7 @@ def _unused_embeddings(
     named = set(embeddings) | {
         record.made["embedding"][:12]
         for _, record in published
-        if record.made["algo"] == "ede-td3"
+        if record.made["algo"] in EMBEDDED_ALGOS
         and (record.made["algo"], record.curve.seed) not in joining
     }
     removed = []

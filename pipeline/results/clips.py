@@ -19,7 +19,7 @@ import numpy as np
 
 from ede.analysis.policy import PolicyRejected, policy_of, trained_embedding
 from ede.analysis.video import NoOffscreenGL, fps_of, side_by_side
-from ede.config import ALGO_LABELS, ALGOS, Params
+from ede.config import ALGO_LABELS, PAPER_ALGOS, Params
 from ede.io.atomic import NotWritten
 from ede.run.runs import POLICY
 from ede_pipeline import layout
@@ -71,11 +71,11 @@ def clips(runs: Path, params: Params, tasks: set[str]) -> list[Clip]:
             finals[(algo, seed)] = float(record.curve.returns[-1])
             if (run / POLICY).is_dir():
                 kept.setdefault(seed, {})[algo] = run
-        seeds = sorted(seed for seed, algos in kept.items() if set(algos) == set(ALGOS))
+        seeds = sorted(seed for seed, algos in kept.items() if set(algos) == set(PAPER_ALGOS))
         if not seeds:
             continue
         seed = seeds[0]
-        pair = [kept[seed][algo] for algo in ALGOS]
+        pair = [kept[seed][algo] for algo in PAPER_ALGOS]
         meta, _ = policy_of(kept[seed]["ede-td3"])
         embedding = trained_embedding(meta, *layout.run_embedding(pair[1], meta, params))
         played, returns = side_by_side(pair, (embedding, meta["embedding"]))
@@ -84,7 +84,7 @@ def clips(runs: Path, params: Params, tasks: set[str]) -> list[Clip]:
         folder = layout.task_runs(task, Path(runs.name)).as_posix()  # from a page in runs.parent
         source = read_source(layout.task_runs(task, runs))  # the part that made this seed's runs
         made_by = Source([part for part in source.parts if seed in part.seeds] or source.parts)
-        labels = [ALGO_LABELS[algo] for algo in ALGOS]
+        labels = [ALGO_LABELS[algo] for algo in PAPER_ALGOS]
         text = (
             f"### {CLIP}{task}\n\n"
             f"![{task}: {labels[0]} (left) beside {labels[1]} (right), seed {seed}]"
@@ -93,7 +93,7 @@ def clips(runs: Path, params: Params, tasks: set[str]) -> list[Clip]:
             "evaluation; an orange bar marks each step where EDE-TD3 chooses a code. This "
             f"episode's return: {returns[0]:.1f} ({labels[0]}) and {returns[1]:.1f} "
             f"({labels[1]}); the final evaluation's mean: "
-            f"{finals[(ALGOS[0], seed)]:.1f} and {finals[(ALGOS[1], seed)]:.1f}. Made by "
+            f"{finals[(PAPER_ALGOS[0], seed)]:.1f} and {finals[(PAPER_ALGOS[1], seed)]:.1f}. Made by "
             f"{made_by.made_at()}; [`{folder}`]({folder}) "
             "holds the runs and their policies.\n"
         )

@@ -19,7 +19,7 @@ from ede.analysis.probes import (
 from ede.analysis.results import RANDOM_EPISODES, across_tasks
 from ede.analysis.stats import Band
 from ede.analysis.video import VIDEO_KIND, write_video
-from ede.config import ALGOS, Params
+from ede.config import PAPER_ALGOS, Params
 from ede.io.atomic import write_text, writing_files
 from ede.run.runs import Curve
 from ede_pipeline import layout
@@ -168,7 +168,7 @@ def _across_tasks(
         task
         for curves in curves_of.values()
         for (task, _) in curves
-        if all((task, a) in curves for a in ALGOS)
+        if all((task, a) in curves for a in PAPER_ALGOS)
     }
     lows = {task: refs[task][0] for task in both}
     for title, curves in _aggregated(curves_of, params):
@@ -202,7 +202,7 @@ def _ablations(
     for variant, ours, theirs in found:
         sections, variant_bands = ablation_sections(variant, ours, theirs, bins, params)
         drawn.sections.extend(sections)
-        if set(ours.curves) == set(ALGOS):  # both algorithms: drawn as a family is
+        if set(ours.curves) == set(PAPER_ALGOS):  # both algorithms: drawn as a family is
             kept.setdefault(variant, []).append((ours, variant_bands))
     for variant, variant_runs in kept.items():
         made = learning_curves(

@@ -18,7 +18,7 @@ from ede.analysis.results import (
     improvement_on_task,
 )
 from ede.analysis.stats import Band
-from ede.config import ALGO_LABELS, ALGOS, Params
+from ede.config import ALGO_LABELS, PAPER_ALGOS, Params
 from ede.run.runs import Curve
 from ede_pipeline.published import TaskRuns, seed_list
 
@@ -247,7 +247,7 @@ def complete_tasks(
     naming those that wait, so that no task's seeds are cut to fit one still running."""
     tasks = list(dict.fromkeys(t for t, _ in curves if t in both))
     finished = {
-        t: min(len({c.seed for c in curves[(t, a)]} & set(planned.get(t, ()))) for a in ALGOS)
+        t: min(len({c.seed for c in curves[(t, a)]} & set(planned.get(t, ()))) for a in PAPER_ALGOS)
         for t in tasks
     }
     waiting = [t for t in tasks if finished[t] < len(planned.get(t, ()))]

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ede.config import Params
+from ede.config import SB3_ALGOS, Params
 from ede.errors import first_line
 from ede_pipeline import layout
 from ede_pipeline.common import BadInput
@@ -168,13 +168,15 @@ def group_jobs(jobs: list[Job], size: int) -> list[Job]:
     one ``ede-pipeline train --seed a,b,… --out …/seed{seed}`` per group
     (docs/performance.md). A job is grouped by its run's identity
     (``Job.runs``); jobs of other stages stay alone. A group runs its command as DVC runs the
-    members' (through the same shell, with the same environment)."""
+    members' (through the same shell, with the same environment). Stable-baselines3's runs
+    (:data:`ede.config.SB3_ALGOS`) stay alone: nothing of theirs is batched, a group would only
+    train its seeds one after another on one core."""
     if size <= 1:
         return jobs
     groups: dict[tuple[str, str], list[Job]] = {}
     alone: list[Job] = []
     for job in jobs:
-        if len(job.runs) == 1 and len(job.argvs) == 1:
+        if len(job.runs) == 1 and len(job.argvs) == 1 and job.runs[0].algo not in SB3_ALGOS:
             groups.setdefault((job.runs[0].task, job.runs[0].algo), []).append(job)
         else:
             alone.append(job)

@@ -231,6 +231,19 @@ def test_defaults_in_the_model_match_the_committed_file() -> None:
         ),
         (lambda p: p["runs"].update(algos=[]), "runs.algos: got []"),
         (
+            lambda p: p["runs"].update(algos=["td3", "ppo"]),
+            "runs.algos.1: got 'ppo'; expected 'td3', 'ede-td3', 'sb3-td3-ede', 'sb3-sac-ede' or "
+            "'sb3-sac'",
+        ),
+        (  # stable-baselines3's agents in the EDE space store one transition a code
+            lambda p: (
+                p["runs"]["budgets"].update({"ede/Pusher-v0": 399}),
+                p["runs"].update(algos=["td3", "sb3-sac-ede"]),
+            ),
+            "runs.budgets.ede/Pusher-v0: got 399; expected at least 400 = td3.batch_size 100 × "
+            "embedding.k 4: sb3-sac-ede store one transition a code and would never update",
+        ),
+        (
             lambda p: p["runs"].update(algos=["td3", "td3"]),
             "runs.algos: ['td3', 'td3'] repeats an algorithm",
         ),
@@ -275,6 +288,14 @@ def test_a_bad_file_names_the_key_and_value(write_params, edit, key: str) -> Non
         lambda p: (
             p["families"].update(pendulum={"source": "Pendulum-v1"}),
             p["collect"].update(num_envs=500),
+        ),
+        lambda p: p["runs"].update(
+            algos=["td3", "ede-td3", "sb3-td3-ede", "sb3-sac-ede", "sb3-sac"]
+        ),
+        lambda p: (  # the fewest steps whose codes fill a batch
+            p["runs"]["budgets"].update({"ede/Pusher-v0": 1_000}),
+            p["td3"].update(batch_size=250),
+            p["runs"].update(algos=["sb3-td3-ede"]),
         ),
     ],
 )

@@ -16,7 +16,7 @@ import pytest
 import torch
 from click.testing import CliRunner, Result
 
-from ede.config import ALGOS, Algo, DecoderConfig, EmbeddingConfig, load_params
+from ede.config import PAPER_ALGOS, Algo, DecoderConfig, EmbeddingConfig, load_params
 from ede.io.provenance import describe_software, software_versions
 from ede.io.rollouts import Rollouts, write_store
 from ede.method.embedding import train_decoder, train_encoder
@@ -511,7 +511,7 @@ def test_a_tasks_intervals_do_not_depend_on_the_runs_of_tasks_before_it(
             fake_run(project, "ede/Pusher-v0", algo, seed, list(-50 + noise))
     _, alone = report(project)
     for seed in range(8):  # ReacherVertical's runs come first in the params: bootstrapped before
-        for algo in ALGOS:
+        for algo in PAPER_ALGOS:
             noise = np.random.default_rng([seed, 9]).normal(0, 3, 3)
             fake_run(project, "ede/ReacherVertical-v0", algo, seed, list(-20 + noise))
     _, beside = report(project)
@@ -570,7 +570,7 @@ def point_runs(project: Path, embeddings: Path, write_params, **report: Any) -> 
     )
     finals = {0: -30.0, 1: -10.0, 2: -20.0}
     for seed, final in finals.items():
-        for algo in ALGOS:
+        for algo in PAPER_ALGOS:
             run = fake_run(project, "ede/Point-v0", algo, seed, [-50, -40, final])
             identity = found.identity if algo == "ede-td3" else ""
             _edit_json(run / "run.json", lambda made, i=identity: made.update(embedding=i))

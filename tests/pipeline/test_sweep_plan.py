@@ -47,6 +47,14 @@ def test_a_job_runs_its_tasks_budget_once_per_seed(tmp_path: Path) -> None:
     assert job_steps(job(tmp_path, "td3", 0, task="other/Task-v0"), budgets) == 0
 
 
+def test_stable_baselines3_runs_are_never_grouped(tmp_path: Path) -> None:
+    # nothing of theirs is batched: a group would only train its seeds one after another
+    jobs = [job(tmp_path, algo, seed) for algo in ("td3", "sb3-sac-ede") for seed in range(3)]
+    grouped = group_jobs(jobs, 3)
+    assert sorted(len(j.runs) for j in grouped) == [1, 1, 1, 3]
+    assert all(j.runs[0].algo == "sb3-sac-ede" for j in grouped if len(j.runs) == 1)
+
+
 def test_the_overall_line_counts_steps_and_leaves_resumed_ones_out_of_the_rate(
     tmp_path: Path,
 ) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -714,3 +715,187 @@ def test_render_refuses_what_it_cannot_play_in_one_line_and_writes_nothing(
     assert no_gl.returncode == 1 and no_gl.stderr.count("\n") == 1, no_gl.stderr
     assert "MUJOCO_GL=disable: videos render offscreen" in no_gl.stderr
     assert not (tmp_path / "x.mp4").exists()
+
+
+# Stable-baselines3's arms (ede/run/sb3.py) -------------------------------------------------------
+
+SB3_BUDGET = 600
+SB3 = ["sb3-td3-ede", "sb3-sac-ede", "sb3-sac"]
+
+
+@pytest.fixture
+def sb3_params(in_workdir: Path) -> Iterator[str]:
+    """The work directory's params with networks and evaluations small enough for SB3's arms on
+    ede/Point-v0 at a budget of 600 steps; torch on one thread (on a busy machine more threads
+    only wait for each other)."""
+    import torch
+    import yaml
+
+    params = yaml.safe_load((in_workdir / "params.yaml").read_text())
+    params["td3"].update(
+        hidden=[16, 16], batch_size=16, start_steps=40, eval_every=200, eval_episodes=2,
+        checkpoint_every=200, update_schedule="step",
+    )  # fmt: skip
+    params["runs"]["budgets"]["ede/Point-v0"] = SB3_BUDGET
+    params["runs"]["algos"] = ["td3", "ede-td3", *SB3]
+    (in_workdir / "params-sb3.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield "params-sb3.yaml"
+    torch.set_num_threads(threads)
+
+
+def sb3_train(params: str, algo: str, out: Path, *more: str) -> Result:
+    task = ["--task", "ede/Point-v0", "--algo", algo, "--seed", "0"]
+    return run("train", *task, "--out", str(out), "--params", params, *more)
+
+
+@pytest.mark.parametrize("algo", SB3)
+def test_a_stable_baselines3_arm_trains_into_a_complete_run_folder(
+    in_workdir: Path, sb3_params: str, algo: str
+) -> None:
+    from ede.run.artifacts import load_action_embedding
+    from ede.run.runs import read_policy, read_run
+
+    out = in_workdir / f"sb3/{algo}"
+    result = sb3_train(sb3_params, algo, out)
+    assert result.exit_code == 0, result.output
+    made = json.loads((out / "run.json").read_text())
+    meta, _ = load_action_embedding(None, in_workdir / "data/families/point/embedding/decoder")
+    embedding = meta.identity if algo != "sb3-sac" else ""
+    run_ = read_run(out, {"algo": algo, "budget": SB3_BUDGET, "embedding": embedding})
+    assert run_ is not None  # finished, its checksums and eval.csv's steps as every run's
+    # raw environment steps, never codes: the same rows as TD3's and EDE-TD3's
+    assert list(run_.curve.steps) == [0, 200, 400, 600]
+    assert made["software"]["stable-baselines3"] and made["machine"]["cpu"] == machine()["cpu"]
+    policy, tensors = read_policy(out)
+    assert policy["k"] == (1 if algo == "sb3-sac" else 4) and tensors
+    diagnostics = run_.diagnostics
+    assert diagnostics is not None and diagnostics["updates"].sum() > 0
+    assert not (out / "checkpoint").exists()
+    video = in_workdir / f"sb3-{algo}.gif"
+    bad(run("render", str(out), "--out", str(video)), "not stable-baselines3's actors")
+    assert not video.exists()
+
+
+def test_an_ede_space_arm_makes_one_update_per_raw_step(in_workdir: Path, sb3_params: str) -> None:
+    import yaml
+
+    from ede.config import Params
+    from ede.run.artifacts import load_action_embedding
+    from ede.run.sb3 import _Run
+    from ede.run.spec import RunSpec
+
+    params = Params.model_validate(yaml.safe_load((in_workdir / sb3_params).read_text()))
+    _, embedding = load_action_embedding(None, in_workdir / "data/families/point/embedding/decoder")
+    spec = RunSpec("ede/Point-v0", "sb3-sac-ede", 0, SB3_BUDGET, params.td3, params.ede_td3)
+    run_ = _Run(spec, embedding)
+    try:
+        counted = []
+        while run_.steps.steps < 300:
+            steps, updates = run_.steps.steps, run_.model._n_updates
+            run_._code()
+            counted.append((run_.steps.steps - steps, run_.model._n_updates - updates))
+    finally:
+        run_.close()
+    learning = [pair for pair in counted if pair[1]]
+    assert len(learning) > 10 and all(ran == updates for ran, updates in learning)
+    assert {ran for ran, _ in counted} >= {4}  # a code is k = 4 raw steps
+
+
+@pytest.mark.parametrize("algo", SB3)
+def test_a_stable_baselines3_run_killed_midway_resumes_to_the_same_returns(
+    in_workdir: Path, sb3_params: str, algo: str
+) -> None:
+    reference = in_workdir / f"sb3-reference/{algo}"
+    assert sb3_train(sb3_params, algo, reference).exit_code == 0
+    killed = in_workdir / f"sb3-killed/{algo}"
+    command = [sys.executable, "-m", "ede_pipeline", "train", "--task", "ede/Point-v0",
+               "--algo", algo, "--seed", "0", "--out", str(killed), "--params", sb3_params]  # fmt: skip
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    while not (killed / "checkpoint/state.json").exists() and process.poll() is None:
+        time.sleep(0.02)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert not (killed / "metrics.json").exists(), "the run finished before it was killed"
+    step = json.loads((killed / "checkpoint/state.json").read_text())["step"]
+    assert 0 < step < SB3_BUDGET
+    resumed = sb3_train(sb3_params, algo, killed)
+    assert resumed.exit_code == 0, resumed.output
+    assert returns_of(killed) == returns_of(reference)
+    assert (killed / "diagnostics.csv").read_text() == (reference / "diagnostics.csv").read_text()
+    assert json.loads((killed / "metrics.json").read_text())["resumed_from_step"] == step
+
+
+def test_a_damaged_or_other_stable_baselines3_checkpoint_is_refused_or_moved_aside(
+    in_workdir: Path, sb3_params: str
+) -> None:
+    out = in_workdir / "sb3-damaged"
+    assert sb3_train(sb3_params, "sb3-sac", out, "--keep-checkpoint").exit_code == 0
+    (out / "metrics.json").unlink()  # as if killed after its last checkpoint
+    tensors = out / "checkpoint/state.safetensors"
+    data = bytearray(tensors.read_bytes())
+    data[-1] ^= 1
+    tensors.write_bytes(bytes(data))
+    eval_csv = (out / "eval.csv").read_text()
+    bad(
+        sb3_train(sb3_params, "sb3-sac", out, "--bad-checkpoint", "refuse"),
+        "state.safetensors does not match its checksum (damaged or changed) (--bad-checkpoint refuse)",
+    )
+    assert (out / "eval.csv").read_text() == eval_csv and not (out / "metrics.json").exists()
+    restarted = sb3_train(sb3_params, "sb3-sac", out)
+    assert restarted.exit_code == 0, restarted.output
+    assert "moved aside to checkpoint.bad-" in restarted.stderr
+    assert json.loads((out / "metrics.json").read_text())["resumed_from_step"] is None
+    # a checkpoint of another arm's run is another run's
+    other = in_workdir / "sb3-other"
+    assert sb3_train(sb3_params, "sb3-sac-ede", other, "--keep-checkpoint").exit_code == 0
+    (out / "metrics.json").unlink()
+    shutil.rmtree(out / "checkpoint", ignore_errors=True)
+    shutil.copytree(other / "checkpoint", out / "checkpoint")
+    bad(sb3_train(sb3_params, "sb3-sac", out, "--bad-checkpoint", "refuse"), "another run's")
+
+
+def test_an_sb3_arm_refuses_an_embedding_of_other_params(in_workdir: Path, sb3_params: str) -> None:
+    import yaml
+
+    params = yaml.safe_load((in_workdir / sb3_params).read_text())
+    params["embedding"]["k"] = 2
+    (in_workdir / "params-sb3-k2.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    out = in_workdir / "sb3-k2"
+    bad(
+        sb3_train("params-sb3-k2.yaml", "sb3-td3-ede", out),
+        "made with embedding.k = 4, but params.yaml has embedding.k = 2",
+    )
+    assert not out.exists()
+
+
+def test_several_seeds_of_an_sb3_arm_train_one_after_another_each_as_alone(
+    in_workdir: Path, sb3_params: str
+) -> None:
+    task = ["--task", "ede/Point-v0", "--algo", "sb3-td3-ede", "--params", sb3_params]
+    group = run("train", *task, "--seeds", "1-2", "--out", "sb3-seeds/seed{seed}")
+    assert group.exit_code == 0, group.output
+    alone = run("train", *task, "--seed", "2", "--out", "sb3-seeds/alone")
+    assert alone.exit_code == 0, alone.output
+    assert returns_of(in_workdir / "sb3-seeds/seed2") == returns_of(in_workdir / "sb3-seeds/alone")
+    assert returns_of(in_workdir / "sb3-seeds/seed1") != returns_of(in_workdir / "sb3-seeds/alone")
+
+
+@pytest.mark.parametrize("algo", ["sb3-td3-ede", "sb3-sac"])
+def test_an_sb3_run_that_diverges_fails_in_one_line_without_metrics(
+    in_workdir: Path, sb3_params: str, algo: str
+) -> None:
+    import yaml
+
+    params = yaml.safe_load((in_workdir / sb3_params).read_text())
+    params["td3"]["lr"] = 1.0e30
+    (in_workdir / "params-sb3-lr.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    out = in_workdir / f"sb3-diverging-{algo}"
+    result = sb3_train("params-sb3-lr.yaml", algo, out)
+    assert result.exit_code == 1 and result.exception is not None  # click's exit, no traceback
+    lines = [line for line in result.stderr.splitlines() if line.startswith("Error: ")]
+    assert len(lines) == 1, repr(result.exception)  # beside the progress line
+    assert lines[0].startswith(f"Error: ede/Point-v0 {algo} seed 0: diverged at step"), lines
+    assert "Traceback" not in result.output
+    assert not (out / "metrics.json").exists()
