@@ -13,7 +13,7 @@ from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
-from ede.config import PAPER_ALGOS
+from ede.config import ALGOS
 from ede.io.provenance import INSTRUCTION_SETS
 from ede.run.runs import Curve, Run, RunRejected, read_run, recorded_task, same_files
 from ede.run.spec import unshared_params
@@ -114,7 +114,7 @@ def published_runs(root: Path, task: str) -> list[tuple[Path, Run]]:
     its task's ``source.json`` names; and no two runs are one (:func:`ede.run.runs.same_files`: a
     copy of a run is refused whatever its folder and its ``run.json`` say)."""
     found = []
-    for algo in PAPER_ALGOS:
+    for algo in ALGOS:  # every algorithm a task has runs of, in ALGOS' order: TD3's first
         seeds = []
         for path in sorted(layout.run(task, algo, 0, root).parent.glob("*")):
             if not path.is_dir():
