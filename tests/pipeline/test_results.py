@@ -655,6 +655,11 @@ def bad_input_cases() -> dict[str, tuple]:
         made = layout.run(TASK, "td3", 0, runs) / "run.json"
         made.write_text(json.dumps({**json.loads(made.read_text()), "machine": "a laptop"}))
 
+    def unknown_algorithm(runs: Path) -> None:  # SB3's TD3 in the EDE space, misnamed
+        shutil.copytree(
+            layout.run(TASK, "td3", 0, runs).parent, layout.task_runs(TASK, runs) / "sb3-td3"
+        )
+
     def misplaced(runs: Path) -> None:  # beside its own folder, under another task's name
         shutil.copytree(layout.task_runs(TASK, runs), runs / "ede" / "ReacherTurn-v1")
 
@@ -703,6 +708,11 @@ def bad_input_cases() -> dict[str, tuple]:
         "unknown task": (
             unknown_task,
             "HalfCheetah-v99: cannot be made to measure its reference returns",
+        ),
+        "unknown algorithm": (
+            unknown_algorithm,
+            "ReacherTurn-v0/sb3-td3: runs of no algorithm known here; expected a folder per "
+            "algorithm, named one of td3, ede-td3, sb3-td3-ede, sb3-sac-ede, sb3-sac",
         ),
         "misplaced": (
             misplaced,
