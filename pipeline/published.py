@@ -13,7 +13,7 @@ from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
-from ede.config import PAPER_ALGOS
+from ede.config import ALGOS
 from ede.io.provenance import INSTRUCTION_SETS
 from ede.run.runs import Curve, Run, RunRejected, read_run, recorded_task, same_files
 from ede.run.spec import unshared_params
@@ -108,13 +108,20 @@ SEED_FOLDER = re.compile(r"seed(0|[1-9][0-9]*)")  # seed<N>, as layout.run names
 def published_runs(root: Path, task: str) -> list[tuple[Path, Run]]:
     """A task's finished runs under ``root`` (:func:`ede_pipeline.layout.run`), per algorithm by
     seed, each checked as a published run (:func:`ede.run.runs.read_run`: the task, algorithm and
-    seed of its folder, its files those its ``run.json`` records). Every folder of an
-    algorithm's is a run, named ``seed<N>`` as ``layout.run`` names it, so that no seed is read
+    seed of its folder, its files those its ``run.json`` records). Every folder holding runs is an
+    algorithm's (:data:`ede.config.ALGOS`), so that no run is passed over unread (``sb3-td3``
+    for ``sb3-td3-ede``); every folder of an algorithm's is a run, named ``seed<N>`` as ``layout.run`` names it, so that no seed is read
     twice (``seed00`` beside ``seed0``); each run's ``run.json`` names its folder's seed, a seed
     its task's ``source.json`` names; and no two runs are one (:func:`ede.run.runs.same_files`: a
     copy of a run is refused whatever its folder and its ``run.json`` say)."""
     found = []
-    for algo in PAPER_ALGOS:
+    for run in sorted(layout.task_runs(task, root).glob("*/seed*")):
+        if run.parent.name not in ALGOS:
+            raise BadInput(
+                f"{run.parent}: runs of no algorithm known here; expected a folder per "
+                f"algorithm, named one of {', '.join(ALGOS)}"
+            )
+    for algo in ALGOS:  # every algorithm a task has runs of, in ALGOS' order: TD3's first
         seeds = []
         for path in sorted(layout.run(task, algo, 0, root).parent.glob("*")):
             if not path.is_dir():

@@ -20,7 +20,13 @@ from ede.analysis.results import Profile
 from ede.analysis.stats import Band, align_curves
 from ede.config import ALGO_LABELS, Algo
 
-ALGO_COLOURS: dict[Algo, str] = {"td3": "tab:blue", "ede-td3": "tab:red"}
+ALGO_COLOURS: dict[Algo, str] = {  # the paper's pair as the paper draws them, then SB3's agents
+    "td3": "tab:blue",
+    "ede-td3": "tab:red",
+    "sb3-td3-ede": "tab:purple",
+    "sb3-sac-ede": "tab:green",
+    "sb3-sac": "tab:olive",
+}
 ALGO_STYLE: dict[str, tuple[str, str]] = {  # label and colour, by algorithm name
     algo: (ALGO_LABELS[algo], colour) for algo, colour in ALGO_COLOURS.items()
 }
@@ -194,6 +200,8 @@ def performance_profile(profile: Profile, tasks: int, runs: dict[str, int]) -> F
     figure = _figure(5.0, 3.4)
     ax = figure.subplots()
     for algo, (label, colour) in ALGO_STYLE.items():
+        if algo not in profile.fractions:  # the aggregates' pair alone
+            continue
         ax.plot(profile.thresholds, profile.fractions[algo], color=colour, label=label)
         low, high = profile.bands[algo]
         ax.fill_between(profile.thresholds, low, high, color=colour, alpha=0.2, linewidth=0)

@@ -3,9 +3,10 @@ the results page (``ede-pipeline results``) render, each in its own way.
 
 Per arm — an algorithm's runs on a task, or an ablation's variant's — the final return, the area
 under the curve and the steps to each threshold, the binned band, and per seed whether it
-diverged and its last quarter (:func:`arm`); per task, the probability that an EDE-TD3 run beats a
-TD3 run (:func:`improvement_on_task`) and the bins where two arms' intervals are disjoint
-(:func:`disjoint`); across tasks, rliable's aggregates and the performance profile
+diverged and its last quarter (:func:`arm`); per task, EDE-TD3 set against each other algorithm
+with runs there (:func:`comparisons`): the probability that an EDE-TD3 run beats one of the other's
+(:func:`improvement_on_task`) and the bins where their intervals are disjoint (:func:`disjoint`);
+across tasks, rliable's aggregates of EDE-TD3 against TD3 and the performance profile
 (:func:`across_tasks`).
 
 Every interval is a percentile bootstrap over seeds at ``report.confidence`` with
@@ -17,7 +18,7 @@ comparisons seed NumPy's global generator with ``report.seed`` itself.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,7 +36,7 @@ from ede.analysis.stats import (
     steps_to_threshold,
 )
 from ede.analysis.stats import across_tasks as rliable_across_tasks
-from ede.config import ALGO_LABELS, ReportConfig
+from ede.config import ALGO_LABELS, ALGOS, ReportConfig
 from ede.run.runs import Curve, area_under_curve
 
 RANDOM_EPISODES = 10  # episodes of uniform random actions behind a task's normalised 0
@@ -139,6 +140,53 @@ def improvement_on_task(
         )["probability_of_improvement"]
         for name, score in SCORE_OF.items()
     }
+
+
+OURS = "ede-td3"  # the algorithm every other is set against, task by task
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """EDE-TD3 set against one other algorithm on a task: the arm it is compared with, the
+    probability that an EDE-TD3 run beats one of the arm's (per score, ``SCORES``), and per bin
+    of EDE-TD3's band whether their intervals are disjoint (:func:`disjoint`)."""
+
+    against: str  # the other algorithm
+    improvement: dict[str, Interval]  # P(EDE-TD3 > the arm), per score
+    disjoint: np.ndarray | None  # +1, -1 or 0 per bin; None where an arm has a single seed
+
+    def bins(self) -> tuple[int, int, int] | None:
+        """The bins where EDE-TD3's interval lies wholly above the other's, wholly below, and of
+        all; None where an arm has a single seed."""
+        sign = self.disjoint
+        if sign is None:
+            return None
+        return int((sign > 0).sum()), int((sign < 0).sum()), len(sign)
+
+
+def comparisons(
+    curves: Mapping[str, list[Curve]], arms: Mapping[str, Arm], report: ReportConfig
+) -> list[Comparison]:
+    """EDE-TD3 set against each other algorithm with runs on a task (``curves`` and their
+    statistics ``arms``, by algorithm), in :data:`ede.config.ALGOS`' order, TD3 first; none
+    where EDE-TD3 has no runs there."""
+    if not curves.get(OURS):
+        return []
+    return [
+        Comparison(
+            algo,
+            improvement_on_task(
+                curves[OURS],
+                curves[algo],
+                report.confidence,
+                report.bootstrap_samples,
+                report.seed,
+            ),
+            disjoint(arms[OURS], arms[algo]),
+        )
+        for algo in ALGOS
+        if algo != OURS and curves.get(algo)
+    ]
 
 
 # Across tasks ------------------------------------------------------------------------------

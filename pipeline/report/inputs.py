@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from ede.config import Algo, Params
+from ede.config import EMBEDDED_ALGOS, Algo, Params
 from ede.method.embedding import ActionEmbedding
 from ede.run.artifacts import ArtifactError, load_action_embedding
 from ede.run.runs import Curve, RunRejected, read_run
@@ -222,8 +222,8 @@ def read_runs(params: Params, inputs: Inputs) -> Runs:
 
 def _expected(params: Params, inputs: Inputs, task: str, algo: Algo, seed: int) -> dict[str, Any]:
     """What a run's ``run.json`` must say: the run the params name, with the family's embedding
-    where the report was given it."""
-    embedding = inputs.embedding_ids.get(params.runs.tasks[task]) if algo == "ede-td3" else ""
+    where it acts in it (:data:`ede.config.EMBEDDED_ALGOS`) and the report was given it."""
+    embedding = inputs.embedding_ids.get(params.runs.tasks[task]) if algo in EMBEDDED_ALGOS else ""
     expected = RunSpec(
         task, algo, seed, params.runs.budgets[task], params.td3, params.ede_td3, embedding or ""
     ).identity()

@@ -1,6 +1,7 @@
 """The report's numbers, computed from the runs read (:mod:`.inputs`) by the results model
 (:mod:`ede.analysis.results`, as the results pages compute theirs) and the probes of Figures 6 and 7: each
-family's rows and bands, the aggregates across tasks, the curves for ``dvc plots``, the DVC
+family's rows and bands (and EDE-TD3 against each other algorithm, where the params name
+algorithms beyond the paper's pair), the aggregates across tasks, the curves for ``dvc plots``, the DVC
 metrics, and the clips of TD3 beside EDE-TD3."""
 
 from __future__ import annotations
@@ -15,10 +16,20 @@ import numpy as np
 
 from ede.analysis.policy import PolicyRejected
 from ede.analysis.probes import random_policy_return
-from ede.analysis.results import RANDOM_EPISODES, SCORES, AcrossTasks, Arm, across_tasks, arm, fresh
+from ede.analysis.results import (
+    RANDOM_EPISODES,
+    SCORES,
+    AcrossTasks,
+    Arm,
+    Comparison,
+    across_tasks,
+    arm,
+    comparisons,
+    fresh,
+)
 from ede.analysis.stats import Band, curve_band
 from ede.analysis.video import NoOffscreenGL, fps_of, side_by_side, video_bytes
-from ede.config import Params
+from ede.config import PAPER_ALGOS, Params
 from ede.run.runs import Curve
 from ede_pipeline import layout
 from ede_pipeline.report.inputs import Inputs, Key, Runs
@@ -29,11 +40,13 @@ Probed = TypeVar("Probed")  # what a probe of an embedding finds (Figures 6 and 
 
 @dataclass(frozen=True)
 class Family:
-    """A family's numbers: per task a row per algorithm, and what its figures draw."""
+    """A family's numbers: per task a row per algorithm and EDE-TD3 against each other, and what
+    its figures draw."""
 
     name: str
     tasks: list[str]
     rows: dict[str, list[Row]]  # per task
+    compared: dict[str, list[Comparison]]  # per task; none where the params name only the pair
     bands: dict[Key, Band]
     counts: dict[Key, int]  # the runs averaged
     diagnostics: dict[Key, list[dict[str, np.ndarray]]]
@@ -65,23 +78,36 @@ def width(params: Params, task: str) -> float:
 
 
 def families(params: Params, runs: Runs) -> list[Family]:
-    """Each family's statistics, per task and algorithm (:func:`ede.analysis.results.arm`)."""
+    """Each family's statistics, per task and algorithm (:func:`ede.analysis.results.arm`), and
+    where the params name algorithms beyond the paper's pair, per task EDE-TD3 against each other
+    with runs there (:func:`ede.analysis.results.comparisons`; the pair's report is the paper's,
+    its claim the aggregates across tasks)."""
     config = params.report
+    beyond = not set(params.runs.algos) <= set(PAPER_ALGOS)
     made = []
     for family, tasks in params.runs.by_family().items():
         rows: dict[str, list[Row]] = {}
+        compared: dict[str, list[Comparison]] = {}
         bands: dict[Key, Band] = {}
         for task in tasks:
+            arms: dict[str, Arm] = {}
             for algo in params.runs.algos:
                 found = runs.curves[(task, algo)]
-                row = arm(found, config.thresholds.get(task, []), width(params, task), config)
+                row = arms[algo] = arm(
+                    found, config.thresholds.get(task, []), width(params, task), config
+                )
                 rows.setdefault(task, []).append((algo, row, runs.missing[(task, algo)]))
                 if row.band is not None:
                     bands[(task, algo)] = row.band
+            if beyond:
+                curves: dict[str, list[Curve]] = {
+                    algo: runs.curves[(task, algo)] for algo in params.runs.algos
+                }
+                compared[task] = comparisons(curves, arms, config)
         keys: list[Key] = [(task, algo) for task in tasks for algo in params.runs.algos]
         counts = {key: len(runs.curves[key]) for key in keys}
         diagnostics = {key: runs.diagnostics[key] for key in keys if key in runs.diagnostics}
-        made.append(Family(family, tasks, rows, bands, counts, diagnostics))
+        made.append(Family(family, tasks, rows, compared, bands, counts, diagnostics))
     return made
 
 

@@ -10,7 +10,7 @@ from typing import Any
 
 from ede.analysis import figures
 from ede.analysis.probes import EffectSpace, Exploration
-from ede.analysis.results import SCORES, AcrossTasks
+from ede.analysis.results import OURS, SCORES, AcrossTasks, Comparison
 from ede.config import ALGO_LABELS, Params, ReportConfig
 from ede.io.provenance import describe_software, software_versions
 from ede_pipeline import layout
@@ -32,7 +32,8 @@ def intro(page: Page, params: Params) -> None:
 
 def learning_curves(page: Page, params: Params, families: list[Family]) -> None:
     """Per family, its learning curves' figure, its diagnostics' where its runs kept them, and
-    per task its table and the seeds that fell back."""
+    per task its table, EDE-TD3 against each other algorithm (where the params name algorithms
+    beyond the paper's pair) and the seeds that fell back."""
     config = params.report
     page.add("<h2>Learning curves</h2>")
     for family in families:
@@ -60,6 +61,8 @@ def learning_curves(page: Page, params: Params, families: list[Family]) -> None:
             thresholds = config.thresholds.get(task, [])
             note = f" (thresholds {', '.join(f'{t:g}' for t in thresholds)})" if thresholds else ""
             page.add(f"<h4>{task}{note}</h4>" + _table(family.rows[task], thresholds))
+            if family.compared.get(task):
+                page.add(_against(family.compared[task]))
             page.add(_fell_back(family.rows[task]))
 
 
@@ -82,6 +85,27 @@ def _table(rows: list[Row], thresholds: list[float]) -> str:
         body.append(
             f"<tr><td>{ALGO_LABELS[algo]}</td><td>{interval(row.final)}</td>"
             f"<td>{interval(row.area)}</td>{reached}<td>{len(row.seeds)}{missing}</td></tr>"
+        )
+    return f"<table>{head}{''.join(body)}</table>"
+
+
+def _against(compared: list[Comparison]) -> str:
+    """EDE-TD3 against each other algorithm with runs on a task: the probability that an EDE-TD3
+    run beats one of the other's on each score, with its interval, and the bins where their
+    intervals are disjoint (EDE-TD3's above, below, of all; — where either has one seed)."""
+    ours = html.escape(ALGO_LABELS[OURS])
+    head = (
+        f"<tr><th>{ours} against</th>"
+        + "".join(f"<th>P({ours} &gt; it), {label}</th>" for label in SCORES.values())
+        + f"<th>bins with {ours} above, below (of all)</th></tr>"
+    )
+    body = []
+    for each in compared:
+        bins = "—" if (found := each.bins()) is None else "{}, {} (of {})".format(*found)
+        body.append(
+            f"<tr><td>{html.escape(ALGO_LABELS[each.against])}</td>"
+            + "".join(f"<td>{interval(each.improvement[score])}</td>" for score in SCORES)
+            + f"<td>{bins}</td></tr>"
         )
     return f"<table>{head}{''.join(body)}</table>"
 

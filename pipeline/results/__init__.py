@@ -38,12 +38,13 @@ report draws them) and prints, per task, in Markdown:
 - two reference returns: uniform random actions' (the normalised scores' 0, as the report's) and
   zero actions' over ``ZERO_EPISODES`` episodes with its standard error (doing nothing: on a task
   that penalises actions, a policy must beat it to have learned what the task rewards);
-- final return, area under the curve and the steps to reach each threshold per algorithm, with
+- final return, area under the curve and the steps to reach each threshold per algorithm (the
+  paper's TD3 and EDE-TD3, and each of stable-baselines3's agents with runs there), with
   bootstrap intervals over seeds;
-- the bins where the two algorithms' intervals are disjoint, and which lies above (with two
-  seeds or more of each);
-- rliable's probability that an EDE-TD3 run beats a TD3 run there, over all the task's seeds,
-  on the final return and on the area;
+- EDE-TD3 against each other algorithm there, TD3 first: the bins where the two's intervals are
+  disjoint, and which lies above (with two seeds or more of each), and rliable's probability that
+  an EDE-TD3 run beats one of the other's, over all the task's seeds, on the final return and on
+  the area;
 - each algorithm's mean over seeds of a seed's last quarter of bins, with its bootstrap interval
   (the asymptote, as far as the budget shows it);
 - per seed, whether it diverged (:func:`ede.analysis.stats.divergence`: its last quarter of bins all below
@@ -51,20 +52,22 @@ report draws them) and prints, per task, in Markdown:
 
 and, per family, over the paper's tasks (where they span two families and there are tasks beyond
 them), over the transfer tasks (the families' targets, where there are two or more: the
-transfer claim's own aggregate) and over every task with runs of both algorithms, the report's
+transfer claim's own aggregate) and over every task with runs of TD3 and EDE-TD3, the report's
 aggregates across tasks (rliable: the probability that
 EDE-TD3 beats TD3 and each one's interquartile mean of normalised scores, over final returns and
 areas, with stratified bootstrap intervals), drawing the performance profile of all of them to
 ``<figures>/performance-profile.png``. A task with a seed of its ``source.json`` not yet
 finished by an algorithm (an experiment still running) waits, named, rather than cutting every
 task's seeds to its count; tasks run with more seeds than others (ReacherVertical's 8) give the
-aggregates each task's lowest seeds, as many as the fewest, and the rest are named.
+aggregates each task's lowest seeds, as many as the fewest, and the rest are named. The tasks at
+a glance: a table per algorithm EDE-TD3 is set against (TD3's first), naming the tasks without
+its runs.
 
 ``--ablations`` holds the fidelity ablations' runs the same way, one folder per variant
 (``<variant>/<task>/<algorithm>/seed<N>/``, ``source.json`` per task, and where kept the variant's
 embedding metrics in ``<task>/embedding/<checksum>/``): each is printed, with its experiment file or command,
 against the default's runs of the same task, algorithm and seeds in ``--runs``, with the bins where their intervals are disjoint; a
-variant run with both algorithms is drawn as a family is, to ``<figures>/ablation-<variant>.png``.
+variant run with several algorithms is drawn as a family is, to ``<figures>/ablation-<variant>.png``.
 
 The confidence, the bootstrap's resamples and its seed are the report's (``report`` in
 ``params.yaml``), and every statistic's bootstrap (an interval, a band of the figure) starts afresh

@@ -71,7 +71,7 @@ def clips(runs: Path, params: Params, tasks: set[str]) -> list[Clip]:
             finals[(algo, seed)] = float(record.curve.returns[-1])
             if (run / POLICY).is_dir():
                 kept.setdefault(seed, {})[algo] = run
-        seeds = sorted(seed for seed, algos in kept.items() if set(algos) == set(PAPER_ALGOS))
+        seeds = sorted(seed for seed, algos in kept.items() if set(PAPER_ALGOS) <= set(algos))
         if not seeds:
             continue
         seed = seeds[0]

@@ -77,7 +77,7 @@ def draw(params: Params, runs: Path, bins: int, ablations: Path, figures: Path) 
     """Read and check the runs in ``runs`` (and the fidelity ablations in ``ablations``, where
     there are) and make every section and figure of their results: per family its tasks and its
     figure; the aggregates across tasks and the performance profile; the tasks at a glance; per
-    ablation its sections and, run with both algorithms, its figure (``figures`` is where the
+    ablation its sections and, run with several algorithms, its figure (``figures`` is where the
     sections say the figures go). Nothing is written."""
     families = read_runs(runs, params)
     found_ablations = read_ablations(ablations, runs) if ablations.is_dir() else []
@@ -106,13 +106,13 @@ def _families(
     figures: Path,
 ) -> list[Glance]:
     """Per family, each task's section and the family's figure, added to ``drawn``; the rows at
-    a glance of its tasks with runs of both algorithms."""
+    a glance of its tasks with runs of EDE-TD3 and another algorithm."""
     glance = []
     for family, found in families.items():
         source = params.families[family].source if family in params.families else found[0].task
         bands: dict[tuple[str, str], Band] = {}
         for task_runs in found:
-            section, task_bands, row = task_section(
+            section, task_bands, rows = task_section(
                 task_runs,
                 family,
                 source,
@@ -122,7 +122,7 @@ def _families(
                 params,
             )
             drawn.sections.append(section)
-            glance += [row] if row else []
+            glance += rows
             bands.update({(task_runs.task, a): band for a, band in task_bands.items()})
         made = learning_curves(
             family,
@@ -196,13 +196,13 @@ def _ablations(
     params: Params,
     figures: Path,
 ) -> None:
-    """Per fidelity ablation its sections, and the figure of each variant run with both
+    """Per fidelity ablation its sections, and the figure of each variant run with several
     algorithms, added to ``drawn``."""
     kept: dict[str, list[tuple[TaskRuns, dict[str, Band]]]] = {}
     for variant, ours, theirs in found:
         sections, variant_bands = ablation_sections(variant, ours, theirs, bins, params)
         drawn.sections.extend(sections)
-        if set(ours.curves) == set(PAPER_ALGOS):  # both algorithms: drawn as a family is
+        if len(ours.curves) > 1:  # several algorithms: drawn as a family is
             kept.setdefault(variant, []).append((ours, variant_bands))
     for variant, variant_runs in kept.items():
         made = learning_curves(

@@ -9,16 +9,18 @@ import numpy as np
 
 from ede.analysis.probes import ZERO_EPISODES
 from ede.analysis.results import (
+    OURS,
     RANDOM_EPISODES,
     SCORES,
     AcrossTasks,
     Arm,
+    Comparison,
     arm,
+    comparisons,
     disjoint,
-    improvement_on_task,
 )
 from ede.analysis.stats import Band
-from ede.config import ALGO_LABELS, PAPER_ALGOS, Params
+from ede.config import ALGO_LABELS, ALGOS, PAPER_ALGOS, Params
 from ede.run.runs import Curve
 from ede_pipeline.published import TaskRuns, seed_list
 
@@ -37,15 +39,16 @@ class Section(NamedTuple):
 
 
 class Glance(NamedTuple):
-    """One task's row of the table at a glance."""
+    """One task's row of a table at a glance: EDE-TD3 against one other algorithm there."""
 
     task: str
+    against: str  # the other algorithm (TD3, in the paper's table)
     budget: str
-    seeds: str
+    seeds: str  # the seeds of the two
     final: dict[str, str]  # per algorithm label, the final return's interval
-    improvement: dict[str, str]  # P(EDE-TD3 > TD3) per score (ede.analysis.results.SCORES)
-    bins: tuple[int, int, int] | None  # EDE-TD3's interval above TD3's, below, of all bins
-    diverged: str  # TD3's seeds that diverged, of its seeds
+    improvement: dict[str, str]  # P(EDE-TD3 > the other) per score (ede.analysis.results.SCORES)
+    bins: tuple[int, int, int] | None  # EDE-TD3's interval above the other's, below, of all bins
+    diverged: str  # the other's seeds that diverged, of its seeds
 
 
 def spans(steps: np.ndarray, width: float) -> str:
@@ -122,10 +125,11 @@ def task_section(
     bins: int,
     refs: tuple[float, float, float],
     params,
-) -> tuple[Section, dict[str, Band], Glance | None]:
+) -> tuple[Section, dict[str, Band], list[Glance]]:
     """One task's tables: per algorithm final return, area under the curve and the steps to
-    reach each of its ``thresholds``; the disjoint bins; per seed, whether it diverged. And each
-    algorithm's band, for the family's figure, and, with runs of both, its row at a glance.
+    reach each of its ``thresholds``; EDE-TD3 against each other algorithm (the disjoint bins, the
+    probability of improvement); per seed, whether it diverged. And each algorithm's band, for
+    the family's figure, and its rows at a glance, one per algorithm EDE-TD3 is set against.
     ``paper_budget`` is None beyond the paper."""
     width = found.budget / bins
     arms = {
@@ -148,10 +152,10 @@ def task_section(
         *table,
         "",
     ]
-    glance = None
-    if len(arms) == 2:
-        compared, glance = _ede_against_td3(found, stats, width, paper_budget, params)
-        lines += compared
+    glance = []
+    for compared in comparisons(found.curves, by_algo, params.report):
+        lines += _ede_against(compared, stats, width, params.report.confidence)
+        glance.append(_glance(found, compared, stats, paper_budget))
     lines += _divergence(by_algo)
     bands = {algo: found.band for algo, found in by_algo.items() if found.band is not None}
     return Section(found.task, "\n".join(lines) + "\n"), bands, glance
@@ -170,46 +174,39 @@ def _origin(found: TaskRuns, family: str, source: str, paper_budget: int | None)
     )
 
 
-def _ede_against_td3(
-    found: TaskRuns,
-    stats: dict[str, Arm],
-    width: float,
-    paper_budget: int | None,
-    params: Params,
-) -> tuple[list[str], Glance]:
-    """A task with runs of both algorithms: the lines setting EDE-TD3 against TD3 (the bins
-    where their intervals are disjoint, the probability of improvement over its seeds), and its
-    row at a glance."""
-    labels = (ALGO_LABELS["ede-td3"], ALGO_LABELS["td3"])
-    lines = disjoint_bins(stats, labels, width, params.report.confidence)
-    report = params.report
-    improvement = improvement_on_task(
-        found.curves["ede-td3"],
-        found.curves["td3"],
-        report.confidence,
-        report.bootstrap_samples,
-        report.seed,
-    )
-    lines += [
-        "P(EDE-TD3 > TD3) over this task's seeds (rliable, as the aggregates across tasks): "
-        + " and ".join(f"{improvement[s]} on the {label}" for s, label in SCORES.items())
+def _ede_against(
+    compared: Comparison, stats: dict[str, Arm], width: float, confidence: float
+) -> list[str]:
+    """The lines setting EDE-TD3 against one other algorithm on a task: the bins where their
+    intervals are disjoint, and the probability of improvement over its seeds."""
+    ours, theirs = ALGO_LABELS[OURS], ALGO_LABELS[compared.against]
+    return [
+        *disjoint_bins(stats, (ours, theirs), width, confidence),
+        f"P({ours} > {theirs}) over this task's seeds (rliable, as the aggregates across tasks): "
+        + " and ".join(f"{compared.improvement[s]} on the {label}" for s, label in SCORES.items())
         + ".",
         "",
     ]
-    sign = disjoint(*(stats[label] for label in labels))
-    diverged = [d for d in stats[ALGO_LABELS["td3"]].divergence if d is not None]
+
+
+def _glance(
+    found: TaskRuns, compared: Comparison, stats: dict[str, Arm], paper_budget: int | None
+) -> Glance:
+    """A task's row at a glance in the table of EDE-TD3 against ``compared``'s algorithm."""
+    labels = (ALGO_LABELS[OURS], ALGO_LABELS[compared.against])
+    diverged = [d for d in stats[labels[1]].divergence if d is not None]
     budget = found.budget
-    glance = Glance(
+    return Glance(
         found.task,
+        compared.against,
         f"{budget:,}"
         + (f" ({budget / paper_budget:.1%} of the paper's)" if paper_budget else " (its own)"),
-        seed_list(sorted({c.seed for runs in found.curves.values() for c in runs})),
+        seed_list(sorted({c.seed for a in (OURS, compared.against) for c in found.curves[a]})),
         {label: str(stats[label].final) for label in labels},
-        {score: str(interval) for score, interval in improvement.items()},
-        (0, 0, 0) if sign is None else (int((sign > 0).sum()), int((sign < 0).sum()), len(sign)),
+        {score: str(interval) for score, interval in compared.improvement.items()},
+        compared.bins(),
         f"{sum(d.diverged for d in diverged)} of {len(diverged)}",
     )
-    return lines, glance
 
 
 def _divergence(by_algo: dict[str, Arm]) -> list[str]:
@@ -281,10 +278,11 @@ def across_section(title: str, found: AcrossTasks, params, waiting: str) -> Sect
 
 
 def at_a_glance(rows: list[Glance], confidence: float) -> Section:
-    """Every task with runs of both algorithms, one row each: its budget and seeds, each
-    algorithm's final return, P(EDE-TD3 > TD3) on each score, the bins where the intervals are disjoint
-    and the TD3 seeds that diverged (each as its task's section has it)."""
-    td3, ede = ALGO_LABELS["td3"], ALGO_LABELS["ede-td3"]
+    """Every task with runs of EDE-TD3 and another algorithm, a table per other algorithm (TD3's
+    first, the paper's), one row a task: its budget and seeds, the two algorithms' final returns,
+    P(EDE-TD3 > the other) on each score, the bins where their intervals are disjoint and the
+    other's seeds that diverged (each as its task's section has it); and under a table, the
+    tasks of the others without runs of its algorithm."""
     heading = "The tasks at a glance"
     lines = [
         f"### {heading}",
@@ -292,20 +290,33 @@ def at_a_glance(rows: list[Glance], confidence: float) -> Section:
         f"Means over seeds with {confidence:.0%} bootstrap intervals. A bin counts where one "
         "algorithm's interval lies wholly above the other's, at the report's bootstrap seed "
         "(with two seeds or more of each; — with fewer).",
-        "",
-        f"| task | steps a run | seeds | final return, {td3} | final return, {ede} | "
-        + "".join(f"P({ede} > {td3}), {label} | " for label in SCORES.values())
-        + f"bins with {ede} above, below (of all) | {td3} seeds diverged |",
+    ]
+    tasks = list(dict.fromkeys(row.task for row in rows))
+    for against in (a for a in ALGOS if any(row.against == a for row in rows)):
+        table = [row for row in rows if row.against == against]
+        lines += ["", *_glance_table(table, against)]
+        if without := [t for t in tasks if t not in {row.task for row in table}]:
+            lines += ["", f"No runs of {ALGO_LABELS[against]} on {', '.join(without)}."]
+    return Section(heading, "\n".join(lines) + "\n")
+
+
+def _glance_table(rows: list[Glance], against: str) -> list[str]:
+    """The table at a glance of EDE-TD3 against one other algorithm (:func:`at_a_glance`)."""
+    theirs, ede = ALGO_LABELS[against], ALGO_LABELS[OURS]
+    lines = [
+        f"| task | steps a run | seeds | final return, {theirs} | final return, {ede} | "
+        + "".join(f"P({ede} > {theirs}), {label} | " for label in SCORES.values())
+        + f"bins with {ede} above, below (of all) | {theirs} seeds diverged |",
         "|---|---|---|---|---|---|---|---|" + "---|" * (len(SCORES) - 1),
     ]
     for row in rows:
         bins = "—" if row.bins is None else "{}, {} (of {})".format(*row.bins)
         lines.append(
-            f"| {row.task} | {row.budget} | {row.seeds} | {row.final[td3]} | {row.final[ede]} | "
+            f"| {row.task} | {row.budget} | {row.seeds} | {row.final[theirs]} | {row.final[ede]} | "
             + "".join(f"{row.improvement[score]} | " for score in SCORES)
             + f"{bins} | {row.diverged} |"
         )
-    return Section(heading, "\n".join(lines) + "\n")
+    return lines
 
 
 def cpu_line(cpus: dict[str | None, int]) -> str:

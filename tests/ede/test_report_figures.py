@@ -12,8 +12,9 @@ from matplotlib.figure import Figure
 from matplotlib.text import Text
 
 from ede.analysis import figures
-from ede.analysis.results import AcrossTasks, across_tasks, improvement_on_task
+from ede.analysis.results import AcrossTasks, across_tasks, arm, comparisons, improvement_on_task
 from ede.analysis.stats import Band, curve_band
+from ede.config import ALGO_LABELS, ALGOS, ReportConfig
 from ede.run.runs import Curve
 
 
@@ -200,3 +201,53 @@ def test_a_band_is_drawn_as_it_is_given_and_a_pair_without_one_not_at_all() -> N
     (fill,) = figure.axes[0].collections
     _, y = np.asarray(fill.get_paths()[0].vertices).T
     assert y.min() == 6.0 and y.max() == 8.0  # the band between the given low and high
+
+
+def test_every_algorithm_is_drawn_in_a_colour_of_its_own() -> None:
+    curves: dict[tuple[str, str], list[Curve]] = {
+        ("Hopper-v5", algo): [
+            Curve(s, STEPS, np.linspace(0.0, 100.0 * i, len(STEPS)) + s) for s in range(2)
+        ]
+        for i, algo in enumerate(ALGOS)
+    }
+    bands = {
+        key: curve_band(runs, 0.95, 100, np.random.default_rng(0)) for key, runs in curves.items()
+    }
+    figure = figures.learning_curves(
+        "hopper", ["Hopper-v5"], bands, {key: 2 for key in curves}, 0.95
+    )
+    lines = figure.axes[0].lines
+    assert [str(line.get_label()) for line in lines] == [
+        f"{ALGO_LABELS[a]} (2 seeds)" for a in ALGOS
+    ]
+    assert len({line.get_color() for line in lines}) == len(ALGOS)
+    assert cut_off(figure) == []
+
+
+def test_ede_td3_is_set_against_every_other_algorithm_of_a_task_td3_first() -> None:
+    steps = np.linspace(0.0, 10_000.0, 21)
+
+    def runs(gain: float, seeds: int) -> list[Curve]:
+        return [Curve(s, steps, gain * steps / 10_000 + 0.01 * s) for s in range(seeds)]
+
+    report = ReportConfig(bootstrap_samples=200)
+    # EDE-TD3 above SB3's SAC, level with TD3, below SB3's TD3 in the EDE space; SB3's SAC in
+    # the EDE space has no runs here, and one seed of SB3's SAC claims no disjoint bins.
+    curves = {
+        "sb3-sac": runs(-5.0, 1),
+        "sb3-td3-ede": runs(20.0, 3),
+        "ede-td3": runs(10.0, 3),
+        "td3": runs(10.0, 3),
+        "sb3-sac-ede": [],
+    }
+    arms = {algo: arm(found, [], 1_000.0, report) for algo, found in curves.items()}
+    found = comparisons(curves, arms, report)
+    assert [c.against for c in found] == ["td3", "sb3-td3-ede", "sb3-sac"]
+    level, below, above = found
+    assert level.improvement["final_return"].mean == 0.5
+    assert below.improvement["final_return"].mean == 0.0
+    assert above.improvement["auc"].mean == 1.0
+    bins = below.bins()  # EDE-TD3's intervals above, below, of all
+    assert bins is not None and bins[0] == 0 and bins[1] > 0
+    assert above.disjoint is None and above.bins() is None
+    assert comparisons({**curves, "ede-td3": []}, arms, report) == []

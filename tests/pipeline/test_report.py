@@ -16,7 +16,15 @@ import pytest
 import torch
 from click.testing import CliRunner, Result
 
-from ede.config import PAPER_ALGOS, Algo, DecoderConfig, EmbeddingConfig, load_params
+from ede.config import (
+    ALGO_LABELS,
+    ALGOS,
+    PAPER_ALGOS,
+    Algo,
+    DecoderConfig,
+    EmbeddingConfig,
+    load_params,
+)
 from ede.io.provenance import describe_software, software_versions
 from ede.io.rollouts import Rollouts, write_store
 from ede.method.embedding import train_decoder, train_encoder
@@ -488,6 +496,53 @@ def test_a_seed_that_falls_and_stays_below_its_best_is_flagged(project: Path) ->
         "(best -12 at step 10,000, last quarter -33.5)." in page
     )
     assert page.count("Fell and stayed below their best") == 1  # the others rise
+
+
+def test_every_algorithm_the_params_name_has_its_row_and_ede_td3_is_set_against_each(
+    project: Path, write_params
+) -> None:
+    def every_algorithm(params: dict, algos: tuple[str, ...] = ALGOS) -> None:
+        params["runs"].update(
+            tasks=TASKS,
+            algos=list(algos),
+            seeds=[0, 1, 2],
+            budgets={"ede/ReacherVertical-v0": 2000, "ede/Pusher-v0": 2000},
+        )
+        params["report"].update(
+            effect_space_family=None, exploration_family=None, bootstrap_samples=200
+        )
+
+    write_params(every_algorithm)
+    ends: dict[Algo, int] = {
+        "td3": -8,
+        "ede-td3": -4,
+        "sb3-td3-ede": -6,
+        "sb3-sac": -2,
+    }  # SB3's SAC in EDE: none
+    for algo, end in ends.items():
+        for seed in range(3):
+            fake_run(project, "ede/ReacherVertical-v0", algo, seed, [-20, -12, end - 0.1 * seed])
+    _, page = report(project)
+    table = page.split("<h4>ede/ReacherVertical-v0")[1].split("<h4>")[0]
+    rows = [row.split("</td>")[0] for row in table.split("<tr><td>")[1:]]
+    assert rows[: len(ALGOS)] == [ALGO_LABELS[a] for a in ALGOS]  # a row each, TD3's first
+    assert 'SB3 SAC (EDE space)</td><td><span class="missing">missing</span>' in table
+    against = table.split("<th>EDE-TD3 against</th>")[1].split("</table>")[0]
+    compared = {row.split("</td>")[0]: row for row in against.split("<tr><td>")[1:]}
+    assert list(compared) == ["TD3", "SB3 TD3 (EDE space)", "SB3 SAC"]  # those with runs
+    for label, p in (
+        ("TD3", "1 [1, 1]"),
+        ("SB3 TD3 (EDE space)", "1 [1, 1]"),
+        ("SB3 SAC", "0 [0, 0]"),
+    ):
+        assert compared[label].startswith(f"{label}</td><td>{p}</td><td>{p}</td>"), label
+    assert page.count("<th>EDE-TD3 against</th>") == 1  # Pusher has no runs to set against
+    # The aggregates across tasks stay EDE-TD3 against TD3, the profile of those two.
+    assert "<th>P(EDE-TD3 &gt; TD3)</th>" in page and 'id="performance-profile"' in page
+    # The paper's pair alone: its report as it was, no table setting one against the other.
+    write_params(lambda params: every_algorithm(params, PAPER_ALGOS))
+    _, pair = report(project)
+    assert "<th>EDE-TD3 against</th>" not in pair and "<td>SB3" not in pair
 
 
 def test_a_tasks_intervals_do_not_depend_on_the_runs_of_tasks_before_it(

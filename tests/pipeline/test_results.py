@@ -16,7 +16,7 @@ import torch
 import yaml
 from click.testing import CliRunner
 
-from ede.config import Algo, EdeTD3Config, TD3Config
+from ede.config import ALGO_LABELS, ALGOS, Algo, EdeTD3Config, TD3Config
 from ede.io.atomic import sha256
 from ede.run.runs import PUBLISHED, write_curves, write_finished
 from ede.run.spec import RunSpec
@@ -355,6 +355,67 @@ def test_a_task_run_with_more_seeds_joins_the_aggregates_with_as_many_as_the_oth
     assert "| final return | 1 [1, 1] |" in across  # every EDE-TD3 run ends above every TD3 run
 
 
+def test_every_algorithm_of_a_task_has_its_row_and_ede_td3_is_set_against_each(
+    tmp_path: Path,
+) -> None:
+    """stable-baselines3's agents beside the paper's pair: a row each, EDE-TD3 against each other
+    algorithm, a table at a glance per algorithm naming the task without its runs; the pair's
+    lines as they are without them, and the aggregates still EDE-TD3 against TD3."""
+    x = np.linspace(0, 1, 21)
+    gains = {"td3": 50, "ede-td3": 150, "sb3-td3-ede": 100, "sb3-sac": 0, "sb3-sac-ede": 200}
+    for runs, algos in ((tmp_path / "pair", ("td3", "ede-td3")), (tmp_path / "arms", gains)):
+        for seed in range(3):
+            noise = np.random.default_rng(seed).normal(0, 2, len(x))
+            for algo in algos:  # ReacherTurn: every algorithm; ReacherPush: the pair alone
+                write_run(runs, algo, seed, -200 + gains[algo] * x + noise)
+            for algo in ("td3", "ede-td3"):
+                write_run(runs, algo, seed, -200 + gains[algo] * x, task="ede/ReacherPush-v0")
+    pair = results(tmp_path / "pair", tmp_path / "pair-figures")
+    arms = results(tmp_path / "arms", tmp_path / "arms-figures")
+    assert pair.returncode == 0 and arms.returncode == 0, arms.stderr
+    turn = task_table(arms.stdout, TASK)
+    rows = [line.split(" | ")[0] for line in turn.splitlines() if " | 0–2 | " in line]
+    assert rows == [f"| {ALGO_LABELS[a]}" for a in ALGOS]  # ALGOS' order, TD3's first
+    for algo in (*ALGOS[2:], "td3"):
+        label = ALGO_LABELS[algo]
+        against = f"P(EDE-TD3 > {label}) over this task's seeds (rliable, as the aggregates"
+        assert turn.count(against) == 1
+        p = turn.split(against)[1].split(" on the final return")[0].removeprefix(" across tasks): ")
+        # Every EDE-TD3 run ends above every run of TD3 and SB3's agents but SAC in the EDE space.
+        assert p == ("0 [0, 0]" if algo == "sb3-sac-ede" else "1 [1, 1]"), label
+        assert f"EDE-TD3 above {label} at " in turn
+    # The pair's rows and the lines setting one against the other are as they are without the rest.
+
+    def pairs(section: str) -> list[str]:
+        return [
+            line
+            for line in section.splitlines()
+            if line.startswith(("| TD3 |", "| EDE-TD3 |", "P(EDE-TD3 > TD3) "))
+            or ": EDE-TD3 above TD3 at " in line
+        ]
+
+    assert len(pairs(turn)) == 10 and pairs(turn) == pairs(task_table(pair.stdout, TASK))
+    push = "ede/ReacherPush-v0"
+    assert section(arms.stdout, push) == section(pair.stdout, push)
+    # At a glance: the pair's table as it is, then one per other algorithm, each naming the task
+    # without its runs.
+    glance = section(arms.stdout, "The tasks at a glance")
+    alone = section(pair.stdout, "The tasks at a glance")
+    assert glance.startswith(alone)
+    tables = glance.removeprefix(alone).strip("\n").split("\n\n")
+    assert [table.split(" | ")[3] for table in tables[::2]] == [
+        f"final return, {ALGO_LABELS[a]}" for a in ALGOS[2:]
+    ]
+    assert tables[1::2] == [
+        f"No runs of {ALGO_LABELS[a]} on ede/ReacherPush-v0." for a in ALGOS[2:]
+    ]
+    assert "| ede/ReacherTurn-v0 | 20,000 (2.0% of the paper's) | 0–2 | " in tables[0]
+    # The aggregates across tasks stay EDE-TD3 against TD3.
+    assert section(arms.stdout, "Across tasks: the reacher family") == section(
+        pair.stdout, "Across tasks: the reacher family"
+    )
+
+
 def test_a_task_beyond_the_paper_is_its_own_family_with_its_thresholds(tmp_path: Path) -> None:
     runs = tmp_path / "runs"
     x = np.linspace(0, 1, 21)
@@ -594,6 +655,11 @@ def bad_input_cases() -> dict[str, tuple]:
         made = layout.run(TASK, "td3", 0, runs) / "run.json"
         made.write_text(json.dumps({**json.loads(made.read_text()), "machine": "a laptop"}))
 
+    def unknown_algorithm(runs: Path) -> None:  # SB3's TD3 in the EDE space, misnamed
+        shutil.copytree(
+            layout.run(TASK, "td3", 0, runs).parent, layout.task_runs(TASK, runs) / "sb3-td3"
+        )
+
     def misplaced(runs: Path) -> None:  # beside its own folder, under another task's name
         shutil.copytree(layout.task_runs(TASK, runs), runs / "ede" / "ReacherTurn-v1")
 
@@ -642,6 +708,11 @@ def bad_input_cases() -> dict[str, tuple]:
         "unknown task": (
             unknown_task,
             "HalfCheetah-v99: cannot be made to measure its reference returns",
+        ),
+        "unknown algorithm": (
+            unknown_algorithm,
+            "ReacherTurn-v0/sb3-td3: runs of no algorithm known here; expected a folder per "
+            "algorithm, named one of td3, ede-td3, sb3-td3-ede, sb3-sac-ede, sb3-sac",
         ),
         "misplaced": (
             misplaced,
