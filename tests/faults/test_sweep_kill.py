@@ -18,6 +18,7 @@ from tests.support import BIN, dvc, ok, tool_env, train_record
 
 pytestmark = pytest.mark.slow
 
+
 def test_a_killed_sweep_resumes_to_what_dvc_repro_records(
     reacher_upstream: Path,
     reacher_reference: tuple[dict[str, Any], float],
