@@ -16,7 +16,7 @@ import torch
 import yaml
 from click.testing import CliRunner
 
-from ede.config import ALGO_LABELS, ALGOS, Algo, EdeTD3Config, TD3Config
+from ede.config import ALGO_LABELS, ALGOS, EMBEDDED_ALGOS, Algo, EdeTD3Config, TD3Config
 from ede.io.atomic import sha256
 from ede.run.runs import PUBLISHED, write_curves, write_finished
 from ede.run.spec import RunSpec
@@ -65,7 +65,7 @@ def write_run(
         "algo": algo,
         "seed": seed,
         "budget": budget,
-        "embedding": embedding if algo == "ede-td3" else "",
+        "embedding": embedding if algo in EMBEDDED_ALGOS else "",
         "sha256": {name: sha256(folder / name) for name in PUBLISHED if name != "run.json"},
     }
     if machine is not None:  # as run.json records it since 2026-12; the committed runs have none
