@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from ede.config import ALGO_LABELS, ALGOS, EMBEDDED_ALGOS, SB3_ALGOS, SEED_RANGE, Params, is_seed
+from ede.method.embedding import ActionEmbedding
 from ede.method.nets import pick_device
 from ede.method.td3 import Critic
 from ede.run.artifacts import ArtifactError, load_action_embedding, params_mismatches
@@ -96,7 +97,6 @@ def train(
         raise BadInput(
             f"--task {task!r}: not in params.yaml's runs.tasks ({', '.join(params.runs.all_tasks)})"
         )
-    family = params.runs.tasks[task]
     config = params.td3
     try:  # stable-baselines3's agents train on the CPU, one seed after another
         device = pick_device("cpu" if algo in SB3_ALGOS else config.device)
@@ -104,34 +104,11 @@ def train(
         raise BadInput(str(error)) from None
     together = 1 if algo in SB3_ALGOS else len(seed_list)
     check_group_memory(params, task, algo, seeds, together, device)
-    embedding, embedding_id = None, ""
+    embedding, embedding_id, inputs = None, "", ()
     if algo in EMBEDDED_ALGOS:
-        folder = layout.embedding(family)
-        try:
-            meta, embedding = load_action_embedding(
-                encoder or folder / "encoder", decoder or folder / "decoder", device
-            )
-        except ArtifactError as error:
-            raise BadInput(
-                f"{error} ({ALGO_LABELS[algo]} on {task} needs the {family} family's embedding)"
-            ) from None
-        if meta.family != family:
-            raise BadInput(
-                f"{decoder or folder / 'decoder'}: the embedding of family "
-                f"{meta.family}, but {task} is in family {family}"
-            )
-        mismatches = params_mismatches(
-            decoder or folder / "decoder", meta, params.embedding, params.decoder
+        embedding, embedding_id, inputs = family_embedding(
+            params, task, algo, encoder, decoder, device
         )
-        if mismatches:
-            raise BadInput("\n".join(mismatches))
-        try:  # a decoder of another action space than the task's: one line naming both
-            EmbeddedActions(make(task), embedding).close()
-        except ArtifactError as error:
-            raise BadInput(
-                str(error).replace("the embedding", str(decoder or folder / "decoder"), 1)
-            ) from None
-        embedding_id = meta.identity
     torch.set_num_threads(config.threads)
     budget = params.runs.budgets[task]
     specs = [
@@ -140,7 +117,6 @@ def train(
     ]
     notice = functools.partial(click.echo, err=True)
     label = f"{algo} {task} seed{'s' if len(seed_list) > 1 else ''} {seeds}"
-    inputs = (encoder or folder / "encoder", decoder or folder / "decoder") if embedding else ()
     for run_dir in outs:  # every run's, before the first lock is taken
         check_outputs((run_dir, RUN_KIND), inputs=inputs)
     try:
@@ -170,6 +146,40 @@ def train(
             f"{run_dir}: final return {metrics['final_return']:.2f}, best "
             f"{metrics['best_return']:.2f}, {metrics['steps_per_second'] or 0:.0f} steps/s"
         )
+
+
+def family_embedding(
+    params: Params,
+    task: str,
+    algo: str,
+    encoder: Path | None,
+    decoder: Path | None,
+    device: torch.device,
+) -> tuple[ActionEmbedding, str, tuple[Path, Path]]:
+    """The embedding ``algo`` acts in on ``task`` (its family's, or ``--encoder``/``--decoder``),
+    checked against the task's family, the params and the task's action space; its checksum and
+    its two folders (the run's inputs). Raises :class:`BadInput`, one line, where it cannot be."""
+    family = params.runs.tasks[task]
+    folder = layout.embedding(family)
+    encoder, decoder = encoder or folder / "encoder", decoder or folder / "decoder"
+    try:
+        meta, embedding = load_action_embedding(encoder, decoder, device)
+    except ArtifactError as error:
+        raise BadInput(
+            f"{error} ({ALGO_LABELS[algo]} on {task} needs the {family} family's embedding)"
+        ) from None
+    if meta.family != family:
+        raise BadInput(
+            f"{decoder}: the embedding of family {meta.family}, but {task} is in family {family}"
+        )
+    mismatches = params_mismatches(decoder, meta, params.embedding, params.decoder)
+    if mismatches:
+        raise BadInput("\n".join(mismatches))
+    try:  # a decoder of another action space than the task's: one line naming both
+        EmbeddedActions(make(task), embedding).close()
+    except ArtifactError as error:
+        raise BadInput(str(error).replace("the embedding", str(decoder), 1)) from None
+    return embedding, meta.identity, (encoder, decoder)
 
 
 MAX_GROUP = 4096  # seeds in one process: far more than a machine trains at once
