@@ -104,7 +104,8 @@ def train(
         raise BadInput(str(error)) from None
     together = 1 if algo in SB3_ALGOS else len(seed_list)
     check_group_memory(params, task, algo, seeds, together, device)
-    embedding, embedding_id, inputs = None, "", ()
+    embedding: ActionEmbedding | None = None
+    embedding_id, inputs = "", tuple[Path, ...]()
     if algo in EMBEDDED_ALGOS:
         embedding, embedding_id, inputs = family_embedding(
             params, task, algo, encoder, decoder, device
@@ -155,7 +156,7 @@ def family_embedding(
     encoder: Path | None,
     decoder: Path | None,
     device: torch.device,
-) -> tuple[ActionEmbedding, str, tuple[Path, Path]]:
+) -> tuple[ActionEmbedding, str, tuple[Path, ...]]:
     """The embedding ``algo`` acts in on ``task`` (its family's, or ``--encoder``/``--decoder``),
     checked against the task's family, the params and the task's action space; its checksum and
     its two folders (the run's inputs). Raises :class:`BadInput`, one line, where it cannot be."""
