@@ -261,9 +261,12 @@ def test_a_stable_baselines3_agent_learns_in_it_unchanged(
 
 
 def test_the_recipe_on_any_agent_md_runs(monkeypatch: pytest.MonkeyPatch) -> None:
-    """docs/any-agent.md's code, as a user copies it, at a budget of 150 codes."""
+    """docs/any-agent.md's code, as a user copies it, at a budget of 150 codes; the README shows
+    the same lines."""
     page = (REPO / "docs" / "any-agent.md").read_text()
     blocks = re.findall(r"^```python\n(.*?)^```", page, re.S | re.M)
+    readme = (REPO / "README.md").read_text()
+    assert blocks[0] in re.findall(r"^```python\n(.*?)^```", readme, re.S | re.M)
     recipe, count = re.subn(r"total_timesteps=[^)]*", "total_timesteps=150", blocks[0])
     assert count == 1 and len(recipe.strip().splitlines()) <= 12
     monkeypatch.chdir(REPO)
