@@ -22,7 +22,7 @@ from ede.run.evaluation import EVAL_SEED_OFFSET
 from ede.tasks import make
 from ede_pipeline.cli import main
 from ede_pipeline.progress import PROGRESS_ENV, read_progress
-from tests.support import REPO
+from tests.support import REPO, final_evaluation
 
 BUDGET = 3_000
 
@@ -648,7 +648,7 @@ def test_render_plays_the_final_policy_as_its_last_evaluation(in_workdir: Path, 
     # The same starts as the run's final evaluation: the same returns as its first 2 episodes,
     # from the actor rebuilt out of policy/ (other kernels than training's stacked one: within
     # 0.01). Rendering, not playing, is what takes time: the 5 are replayed without frames.
-    evaluation = final_evaluation(out)
+    evaluation = final_evaluation(out, in_workdir / "params.yaml", 5)
     assert abs(np.mean(evaluation) - returns_of(out)[-1]) < 0.01, (evaluation, returns_of(out))
     played = [float(r) for r in done.output.split("; returns ")[1].split(" (mean")[0].split(", ")]
     assert np.allclose(played, evaluation[:2], rtol=0, atol=0.01), (done.output, evaluation)
@@ -665,32 +665,6 @@ def test_render_plays_the_final_policy_as_its_last_evaluation(in_workdir: Path, 
     top = clip[:6, :2].reshape(6, -1, 3).mean(axis=1)
     marked = np.abs(top - np.array([255, 196, 0])).max(axis=1) < 40
     assert list(marked) == ([True, False] * 3 if algo == "ede-td3" else [False] * 6)
-
-
-def final_evaluation(out: Path) -> list[float]:
-    """The run's final evaluation (its 5 episodes, from their starts) replayed by its policy as
-    ``render`` rebuilds it, through :func:`ede.run.evaluation.evaluate` and without frames: each
-    episode's return."""
-    from ede.analysis.policy import adapter_of, observation_size, policy_of, trained_embedding
-    from ede.analysis.video import actor_of
-    from ede.config import load_params
-    from ede.run.evaluation import evaluate
-    from ede.run.vector import MemberEnvs
-    from ede_pipeline import layout
-
-    meta, tensors = policy_of(out)
-    embedding = None
-    if meta["algo"] == "ede-td3":
-        where = layout.run_embedding(out, meta, load_params("params.yaml"))
-        embedding = trained_embedding(meta, *where)
-    mu = actor_of(meta, tensors, observation_size(meta["task"]))
-    envs = MemberEnvs.of_task(meta["task"], 1)
-    start = EVAL_SEED_OFFSET * (int(meta["seed"]) + 1)
-    try:
-        returns = evaluate(envs, lambda obs: mu(obs, obs), adapter_of(meta, embedding), 5, [start])
-    finally:
-        envs.vector.close()
-    return [float(r) for r in returns[0]]
 
 
 def test_render_refuses_what_it_cannot_play_in_one_line_and_writes_nothing(
