@@ -213,7 +213,7 @@ def main() -> None:
     parser.add_argument("--minutes", type=float, default=7.0)
     args = parser.parse_args()
     plan = args.plan or ("1x1,2x2" if args.tiny else "1x1,1x16,8x16")
-    steps = args.steps or (700 if args.tiny else 3_000)
+    steps = args.steps or (200 if args.tiny else 3_000)
     warmup = min(WARMUP, steps // 2)
     compile = args.compile or ("reduce-overhead" if args.device == "cuda" else "none")
     started = time.perf_counter()

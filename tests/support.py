@@ -248,3 +248,31 @@ def updated_agent(mode: str, device: str = "cpu") -> tuple[Any, Any]:
     for u in range(UPDATES):
         agent.update(buffer, np.array([True, u % 3 != 1]))  # member 1 sits some out
     return agent, buffer
+
+
+def final_evaluation(run: Path, params: Path, episodes: int) -> list[float]:
+    """The run's final evaluation (its ``episodes`` episodes, from their starts) replayed by its
+    policy as ``ede-pipeline render`` rebuilds it (with ``params``), through
+    :func:`ede.run.evaluation.evaluate` and without frames: each episode's return. Rendering,
+    not playing, is what a video's episodes take time for."""
+    from ede.analysis.policy import adapter_of, observation_size, policy_of, trained_embedding
+    from ede.analysis.video import actor_of
+    from ede.config import load_params
+    from ede.run.evaluation import EVAL_SEED_OFFSET, evaluate
+    from ede.run.vector import MemberEnvs
+    from ede_pipeline import layout
+
+    meta, tensors = policy_of(run)
+    embedding = None
+    if meta["algo"] == "ede-td3":
+        where = layout.run_embedding(run, meta, load_params(params))
+        embedding = trained_embedding(meta, *where)
+    mu = actor_of(meta, tensors, observation_size(meta["task"]))
+    envs = MemberEnvs.of_task(meta["task"], 1)
+    start = EVAL_SEED_OFFSET * (int(meta["seed"]) + 1)
+    adapter = adapter_of(meta, embedding)
+    try:
+        returns = evaluate(envs, lambda obs: mu(obs, obs), adapter, episodes, [start])
+    finally:
+        envs.vector.close()
+    return [float(r) for r in returns[0]]

@@ -18,7 +18,7 @@ import pytest
 import yaml
 
 from tests.faults.conftest import tiny
-from tests.support import BIN, dvc, ok, run, scratch_copy, tool_env
+from tests.support import BIN, dvc, final_evaluation, ok, run, scratch_copy, tool_env
 
 pytestmark = pytest.mark.slow
 
@@ -445,11 +445,15 @@ def test_an_export_with_policies_publishes_what_render_plays(repo: Path) -> None
     assert (kept / "decoder" / "weights.safetensors").is_file() and not (kept / "encoder").exists()
     assert not (repo / "data" / "families").exists()  # no pipeline embedding to fall back on
 
-    played = ok(run(repo, BIN / "ede-pipeline", "render", published, "--episodes", "3",
+    played = ok(run(repo, BIN / "ede-pipeline", "render", published,
                     "--out", repo / "clip.gif", timeout=300))  # fmt: skip
-    mean = float(played.split("(mean ")[1].split(")")[0])
+    # Its first episode as the run's final evaluation played it (3 episodes, replayed without
+    # frames: their mean the one recorded), as in test_train.py's render test.
+    evaluation = final_evaluation(published, repo / "params.yaml", 3)
     last = (published / "eval.csv").read_text().strip().splitlines()[-1].split(",")
-    assert abs(mean - float(last[2])) < 0.01, (played, last)  # as in test_train.py's render test
+    assert abs(np.mean(evaluation) - float(last[2])) < 0.01, (evaluation, last)
+    first = float(played.split("; returns ")[1].split(" (mean")[0])
+    assert abs(first - evaluation[0]) < 0.01, (played, evaluation)
 
     # A results page's clip of the folder: TD3 beside EDE-TD3, a GIF beside the page.
     page = repo / "clips.md"
