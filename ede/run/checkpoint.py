@@ -172,7 +172,7 @@ def read(path: Path, spec: RunSpec, layout: Layout) -> Checkpoint:
         obs=tensors["obs"].numpy(),
         episodes=state["episodes"],
         history=state["history"],
-        diagnostics=[_from_json(row) for row in state["diagnostics"]],
+        diagnostics=[row_from_json(row) for row in state["diagnostics"]],
         wall_seconds=state["wall_seconds"],
     )
 
@@ -240,7 +240,7 @@ def write(path: Path, spec: RunSpec, checkpoint: Checkpoint) -> None:
         "episode_start": checkpoint.episode.start,
         "episode_return": checkpoint.episode.ret,
         "history": checkpoint.history,
-        "diagnostics": [_to_json(row) for row in checkpoint.diagnostics],
+        "diagnostics": [row_to_json(row) for row in checkpoint.diagnostics],
     }
 
     write_files(path, tensors, state)
@@ -288,13 +288,13 @@ def read_files(path: Path) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
         raise CheckpointError(f"state.safetensors not readable ({first_line(error)})") from None
 
 
-def _to_json(row: dict[str, float]) -> dict[str, float | None]:
+def row_to_json(row: dict[str, float]) -> dict[str, float | None]:
     """A diagnostics row for JSON, which has no NaN: an interval with critic steps but no actor
     step has no actor loss (NaN), kept as null."""
     return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in row.items()}
 
 
-def _from_json(row: dict[str, float | None]) -> dict[str, float]:
+def row_from_json(row: dict[str, float | None]) -> dict[str, float]:
     return {k: math.nan if v is None else v for k, v in row.items()}
 
 

@@ -20,7 +20,6 @@ Never SB3's ``save``, ``save_replay_buffer`` or ``load``: they pickle.
 
 from __future__ import annotations
 
-import math
 import random
 from pathlib import Path
 from typing import Any
@@ -96,7 +95,7 @@ def write(
         },
         "episode_start": episode.start,
         "episode_return": episode.ret,
-        "run": _no_nan(run),
+        "run": {**run, "diagnostics": [checkpoint.row_to_json(r) for r in run["diagnostics"]]},
     }
     checkpoint.write_files(path, tensors, state)
 
@@ -150,7 +149,11 @@ def restore(
         _load_learner_state(model, _join(state["model"], tensors))
         _load_buffer(model, state["counters"], tensors)
         _load_rng(model, state["rng"], tensors["torch_rng"])
-        return episode, _with_nan(state["run"])
+        run = state["run"]
+        return episode, {
+            **run,
+            "diagnostics": [checkpoint.row_from_json(r) for r in run["diagnostics"]],
+        }
     except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as error:
         raise CheckpointError(f"not restorable ({first_line(error)})") from None
 
@@ -216,19 +219,3 @@ def _join(skeleton: Any, tensors: dict[str, torch.Tensor]) -> Any:
     if "list" in skeleton:
         return [_join(v, tensors) for v in skeleton["list"]]
     return skeleton["value"]
-
-
-def _no_nan(value: Any) -> Any:
-    """JSON has no NaN (a diagnostics row without an actor loss): kept as null."""
-    if isinstance(value, float) and math.isnan(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _no_nan(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_no_nan(v) for v in value]
-    return value
-
-
-def _with_nan(run: dict[str, Any]) -> dict[str, Any]:
-    rows = [{k: math.nan if v is None else v for k, v in r.items()} for r in run["diagnostics"]]
-    return {**run, "diagnostics": rows}
