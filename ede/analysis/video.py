@@ -91,13 +91,17 @@ def smaller(task: str, shrink: int) -> dict[str, int]:
 
 
 def video_env(task: str, size: dict[str, int]) -> gymnasium.Env:
-    """``task`` made to render, at ``size`` (:func:`smaller`) with a shadow map to match: MuJoCo's
-    4096² map is most of a software renderer's time (62 ms a 240² frame of Pusher, 28 ms at
-    1024², on our 2-core machines)."""
+    """``task`` made to render, at ``size`` (:func:`smaller`; ``{}``: its own) with a shadow map to
+    match its frames, 4 texels a pixel along their longer side: MuJoCo's default 4096² map is most
+    of a software renderer's time (61 ms a 480² frame of Point, 30 ms with a 1920² map; 62 ms a
+    240² frame of Pusher, 28 ms at 1024², on our 2-core machines)."""
+    from gymnasium.envs.mujoco import MujocoEnv  # as in :func:`smaller`
+
     env = make(task, render_mode="rgb_array", **size)
-    if size:
-        quality = env.unwrapped.model.vis.quality  # type: ignore[attr-defined]  # a MujocoEnv's
-        quality.shadowsize = min(quality.shadowsize, 4 * max(size.values()))
+    mujoco = env.unwrapped
+    if isinstance(mujoco, MujocoEnv):
+        quality = mujoco.model.vis.quality
+        quality.shadowsize = min(quality.shadowsize, 4 * max(mujoco.width, mujoco.height))
     return env
 
 

@@ -173,8 +173,8 @@ def _run_held(
     if code := run_tool(workspace, "ede-pipeline", "sweep", *sweep_args):
         raise Failed(f"experiment {name}: the sweep failed (exit {code}); run it again to resume")
     # Nothing is left after the sweep, unless the copy's code predates the sweep of every stage
-    # (--keep-code: its sweep ran the runs alone); quiet, so that a check prints nothing.
-    if code := run_tool(workspace, "dvc", "repro", "--quiet"):
+    # (--keep-code: its sweep may have run the runs alone); quiet, so that a check prints nothing.
+    if keep_code and (code := run_tool(workspace, "dvc", "repro", "--quiet")):
         raise Failed(f"experiment {name}: dvc repro failed (exit {code}); run it again to resume")
     os.environ.update(git_identity())
     if code := run_tool(workspace, "dvc", "exp", "save", "--name", name, "--force"):

@@ -37,7 +37,7 @@ def stale(copy: Path) -> set[str]:
 
 
 @pytest.mark.slow
-def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
+def test_dvc_repro_runs_every_stage_then_a_td3_param_stales_only_the_runs(
     repo_copy: Path, tiny_pipeline: Callable[[dict], None]
 ) -> None:
     params_file = repo_copy / "params.yaml"
@@ -105,18 +105,12 @@ def test_dvc_repro_runs_every_stage_then_reruns_only_what_a_td3_param_touches(
     record.write_text(original)
     assert stale(repo_copy) == set()
 
+    # A TD3 param: every run, nothing upstream (`dvc repro` runs what `dvc status` lists, and
+    # after them the report, whose inputs they rewrite).
     params["td3"]["tau"] = 0.01
     params_file.write_text(yaml.safe_dump(params, sort_keys=False))
-    second = dvc(repo_copy, "repro")
-    assert second.returncode == 0, second.stdout[-3000:] + second.stderr[-3000:]
-    ran = {
-        line.split("'")[1]
-        for line in second.stdout.splitlines()
-        if line.startswith("Running stage")
-    }
-    runs = len(params["runs"]["tasks"]) * len(params["runs"]["algos"])
-    assert len(ran) == runs + 1 and "report" in ran, sorted(ran)
-    assert all(stage.startswith("train@") for stage in ran - {"report"}), sorted(ran)
+    tasks, algos = params["runs"]["tasks"], params["runs"]["algos"]
+    assert stale(repo_copy) == {f"train@{task}-{algo}-0" for task in tasks for algo in algos}
 
 
 def test_every_param_that_changes_a_result_is_tracked_by_key() -> None:

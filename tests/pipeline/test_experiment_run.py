@@ -65,6 +65,16 @@ def experiment(repo: Path, *args: str) -> subprocess.CompletedProcess[str]:
     return run(repo, BIN / "ede-pipeline", "experiment", *args, timeout=900)
 
 
+def two_seeds_made(repo: Path) -> Path:
+    """The ``two-seeds`` experiment's working copy, its runs finished: by a test before on this
+    worker (the repository is the module's), or run here."""
+    workspace = repo / ".dvc" / "tmp" / "experiments" / "two-seeds"
+    runs = workspace / "data" / "runs" / TASK / "td3"
+    if not all((runs / f"seed{seed}" / "metrics.json").exists() for seed in (0, 1)):
+        ok(experiment(repo, "run", "two-seeds", "--jobs", "2"))
+    return workspace
+
+
 @pytest.mark.parametrize(
     ("args", "line"),
     [
@@ -197,7 +207,7 @@ def test_an_experiment_runs_the_commits_params_whatever_the_workspaces_hold(repo
     other params in the workspace's params.yaml: an experiment applies its file to the commit's
     params.yaml all the same, says in one line that the workspace's differs and is not used, and
     `experiment show` shows it changed what its file changes, against that commit."""
-    ok(experiment(repo, "run", "two-seeds", "--jobs", "2"))  # made here or by a test before
+    two_seeds_made(repo)
     params = repo / "params.yaml"
     committed = params.read_text()
     edited = yaml.safe_load(committed)
@@ -226,9 +236,7 @@ def test_an_experiment_runs_the_commits_params_whatever_the_workspaces_hold(repo
 
 def test_experiments_of_one_family_share_its_embedding(repo: Path) -> None:
     store = repo.parent / "ede-store"  # .dvc/config's remote, ../ede-store from the checkout
-    # Made here, or by a test before on this worker (the repository is the module's): either
-    # way, run again, it runs nothing, and pushes.
-    ok(experiment(repo, "run", "two-seeds", "--jobs", "2"))
+    two_seeds_made(repo)  # run again, it runs nothing, and pushes
     first = ok(experiment(repo, "run", "two-seeds", "--jobs", "2", "--push"))
     assert "Running stage" not in first
     assert len([p for p in store.rglob("*") if p.is_file()]) > 10  # its outputs, in the store
@@ -240,14 +248,12 @@ def test_experiments_of_one_family_share_its_embedding(repo: Path) -> None:
     assert run_json["params"]["td3"]["lr"] == 0.002
 
 
-def test_a_changed_code_keeps_finished_runs_unless_told(tmp_path: Path) -> None:
+def test_a_changed_code_keeps_finished_runs_unless_told(repo: Path) -> None:
     """Running an experiment again after its runs' code changed is refused while runs have
     finished (DVC would run them again); --keep-code finishes it with the code they were made
     with and the params of that code's commit (a key added here since is one that code does not
     know), --update-code runs them again with the checkout's (and --workspace-params with the
     workspace's uncommitted params)."""
-    repo = scratch_copy(tmp_path / "repo", tiny)
-    (repo / "experiments").mkdir(exist_ok=True)
     (repo / "experiments" / "one-seed.yaml").write_text(
         "# Point at one seed, TD3 only.\nruns:\n  algos: [td3]\n  seeds: [0]\n"
     )
@@ -256,6 +262,16 @@ def test_a_changed_code_keeps_finished_runs_unless_told(tmp_path: Path) -> None:
     workspace = repo / ".dvc" / "tmp" / "experiments" / "one-seed"
     finished = workspace / "data" / "runs" / TASK / "td3" / "seed0"
     made = (finished / "metrics.json").read_bytes()
+    code, params = repo / "ede" / "method" / "td3.py", repo / "params.yaml"
+    original, committed = code.read_bytes(), params.read_text()
+    try:  # the module's checkout, as the tests after this one on its worker expect it
+        _change_code_then_run(repo, workspace, finished, made)
+    finally:
+        code.write_bytes(original)
+        params.write_text(committed)
+
+
+def _change_code_then_run(repo: Path, workspace: Path, finished: Path, made: bytes) -> None:
     code = repo / "ede" / "method" / "td3.py"
     original = code.read_bytes()
     code.write_bytes(original + b"\n# edited after the run\n")  # not committed: it counts
@@ -330,8 +346,7 @@ def test_a_damaged_dvc_lock_in_the_working_copy_is_removed_and_the_runs_restored
     """A working copy's dvc.lock DVC cannot read (a kill while DVC wrote it can leave it empty;
     an entry of it replaced) is said in one line and removed by the next run, and DVC restores
     the finished runs from its run cache."""
-    ok(experiment(repo, "run", "two-seeds", "--jobs", "2"))
-    workspace = repo / ".dvc" / "tmp" / "experiments" / "two-seeds"
+    workspace = two_seeds_made(repo)
     finished = workspace / "data" / "runs" / TASK / "td3" / "seed1" / "metrics.json"
     made = finished.read_bytes()
     damage(workspace / "dvc.lock")

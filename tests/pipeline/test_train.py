@@ -638,29 +638,34 @@ def test_render_plays_the_final_policy_as_its_last_evaluation(in_workdir: Path, 
     import imageio.v3 as iio
 
     out = trained(in_workdir, algo)
-    done = run("render", str(out), "--episodes", "2", "--out", f"videos/{algo}.mp4")
+    done = run("render", str(out), "--out", f"videos/{algo}.mp4")
     assert done.exit_code == 0, done.output
     video = iio.imread(in_workdir / f"videos/{algo}.mp4", plugin="FFMPEG", index=None)
-    assert video.shape == (2 * 100, 480, 480, 3)  # 2 episodes of ede/Point-v0's 100 steps
+    assert video.shape == (100, 480, 480, 3)  # an episode of ede/Point-v0's 100 steps
     scene = video[:, 16:-24].astype(np.int16)  # between the code mark and the written line
     assert scene[0].std() > 10  # not blank
     assert np.abs(scene[0] - scene[50]).max() > 50  # the point has moved
-    # The same starts as the run's final evaluation: the same returns as its first 2 episodes,
-    # from the actor rebuilt out of policy/ (other kernels than training's stacked one: within
-    # 0.01). Rendering, not playing, is what takes time: the 5 are replayed without frames.
-    evaluation = final_evaluation(out, in_workdir / "params.yaml", 5)
-    assert abs(np.mean(evaluation) - returns_of(out)[-1]) < 0.01, (evaluation, returns_of(out))
-    played = [float(r) for r in done.output.split("; returns ")[1].split(" (mean")[0].split(", ")]
-    assert np.allclose(played, evaluation[:2], rtol=0, atol=0.01), (done.output, evaluation)
     # EDE-TD3's frames carry a bar along the top where each code starts (every 4 steps): the
     # mark's orange there, the scene's own colours on the steps between (compression: within 40).
     top = video[:12, :4].reshape(12, -1, 3).mean(axis=1)
     marked = np.abs(top - np.array([255, 196, 0])).max(axis=1) < 40
     assert list(marked) == ([True, False, False, False] * 3 if algo == "ede-td3" else [False] * 12)
-    small = run("render", str(out), "--out", f"videos/{algo}.gif")
+    # Episodes one after another, at half size: the GIF (every other frame; a quarter of the
+    # full size's rendering).
+    small = run("render", str(out), "--episodes", "2", "--out", f"videos/{algo}.gif")
     assert small.exit_code == 0, small.output
     clip = iio.imread(in_workdir / f"videos/{algo}.gif", index=None)[..., :3]
-    assert clip.shape[:3] == (50, 240, 240)  # every other frame at half size
+    assert clip.shape[:3] == (2 * 50, 240, 240)
+    # The same starts as the run's final evaluation: the same returns as its first 2 episodes,
+    # from the actor rebuilt out of policy/ (other kernels than training's stacked one: within
+    # 0.01), at either size. Rendering, not playing, is what takes time: the 5 are replayed
+    # without frames.
+    evaluation = final_evaluation(out, in_workdir / "params.yaml", 5)
+    assert abs(np.mean(evaluation) - returns_of(out)[-1]) < 0.01, (evaluation, returns_of(out))
+    for played_, episodes in ((done, 1), (small, 2)):
+        text = played_.output.split("; returns ")[1].split(" (mean")[0]
+        played = [float(r) for r in text.split(", ")]
+        assert np.allclose(played, evaluation[:episodes], rtol=0, atol=0.01), (text, evaluation)
     # One palette for the whole GIF keeps the mark's orange (every other GIF frame starts a code).
     top = clip[:6, :2].reshape(6, -1, 3).mean(axis=1)
     marked = np.abs(top - np.array([255, 196, 0])).max(axis=1) < 40
