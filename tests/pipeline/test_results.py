@@ -209,12 +209,12 @@ def test_the_committed_pusher_runs_decline_alike_at_every_bin_width() -> None:
     report = ReportConfig(bootstrap_samples=BOOTSTRAP_SAMPLES)
     verdicts = {
         width: {
-            algo: [(d.declined, d.diverged) for d in arm(runs, [], width, report).divergence]
+            algo: [d and (d.declined, d.diverged) for d in arm(runs, [], width, report).divergence]
             for algo, runs in found.curves.items()
         }
         for width in (20_000, 25_000, 40_000, 50_000, 100_000)
     }
-    assert all(found == verdicts[50_000] for found in verdicts.values())
+    assert all(each == verdicts[50_000] for each in verdicts.values())
     # Every TD3 seed declined (by 4.0 to 6.5, its noise under 0.8), none by half its gain.
     assert verdicts[50_000] == {"td3": [(True, False)] * 4, "ede-td3": [(False, False)] * 4}
 
