@@ -3,10 +3,10 @@ the results page (``ede-pipeline results``) render, each in its own way.
 
 Per arm — an algorithm's runs on a task, or an ablation's variant's — the final return, the area
 under the curve and the steps to each threshold, the binned band, and per seed whether it
-diverged and its last quarter (:func:`arm`); per task, EDE-TD3 set against each other algorithm
-with runs there (:func:`comparisons`): the probability that an EDE-TD3 run beats one of the other's
-(:func:`improvement_on_task`) and the bins where their intervals are disjoint (:func:`disjoint`);
-across tasks, rliable's aggregates of EDE-TD3 against TD3 and the performance profile
+declined or diverged and its last quarter (:func:`arm`); per task, EDE-TD3 set against each other
+algorithm with runs there (:func:`comparisons`): the probability that an EDE-TD3 run beats one of
+the other's (:func:`improvement_on_task`) and EDE-TD3's lead, per bin and on the final return and
+the area, each with its own interval (:func:`lead`); across tasks, rliable's aggregates of EDE-TD3 against TD3 and the performance profile
 (:func:`across_tasks`).
 
 Every interval is a percentile bootstrap over seeds at ``report.confidence`` with
@@ -27,12 +27,13 @@ from ede.analysis.stats import (
     Band,
     Divergence,
     Interval,
+    bootstrap_leads,
     bootstrap_mean,
     curve_band,
     divergence,
     global_numpy_seed,
+    lead_band,
     normalised,
-    separation,
     steps_to_threshold,
 )
 from ede.analysis.stats import across_tasks as rliable_across_tasks
@@ -72,21 +73,21 @@ class Arm:
     area: Interval
     to_thresholds: dict[float, Interval]  # per threshold, the steps to reach it
     band: Band | None  # the mean curve over seeds, binned, with its bootstrap band
-    divergence: list[Divergence | None]  # per seed; None: too few bins to tell
+    divergence: list[Divergence | None]  # per seed; None: too few evaluations to tell
     last_quarter: Interval | None  # the mean over seeds of each one's last quarter
 
 
 def arm(
     curves: list[Curve], thresholds: Sequence[float], width: float, report: ReportConfig
 ) -> Arm:
-    """An arm's statistics from its runs' curves, binned per ``width`` steps."""
+    """An arm's statistics from its runs' curves, its band binned per ``width`` steps."""
     final = np.array([c.returns[-1] for c in curves])
     area = np.array([area_under_curve(c.steps, c.returns) for c in curves])
     rng = fresh(report)  # the final return's, then the area's: one generator, two draws
     final_interval = bootstrap_mean(final, report.confidence, report.bootstrap_samples, rng)
     area_interval = bootstrap_mean(area, report.confidence, report.bootstrap_samples, rng)
-    late = [_divergence(c, width) for c in curves]
-    tails = [d.tail for d in late if d is not None]
+    late = [_divergence(c, report.confidence) for c in curves]
+    tails = [d.last for d in late if d is not None]
     return Arm(
         seeds=[c.seed for c in curves],
         final=final_interval,
@@ -109,19 +110,44 @@ def arm(
     )
 
 
-def _divergence(curve: Curve, width: float) -> Divergence | None:
+def _divergence(curve: Curve, confidence: float) -> Divergence | None:
     try:
-        return divergence(curve.steps, curve.returns, width)
-    except ValueError:  # too few bins to have a tail and bins before it
+        return divergence(curve.steps, curve.returns, confidence)
+    except ValueError:  # too few evaluations to have a last quarter and a window before it
         return None
 
 
-def disjoint(ours: Arm, theirs: Arm) -> np.ndarray | None:
-    """Per bin of ``ours``' band, +1 where its interval lies wholly above ``theirs``', -1 wholly
-    below, 0 where they overlap; None where an arm has a single seed (its interval a point)."""
-    if min(len(ours.seeds), len(theirs.seeds)) < 2 or ours.band is None or theirs.band is None:
+@dataclass(frozen=True)
+class Lead:
+    """One arm's lead over another: the difference of their means over seeds, per bin of their
+    binned curves and on the final return and the area, each with its bootstrap interval."""
+
+    band: Band  # per bin: the lead, its interval's ends, the fewer of the two arms' seeds
+    final: Interval
+    area: Interval
+
+    def bins(self) -> tuple[int, int, int]:
+        """The bins where the lead's interval lies above 0, below 0, and of all."""
+        return int((self.band.low > 0).sum()), int((self.band.high < 0).sum()), len(self.band.steps)
+
+
+def lead(ours: list[Curve], theirs: list[Curve], width: float, report: ReportConfig) -> Lead | None:
+    """The lead of ``ours`` over ``theirs`` (:func:`ede.analysis.stats.bootstrap_leads`), per bin
+    of ``width`` steps and on each score, each from a generator of its own (:func:`fresh`); None
+    where an arm has a single seed, whose interval would be the other's alone."""
+    if min(len(ours), len(theirs)) < 2:
         return None
-    return separation(ours.band.low, ours.band.high, theirs.band.low, theirs.band.high)
+    confidence, samples = report.confidence, report.bootstrap_samples
+
+    def overall(score: Callable[[Curve], float]) -> Interval:
+        ours_scores, theirs_scores = (np.array([[score(c)] for c in cs]) for cs in (ours, theirs))
+        return bootstrap_leads(ours_scores, theirs_scores, confidence, samples, fresh(report))[0]
+
+    return Lead(
+        lead_band(ours, theirs, width, confidence, samples, fresh(report)),
+        overall(SCORE_OF["final_return"]),
+        overall(SCORE_OF["auc"]),
+    )
 
 
 def improvement_on_task(
@@ -148,28 +174,25 @@ OURS = "ede-td3"  # the algorithm every other is set against, task by task
 @dataclass(frozen=True)
 class Comparison:
     """EDE-TD3 set against one other algorithm on a task: the arm it is compared with, the
-    probability that an EDE-TD3 run beats one of the arm's (per score, ``SCORES``), and per bin
-    of EDE-TD3's band whether their intervals are disjoint (:func:`disjoint`)."""
+    probability that an EDE-TD3 run beats one of the arm's (per score, ``SCORES``), and EDE-TD3's
+    lead over it (:func:`lead`)."""
 
     against: str  # the other algorithm
     improvement: dict[str, Interval]  # P(EDE-TD3 > the arm), per score
-    disjoint: np.ndarray | None  # +1, -1 or 0 per bin; None where an arm has a single seed
+    lead: Lead | None  # None where an arm has a single seed
 
     def bins(self) -> tuple[int, int, int] | None:
-        """The bins where EDE-TD3's interval lies wholly above the other's, wholly below, and of
-        all; None where an arm has a single seed."""
-        sign = self.disjoint
-        if sign is None:
-            return None
-        return int((sign > 0).sum()), int((sign < 0).sum()), len(sign)
+        """The bins where EDE-TD3's lead's interval lies above 0, below 0, and of all; None where
+        an arm has a single seed."""
+        return None if self.lead is None else self.lead.bins()
 
 
 def comparisons(
-    curves: Mapping[str, list[Curve]], arms: Mapping[str, Arm], report: ReportConfig
+    curves: Mapping[str, list[Curve]], width: float, report: ReportConfig
 ) -> list[Comparison]:
-    """EDE-TD3 set against each other algorithm with runs on a task (``curves`` and their
-    statistics ``arms``, by algorithm), in :data:`ede.config.ALGOS`' order, TD3 first; none
-    where EDE-TD3 has no runs there."""
+    """EDE-TD3 set against each other algorithm with runs on a task (``curves``, by algorithm;
+    their bins ``width`` steps), in :data:`ede.config.ALGOS`' order, TD3 first; none where EDE-TD3
+    has no runs there."""
     if not curves.get(OURS):
         return []
     return [
@@ -182,7 +205,7 @@ def comparisons(
                 report.bootstrap_samples,
                 report.seed,
             ),
-            disjoint(arms[OURS], arms[algo]),
+            lead(curves[OURS], curves[algo], width, report),
         )
         for algo in ALGOS
         if algo != OURS and curves.get(algo)

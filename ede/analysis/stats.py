@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from statistics import NormalDist
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -18,12 +19,14 @@ __all__ = [
     "across_tasks",
     "align_curves",
     "bin_curve",
+    "bootstrap_leads",
     "bootstrap_mean",
     "bootstrap_means",
     "divergence",
+    "evaluation_noise",
     "global_numpy_seed",
+    "lead_band",
     "normalised",
-    "separation",
     "steps_to_threshold",
 ]
 
@@ -144,17 +147,6 @@ def align_curves(curves: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarra
     return steps, table
 
 
-def separation(
-    low_a: np.ndarray, high_a: np.ndarray, low_b: np.ndarray, high_b: np.ndarray
-) -> np.ndarray:
-    """Where two bands of intervals are disjoint: +1 where a's lies wholly above b's, -1 where
-    wholly below, 0 where they overlap (or either is missing, NaN)."""
-    low_a, high_a, low_b, high_b = (
-        np.asarray(x, dtype=float) for x in (low_a, high_a, low_b, high_b)
-    )
-    return (low_a > high_b).astype(int) - (high_a < low_b).astype(int)
-
-
 class Band(NamedTuple):
     """A mean curve over seeds with its bootstrap band, each (T,): at ``steps``, the ``mean``,
     the interval's ``low`` and ``high`` ends, and ``n``, the seeds with data there."""
@@ -195,47 +187,134 @@ def curve_band(
     return Band(steps, mean, low, high, n)
 
 
+def bootstrap_leads(
+    ours: np.ndarray, theirs: np.ndarray, confidence: float, samples: int, rng: np.random.Generator
+) -> list[Interval]:
+    """The lead of ``ours`` over ``theirs`` at each point — the difference of their means over
+    seeds — with its percentile bootstrap interval.
+
+    Args:
+        ours: one arm's values (runs, points).
+        theirs: the other's (runs, points), at the same points, any number of runs.
+        confidence: the interval's coverage.
+        samples: how many resamples: each draws each arm's runs independently, with replacement.
+        rng: the generator the resamples draw from.
+
+    Returns:
+        per point the lead, its interval, and the fewer of the two arms' runs as its ``n``.
+    """
+    ours, theirs = np.asarray(ours, dtype=float), np.asarray(theirs, dtype=float)
+    drawn_ours = rng.integers(len(ours), size=(samples, len(ours)))  # (samples, runs)
+    drawn_theirs = rng.integers(len(theirs), size=(samples, len(theirs)))
+    resampled = ours[drawn_ours].mean(axis=1) - theirs[drawn_theirs].mean(axis=1)  # (samples, P)
+    tail = 50 * (1 - confidence)
+    low, high = np.percentile(resampled, [tail, 100 - tail], axis=0)  # (P,) each
+    lead = ours.mean(axis=0) - theirs.mean(axis=0)
+    n = min(len(ours), len(theirs))
+    return [
+        Interval(float(m), float(lo), float(hi), n)
+        for m, lo, hi in zip(lead, low, high, strict=True)
+    ]
+
+
+def lead_band(
+    ours: list[Curve],
+    theirs: list[Curve],
+    width: float,
+    confidence: float,
+    samples: int,
+    rng: np.random.Generator,
+) -> Band:
+    """The lead of one arm's binned mean curve over another's, per bin, with its bootstrap band
+    (:func:`bootstrap_leads`): each run binned per ``width`` steps (:func:`bin_curve`), the two
+    arms' runs aligned on the union of their bins (:func:`align_curves`). A bin where a run has
+    no evaluation has no lead (NaN, ``n`` 0)."""
+    pairs = [bin_curve(c.steps, c.returns, width) for c in (*ours, *theirs)]
+    steps, table = align_curves(pairs)  # (N, T): ours' runs, then theirs'
+    mean, low, high = (np.full(len(steps), np.nan) for _ in range(3))
+    n = np.zeros(len(steps))
+    complete = ~np.isnan(table).any(axis=0)
+    found = bootstrap_leads(
+        table[: len(ours), complete], table[len(ours) :, complete], confidence, samples, rng
+    )
+    for t, lead in zip(np.flatnonzero(complete), found, strict=True):
+        mean[t], low[t], high[t], n[t] = lead.mean, lead.low, lead.high, lead.n
+    return Band(steps, mean, low, high, n)
+
+
 @dataclass(frozen=True)
 class Divergence:
-    """Whether one run's binned curve fell and stayed below its earlier best.
+    """Whether one run's late level fell below its earlier best, on its evaluations themselves.
 
-    ``first``, ``best`` and ``tail`` are binned returns: the first bin, the best bin before the
-    tail, and the mean of the tail (the last ``tail_fraction`` of the bins).
+    ``first`` is the untrained policy's return (the evaluation at step 0); ``best`` the highest
+    mean of as many consecutive evaluations as the last quarter has, all before it, over the steps
+    ``best_span``; ``last`` the last quarter's mean; ``noise`` how far ``best - last`` may reach by
+    the evaluations' own noise alone (:func:`divergence`).
     """
 
     first: float
     best: float
-    best_step: float
-    tail: float
+    best_span: tuple[float, float]
+    last: float
+    noise: float
+    declined: bool
     diverged: bool
+
+    @property
+    def decline(self) -> float:
+        """How far the last quarter lies below the best window before it."""
+        return self.best - self.last
+
+
+def evaluation_noise(returns: np.ndarray) -> float:
+    """The standard deviation σ of one evaluation about the run's level, from its successive
+    differences: ``sqrt(mean(diff(returns)²) / 2)``; a slow trend between evaluations adds little."""
+    return float(np.sqrt(np.mean(np.diff(np.asarray(returns, dtype=float)) ** 2) / 2))
 
 
 def divergence(
-    steps: np.ndarray,
-    returns: np.ndarray,
-    width: float,
-    tail_fraction: float = 0.25,
-    drop_fraction: float = 0.5,
+    steps: np.ndarray, returns: np.ndarray, confidence: float, drop_fraction: float = 0.5
 ) -> Divergence:
-    """Did the run diverge: does every bin of its tail lie below its best earlier bin by more than
-    ``drop_fraction`` of what it had gained by then (best minus first bin)?
+    """Did the run decline, or diverge, by its own evaluations (no bins)?
 
-    A run that never improved on its first bin cannot diverge by this measure; a run that dips
-    and recovers within the tail has not diverged.
+    The last quarter holds the ``n`` evaluations after ¾ of the last evaluated step; ``last`` is
+    their mean L. ``best`` B is the highest mean of ``n`` consecutive evaluations all before the
+    last quarter (a window as long as it, so like is set against like); ``first`` F the step-0
+    evaluation; σ the evaluation noise (:func:`evaluation_noise`). The run declined where
+    ``B - L > z·σ·sqrt(2/n)``, ``z`` the two-sided normal quantile of ``confidence`` (1.96 at 0.95):
+    more than the difference of two means of ``n`` evaluations reaches by noise alone. It diverged
+    where it declined and lost more than ``drop_fraction`` of what it had gained, ``B - L >
+    drop_fraction·(B - F)``; a run whose best is not above its untrained policy gained nothing and
+    cannot diverge. A dip that recovers within the last quarter lowers L by part of it.
+
+    Raises:
+        ValueError: fewer than ``2n + 1`` evaluations, where a window as long as the last quarter
+            cannot lie before it without the untrained policy's.
     """
-    edges, binned = bin_curve(steps, returns, width)
-    tail_bins = max(1, round(tail_fraction * len(binned)))
-    if len(binned) <= tail_bins:
+    steps, returns = np.asarray(steps, dtype=float), np.asarray(returns, dtype=float)
+    late = steps > 0.75 * steps[-1]
+    n = int(late.sum())
+    before = returns[~late]
+    if n == 0 or len(before) < n + 1:
         raise ValueError(
-            f"{len(binned)} bins of {width:g} steps: too few to have a tail of "
-            f"{tail_fraction:g} and bins before it"
+            f"{len(steps)} evaluations, {n} in the last quarter: too few to set it against a "
+            "window as long before it"
         )
-    before, tail = binned[:-tail_bins], binned[-tail_bins:]
-    best_bin = int(np.argmax(before))
-    gained = before[best_bin] - binned[0]
-    fell = bool(gained > 0 and np.all(tail < before[best_bin] - drop_fraction * gained))
+    windows = np.convolve(before, np.ones(n) / n, mode="valid")  # (len(before) - n + 1,)
+    start = int(np.argmax(windows))
+    best, last, first = float(windows[start]), float(returns[late].mean()), float(returns[0])
+    z = NormalDist().inv_cdf(0.5 + confidence / 2)
+    noise = z * evaluation_noise(returns) * np.sqrt(2 / n)
+    declined = bool(best - last > noise)
+    gained = best - first
     return Divergence(
-        float(binned[0]), float(before[best_bin]), float(edges[best_bin]), float(tail.mean()), fell
+        first,
+        best,
+        (float(steps[start]), float(steps[start + n - 1])),
+        last,
+        float(noise),
+        declined,
+        declined and bool(gained > 0 and best - last > drop_fraction * gained),
     )
 
 

@@ -314,7 +314,7 @@ class ReportConfig(Section):
         2_500,
         description="average each run's evaluations in bins of this many steps before the "
         "mean over seeds, as the authors' figures (2,500 for ReacherVertical); null: a twentieth "
-        "of each task's budget (the bins of its divergence check too). "
+        "of each task's budget (the bins of EDE-TD3's lead over each other algorithm too). "
         "The report's curve CSVs (DVC plots) keep every evaluation",
     )
     effect_space_family: Name | None = Field(

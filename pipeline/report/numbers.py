@@ -72,7 +72,7 @@ class Pictured:
 
 
 def width(params: Params, task: str) -> float:
-    """The bins of a task's bands and divergence: ``report.bin_steps``, else a twentieth of its
+    """The bins of a task's bands and leads: ``report.bin_steps``, else a twentieth of its
     budget."""
     return params.report.bin_steps or params.runs.budgets[task] / 20
 
@@ -90,12 +90,9 @@ def families(params: Params, runs: Runs) -> list[Family]:
         compared: dict[str, list[Comparison]] = {}
         bands: dict[Key, Band] = {}
         for task in tasks:
-            arms: dict[str, Arm] = {}
             for algo in params.runs.algos:
                 found = runs.curves[(task, algo)]
-                row = arms[algo] = arm(
-                    found, config.thresholds.get(task, []), width(params, task), config
-                )
+                row = arm(found, config.thresholds.get(task, []), width(params, task), config)
                 rows.setdefault(task, []).append((algo, row, runs.missing[(task, algo)]))
                 if row.band is not None:
                     bands[(task, algo)] = row.band
@@ -103,7 +100,7 @@ def families(params: Params, runs: Runs) -> list[Family]:
                 curves: dict[str, list[Curve]] = {
                     algo: runs.curves[(task, algo)] for algo in params.runs.algos
                 }
-                compared[task] = comparisons(curves, arms, config)
+                compared[task] = comparisons(curves, width(params, task), config)
         keys: list[Key] = [(task, algo) for task in tasks for algo in params.runs.algos]
         counts = {key: len(runs.curves[key]) for key in keys}
         diagnostics = {key: runs.diagnostics[key] for key in keys if key in runs.diagnostics}

@@ -91,13 +91,13 @@ def _table(rows: list[Row], thresholds: list[float]) -> str:
 
 def _against(compared: list[Comparison]) -> str:
     """EDE-TD3 against each other algorithm with runs on a task: the probability that an EDE-TD3
-    run beats one of the other's on each score, with its interval, and the bins where their
-    intervals are disjoint (EDE-TD3's above, below, of all; — where either has one seed)."""
+    run beats one of the other's on each score, with its interval, and the bins where the interval
+    of EDE-TD3's lead over it lies above 0, below 0, of all (— where either has one seed)."""
     ours = html.escape(ALGO_LABELS[OURS])
     head = (
         f"<tr><th>{ours} against</th>"
         + "".join(f"<th>P({ours} &gt; it), {label}</th>" for label in SCORES.values())
-        + f"<th>bins with {ours} above, below (of all)</th></tr>"
+        + f"<th>bins with {ours} − it above 0, below 0 (of all)</th></tr>"
     )
     body = []
     for each in compared:
@@ -111,11 +111,11 @@ def _against(compared: list[Comparison]) -> str:
 
 
 def _fell_back(rows: list[Row]) -> str:
-    """The seeds whose returns fell and stayed below their best (:func:`ede.analysis.stats.divergence`,
-    on the figure's bins): flagged, not hidden."""
+    """The seeds whose last quarter fell below their best by more than noise and than half their
+    gain (:func:`ede.analysis.stats.divergence`): flagged, not hidden."""
     flagged = [
-        f"{ALGO_LABELS[algo]} seed {seed} (best {verdict.best:.4g} "
-        f"at step {verdict.best_step:,.0f}, last quarter {verdict.tail:.4g})"
+        f"{ALGO_LABELS[algo]} seed {seed} (best {verdict.best:.4g} over steps "
+        f"{verdict.best_span[0]:,.0f}–{verdict.best_span[1]:,.0f}, last quarter {verdict.last:.4g})"
         for algo, row, _ in rows
         for seed, verdict in zip(row.seeds, row.divergence, strict=True)
         if verdict is not None and verdict.diverged

@@ -41,14 +41,16 @@ report draws them) and prints, per task, in Markdown:
 - final return, area under the curve and the steps to reach each threshold per algorithm (the
   paper's TD3 and EDE-TD3, and each of stable-baselines3's agents with runs there), with
   bootstrap intervals over seeds;
-- EDE-TD3 against each other algorithm there, TD3 first: the bins where the two's intervals are
-  disjoint, and which lies above (with two seeds or more of each), and rliable's probability that
+- EDE-TD3 against each other algorithm there, TD3 first: its lead (EDE-TD3's mean minus the
+  other's) with its bootstrap interval, the bins where that lies above 0 and below 0, and overall
+  on the final return and the area (with two seeds or more of each), and rliable's probability that
   an EDE-TD3 run beats one of the other's, over all the task's seeds, on the final return and on
   the area;
-- each algorithm's mean over seeds of a seed's last quarter of bins, with its bootstrap interval
-  (the asymptote, as far as the budget shows it);
-- per seed, whether it diverged (:func:`ede.analysis.stats.divergence`: its last quarter of bins all below
-  its best earlier bin by more than half of what it had gained by then);
+- each algorithm's mean over seeds of a seed's last quarter of evaluations, with its bootstrap
+  interval (the asymptote, as far as the budget shows it);
+- per seed, whether it declined and whether it diverged (:func:`ede.analysis.stats.divergence`:
+  its last quarter's mean below its best as long window before by more than the evaluations'
+  noise allows, and by more than half of what it had gained);
 
 and, per family, over the paper's tasks (where they span two families and there are tasks beyond
 them), over the transfer tasks (the families' targets, where there are two or more: the
@@ -66,7 +68,7 @@ its runs.
 ``--ablations`` holds the fidelity ablations' runs the same way, one folder per variant
 (``<variant>/<task>/<algorithm>/seed<N>/``, ``source.json`` per task, and where kept the variant's
 embedding metrics in ``<task>/embedding/<checksum>/``): each is printed, with its experiment file or command,
-against the default's runs of the same task, algorithm and seeds in ``--runs``, with the bins where their intervals are disjoint; a
+against the default's runs of the same task, algorithm and seeds in ``--runs``, with the variant's lead over the default per bin and overall; a
 variant run with several algorithms is drawn as a family is, to ``<figures>/ablation-<variant>.png``.
 
 The confidence, the bootstrap's resamples and its seed are the report's (``report`` in

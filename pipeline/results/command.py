@@ -288,8 +288,9 @@ def results(
     fill the results pages' generated blocks with them (--pages).
 
     Per task: budget, seeds, experiment and commits, the CPUs of its runs, reference returns,
-    final return, area and steps to each threshold with bootstrap intervals, the bins where the
-    algorithms' intervals are disjoint, the probability of improvement, and which seeds diverged;
+    final return, area and steps to each threshold with bootstrap intervals, EDE-TD3's lead over
+    each other algorithm per bin and overall, the probability of improvement, and which seeds
+    declined and diverged;
     per family, its figure and the aggregates across tasks; the tasks at a glance; per fidelity
     ablation, its runs against the default's. Every statistic is the report's (params' `report`).
     Bad input is one line, exit 2, before anything is written.

@@ -15,9 +15,10 @@ from ede.analysis.results import (
     AcrossTasks,
     Arm,
     Comparison,
+    Lead,
     arm,
     comparisons,
-    disjoint,
+    lead,
 )
 from ede.analysis.stats import Band
 from ede.config import ALGO_LABELS, ALGOS, PAPER_ALGOS, Params
@@ -47,16 +48,17 @@ class Glance(NamedTuple):
     seeds: str  # the seeds of the two
     final: dict[str, str]  # per algorithm label, the final return's interval
     improvement: dict[str, str]  # P(EDE-TD3 > the other) per score (ede.analysis.results.SCORES)
-    bins: tuple[int, int, int] | None  # EDE-TD3's interval above the other's, below, of all bins
-    diverged: str  # the other's seeds that diverged, of its seeds
+    bins: tuple[int, int, int] | None  # bins where EDE-TD3's lead is above 0, below 0, of all
+    diverged: str  # the other's seeds that declined and that diverged, of its seeds
+
+
+def short(step: float) -> str:
+    """A step in thousands: ``12.5K``."""
+    return f"{step / 1000:g}K"
 
 
 def spans(steps: np.ndarray, width: float) -> str:
     """Bin ends as ranges of consecutive bins: ``12.5K–50K, 100K``."""
-
-    def short(step: float) -> str:
-        return f"{step / 1000:g}K"
-
     groups: list[list[float]] = []
     for step in steps:
         if groups and step - groups[-1][-1] <= width:
@@ -94,25 +96,28 @@ def summary_table(
     return lines, stats
 
 
-def disjoint_bins(
-    stats: dict[str, Arm],
-    names: tuple[str, str],
-    width: float,
-    confidence: float,
-    wording: tuple[str, str] | None = None,
+def lead_lines(
+    found: Lead | None, names: tuple[str, str], width: float, confidence: float
 ) -> list[str]:
-    """A line naming the bins (right ends) where two arms' intervals are disjoint, and which lies
-    above (the arms as ``wording`` calls them); none where an arm has a single seed, whose
-    interval is a point."""
-    ours = stats[names[0]]
-    sign = disjoint(ours, stats[names[1]])
-    if sign is None or ours.band is None:
+    """The lines of one arm's lead over another (:func:`ede.analysis.results.lead`; the arms as
+    ``names`` calls them): the bins (right ends) where its interval lies above 0 and below 0, and
+    the lead on the final return and the area; none where an arm has a single seed."""
+    if found is None:
         return []
-    above, below = wording or names
+    band, difference = found.band, f"{names[0]} − {names[1]}"
+
+    def where(side: np.ndarray, word: str) -> str:
+        count = int(side.sum())
+        if not count:
+            return f"{word} 0 in none"
+        return f"{word} 0 in {count} of {len(side)} bins ({spans(band.steps[side], width)})"
+
     return [
-        f"Bins (right ends) where the {confidence:.0%} intervals are disjoint: {above} above "
-        f"{below} at {spans(ours.band.steps[sign > 0], width) or 'none'}; below at "
-        f"{spans(ours.band.steps[sign < 0], width) or 'none'}.",
+        f"{difference} per bin, with its {confidence:.0%} bootstrap interval over seeds: "
+        f"{where(band.low > 0, 'above')}, {where(band.high < 0, 'below')}.",
+        "",
+        f"{difference} overall: {found.final} on the final return, {found.area} on the area "
+        "under the curve.",
         "",
     ]
 
@@ -127,8 +132,8 @@ def task_section(
     params,
 ) -> tuple[Section, dict[str, Band], list[Glance]]:
     """One task's tables: per algorithm final return, area under the curve and the steps to
-    reach each of its ``thresholds``; EDE-TD3 against each other algorithm (the disjoint bins, the
-    probability of improvement); per seed, whether it diverged. And each algorithm's band, for
+    reach each of its ``thresholds``; EDE-TD3 against each other algorithm (its lead, per bin and
+    overall, and the probability of improvement); per seed, whether it declined or diverged. And each algorithm's band, for
     the family's figure, and its rows at a glance, one per algorithm EDE-TD3 is set against.
     ``paper_budget`` is None beyond the paper."""
     width = found.budget / bins
@@ -153,8 +158,8 @@ def task_section(
         "",
     ]
     glance = []
-    for compared in comparisons(found.curves, by_algo, params.report):
-        lines += _ede_against(compared, stats, width, params.report.confidence)
+    for compared in comparisons(found.curves, width, params.report):
+        lines += _ede_against(compared, width, params.report.confidence)
         glance.append(_glance(found, compared, stats, paper_budget))
     lines += _divergence(by_algo)
     bands = {algo: found.band for algo, found in by_algo.items() if found.band is not None}
@@ -174,14 +179,12 @@ def _origin(found: TaskRuns, family: str, source: str, paper_budget: int | None)
     )
 
 
-def _ede_against(
-    compared: Comparison, stats: dict[str, Arm], width: float, confidence: float
-) -> list[str]:
-    """The lines setting EDE-TD3 against one other algorithm on a task: the bins where their
-    intervals are disjoint, and the probability of improvement over its seeds."""
+def _ede_against(compared: Comparison, width: float, confidence: float) -> list[str]:
+    """The lines setting EDE-TD3 against one other algorithm on a task: its lead, per bin and
+    overall, and the probability of improvement over its seeds."""
     ours, theirs = ALGO_LABELS[OURS], ALGO_LABELS[compared.against]
     return [
-        *disjoint_bins(stats, (ours, theirs), width, confidence),
+        *lead_lines(compared.lead, (ours, theirs), width, confidence),
         f"P({ours} > {theirs}) over this task's seeds (rliable, as the aggregates across tasks): "
         + " and ".join(f"{compared.improvement[s]} on the {label}" for s, label in SCORES.items())
         + ".",
@@ -205,33 +208,40 @@ def _glance(
         {label: str(stats[label].final) for label in labels},
         {score: str(interval) for score, interval in compared.improvement.items()},
         compared.bins(),
-        f"{sum(d.diverged for d in diverged)} of {len(diverged)}",
+        f"{sum(d.declined for d in diverged)}, {sum(d.diverged for d in diverged)} "
+        f"(of {len(diverged)})",
     )
 
 
 def _divergence(by_algo: dict[str, Arm]) -> list[str]:
-    """Whether each algorithm's runs diverged: the last quarter's mean over seeds, and per seed
-    its first bin, its best before the last quarter and its last quarter."""
+    """Whether each algorithm's runs declined or diverged (:func:`ede.analysis.stats.divergence`):
+    the last quarter's mean over seeds, and per seed its untrained policy's return, its best window
+    before the last quarter, its last quarter, the decline and how far noise alone reaches."""
     lines = [
         "The last quarter's mean over seeds (each seed's in the table below; the asymptote, as "
         "far as this budget shows it): "
         + ", ".join(
-            f"{ALGO_LABELS[algo]} {arm_stats.last_quarter or 'too few bins to tell'}"
+            f"{ALGO_LABELS[algo]} {arm_stats.last_quarter or 'too few evaluations to tell'}"
             for algo, arm_stats in by_algo.items()
         )
         + ".",
         "",
-        "| algorithm | seed | first bin | best bin before the last quarter | last quarter "
-        "| diverged |",
-        "|---|---|---|---|---|---|",
+        "| algorithm | seed | untrained (step 0) | best quarter before the last (its span) "
+        "| last quarter | decline (best − last) | its noise (z·σ·√(2/n)) | declined | diverged |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
+
+    def verdict(yes: bool) -> str:
+        return "**yes**" if yes else "no"
+
     for algo, arm_stats in by_algo.items():
         for seed, d in zip(arm_stats.seeds, arm_stats.divergence, strict=True):
             lines.append(
-                f"| {ALGO_LABELS[algo]} | {seed} | too few bins to tell | | | |"
+                f"| {ALGO_LABELS[algo]} | {seed} | too few evaluations to tell | | | | | | |"
                 if d is None
-                else f"| {ALGO_LABELS[algo]} | {seed} | {d.first:.1f} | {d.best:.1f} at "
-                f"{d.best_step / 1000:g}K | {d.tail:.1f} | {'**yes**' if d.diverged else 'no'} |"
+                else f"| {ALGO_LABELS[algo]} | {seed} | {d.first:.1f} | {d.best:.1f} "
+                f"({short(d.best_span[0])}–{short(d.best_span[1])}) | {d.last:.1f} | {d.decline:.1f} | "
+                f"{d.noise:.1f} | {verdict(d.declined)} | {verdict(d.diverged)} |"
             )
     return lines
 
@@ -280,16 +290,16 @@ def across_section(title: str, found: AcrossTasks, params, waiting: str) -> Sect
 def at_a_glance(rows: list[Glance], confidence: float) -> Section:
     """Every task with runs of EDE-TD3 and another algorithm, a table per other algorithm (TD3's
     first, the paper's), one row a task: its budget and seeds, the two algorithms' final returns,
-    P(EDE-TD3 > the other) on each score, the bins where their intervals are disjoint and the
-    other's seeds that diverged (each as its task's section has it); and under a table, the
+    P(EDE-TD3 > the other) on each score, the bins where EDE-TD3's lead lies above and below 0
+    and the other's seeds that declined and diverged (each as its task's section has it); and under a table, the
     tasks of the others without runs of its algorithm."""
     heading = "The tasks at a glance"
     lines = [
         f"### {heading}",
         "",
-        f"Means over seeds with {confidence:.0%} bootstrap intervals. A bin counts where one "
-        "algorithm's interval lies wholly above the other's, at the report's bootstrap seed "
-        "(with two seeds or more of each; — with fewer).",
+        f"Means over seeds with {confidence:.0%} bootstrap intervals. A bin counts where the "
+        "interval of EDE-TD3's lead (its mean minus the other's) lies above 0, or below, at the "
+        "report's bootstrap seed (with two seeds or more of each; — with fewer).",
     ]
     tasks = list(dict.fromkeys(row.task for row in rows))
     for against in (a for a in ALGOS if any(row.against == a for row in rows)):
@@ -306,7 +316,8 @@ def _glance_table(rows: list[Glance], against: str) -> list[str]:
     lines = [
         f"| task | steps a run | seeds | final return, {theirs} | final return, {ede} | "
         + "".join(f"P({ede} > {theirs}), {label} | " for label in SCORES.values())
-        + f"bins with {ede} above, below (of all) | {theirs} seeds diverged |",
+        + f"bins with {ede} − {theirs} above 0, below 0 (of all) | "
+        + f"{theirs} seeds declined, diverged (of all) |",
         "|---|---|---|---|---|---|---|---|" + "---|" * (len(SCORES) - 1),
     ]
     for row in rows:
@@ -330,8 +341,8 @@ def ablation_sections(
     variant: str, ours: TaskRuns, theirs: TaskRuns, bins: int, params: Params
 ) -> tuple[list[Section], dict[str, Band]]:
     """Per algorithm, the default and the variant: final return, area and steps to each of the
-    variant's thresholds with bootstrap intervals, and the bins where their intervals are
-    disjoint. And the variant's band per algorithm, for its figure."""
+    variant's thresholds with bootstrap intervals, and the variant's lead over the default, per
+    bin and overall. And the variant's band per algorithm, for its figure."""
     width = ours.budget / bins
     sections: list[Section] = []
     variant_bands: dict[str, Band] = {}
@@ -359,12 +370,11 @@ def ablation_sections(
             "",
             *table,
             "",
-            *disjoint_bins(
-                stats,
-                (variant, "default"),
+            *lead_lines(
+                lead(runs, theirs.curves[algo], width, params.report),
+                (variant, "the default"),
                 width,
                 params.report.confidence,
-                (variant, "the default"),
             ),
         ]
         sections.append(Section(heading, "\n".join(lines).rstrip("\n") + "\n"))

@@ -12,7 +12,7 @@ from matplotlib.figure import Figure
 from matplotlib.text import Text
 
 from ede.analysis import figures
-from ede.analysis.results import AcrossTasks, across_tasks, arm, comparisons, improvement_on_task
+from ede.analysis.results import AcrossTasks, across_tasks, comparisons, improvement_on_task
 from ede.analysis.stats import Band, curve_band
 from ede.config import ALGO_LABELS, ALGOS, ReportConfig
 from ede.run.runs import Curve
@@ -232,7 +232,7 @@ def test_ede_td3_is_set_against_every_other_algorithm_of_a_task_td3_first() -> N
 
     report = ReportConfig(bootstrap_samples=200)
     # EDE-TD3 above SB3's SAC, level with TD3, below SB3's TD3 in the EDE space; SB3's SAC in
-    # the EDE space has no runs here, and one seed of SB3's SAC claims no disjoint bins.
+    # the EDE space has no runs here, and one seed of SB3's SAC claims no lead.
     curves = {
         "sb3-sac": runs(-5.0, 1),
         "sb3-td3-ede": runs(20.0, 3),
@@ -240,14 +240,13 @@ def test_ede_td3_is_set_against_every_other_algorithm_of_a_task_td3_first() -> N
         "td3": runs(10.0, 3),
         "sb3-sac-ede": [],
     }
-    arms = {algo: arm(found, [], 1_000.0, report) for algo, found in curves.items()}
-    found = comparisons(curves, arms, report)
+    found = comparisons(curves, 1_000.0, report)
     assert [c.against for c in found] == ["td3", "sb3-td3-ede", "sb3-sac"]
     level, below, above = found
     assert level.improvement["final_return"].mean == 0.5
     assert below.improvement["final_return"].mean == 0.0
     assert above.improvement["auc"].mean == 1.0
-    bins = below.bins()  # EDE-TD3's intervals above, below, of all
+    bins = below.bins()  # EDE-TD3's lead's interval above 0, below 0, of all
     assert bins is not None and bins[0] == 0 and bins[1] > 0
-    assert above.disjoint is None and above.bins() is None
-    assert comparisons({**curves, "ede-td3": []}, arms, report) == []
+    assert above.lead is None and above.bins() is None
+    assert comparisons({**curves, "ede-td3": []}, 1_000.0, report) == []

@@ -16,12 +16,22 @@ import torch
 import yaml
 from click.testing import CliRunner
 
-from ede.config import ALGO_LABELS, ALGOS, EMBEDDED_ALGOS, Algo, EdeTD3Config, TD3Config
+from ede.analysis.results import arm
+from ede.config import (
+    ALGO_LABELS,
+    ALGOS,
+    EMBEDDED_ALGOS,
+    Algo,
+    EdeTD3Config,
+    ReportConfig,
+    TD3Config,
+)
 from ede.io.atomic import sha256
 from ede.run.runs import PUBLISHED, write_curves, write_finished
 from ede.run.spec import RunSpec
 from ede_pipeline import layout
 from ede_pipeline.cli import main
+from ede_pipeline.published import read_folder
 from tests.support import REPO
 
 TASK = "ede/ReacherTurn-v0"
@@ -118,7 +128,7 @@ def results(runs: Path, figures: Path, *pages: Path) -> Done:
     return Done(done.exit_code, done.stdout, done.stderr)
 
 
-def test_tables_name_disjoint_bins_and_diverged_seeds(tmp_path: Path) -> None:
+def test_tables_name_the_bins_of_the_lead_and_the_seeds_that_diverged(tmp_path: Path) -> None:
     runs = tmp_path / "runs"
     x = np.linspace(0, 1, 41)
     for seed in range(4):
@@ -136,17 +146,23 @@ def test_tables_name_disjoint_bins_and_diverged_seeds(tmp_path: Path) -> None:
     assert "2.0% of the paper's 1,000,000; commit 0123456" in out
     assert "References: uniform random actions -2" in out and "zero actions -1" in out
     assert "| EDE-TD3 | 0–3 |" in out and "| TD3 | 0–3 |" in out
-    # The same start, then EDE-TD3 ahead by up to 125 with noise of 5: apart at the end only.
-    above = out.split("EDE-TD3 above TD3 at ")[1].split("; below at ")
-    assert above[0].endswith("–20K") and not above[0].startswith("1K")
-    assert above[1].startswith("none.")
-    assert out.count("| **yes** |") == 4  # every TD3 seed fell by more than half its gain
+    # The same start, then EDE-TD3 ahead by up to 125 with noise of 5: its lead excludes 0 at
+    # the end only.
+    lead = out.split("EDE-TD3 − TD3 per bin, with its 95% bootstrap interval over seeds: ")[1]
+    above, below = lead.split(".\n")[0].split(", below 0 in ")
+    assert above.startswith("above 0 in ") and above.endswith("–20K)") and "(1K" not in above
+    assert below == "none"
+    overall = out.split("EDE-TD3 − TD3 overall: ")[1].split(" on the final return")[0]
+    assert float(overall.split(" [")[1].split(",")[0]) > 0  # ahead at the end, interval and all
+    # Every TD3 seed fell by more than half its gain, beyond its noise; no EDE-TD3 seed fell.
+    verdicts = re.findall(r"^\| (TD3|EDE-TD3) \| \d \|.*\| (\S+) \| (\S+) \|$", out, re.M)
+    assert verdicts[:8] == [("TD3", "**yes**", "**yes**")] * 4 + [("EDE-TD3", "no", "no")] * 4
     assert (
         "P(EDE-TD3 > TD3) over this task's seeds (rliable, as the aggregates across tasks): "
         "1 [1, 1] on the final return" in task_table(out, TASK)
     )
     turn = out.split("### ede/ReacherPush-v0")[0]
-    assert "| EDE-TD3 | 0 | " in turn and turn.count("| no |") == 4
+    assert "| EDE-TD3 | 0 | " in turn and turn.count("| no | no |") == 4
     # The last quarter's mean over seeds is the mean of the seed table's last column, and it
     # puts TD3's fall (to about -175) below EDE-TD3's climb (to about -70), intervals apart.
     late = turn.split("the asymptote, as far as this budget shows it): ")[1].split(".\n")[0]
@@ -158,7 +174,7 @@ def test_tables_name_disjoint_bins_and_diverged_seeds(tmp_path: Path) -> None:
         column = [
             float(row.split(" | ")[4])
             for row in turn.splitlines()
-            if row.startswith(f"| {name} | ") and row.count(" | ") == 5
+            if row.startswith(f"| {name} | ") and row.count(" | ") == 8
         ]
         assert len(column) == 4 and intervals[name][0] == pytest.approx(np.mean(column), abs=0.1)
     assert intervals["TD3"][2] < -150 < intervals["EDE-TD3"][1]
@@ -185,6 +201,24 @@ def test_runs_of_different_budgets_are_refused_by_name(tmp_path: Path) -> None:
     assert "Traceback" not in done.stderr and not (tmp_path / "figures").exists()
 
 
+def test_the_committed_pusher_runs_decline_alike_at_every_bin_width() -> None:
+    # Pusher at 10⁶ steps, where the binned rule this one replaced flagged 0 to 3 of TD3's 4
+    # seeds as the bins went from 20K to 100K steps.
+    found = read_folder(REPO / "docs" / "results" / "1e6" / "runs", "ede/Pusher-v0")
+    assert found is not None
+    report = ReportConfig(bootstrap_samples=BOOTSTRAP_SAMPLES)
+    verdicts = {
+        width: {
+            algo: [d and (d.declined, d.diverged) for d in arm(runs, [], width, report).divergence]
+            for algo, runs in found.curves.items()
+        }
+        for width in (20_000, 25_000, 40_000, 50_000, 100_000)
+    }
+    assert all(each == verdicts[50_000] for each in verdicts.values())
+    # Every TD3 seed declined (by 4.0 to 6.5, its noise under 0.8), none by half its gain.
+    assert verdicts[50_000] == {"td3": [(True, False)] * 4, "ede-td3": [(False, False)] * 4}
+
+
 def blocks(page: str) -> list[tuple[str, str, str]]:
     """A page's blocks: each one's runs folder, section heading and content."""
     return re.findall(r"<!-- results (\S+): (.*?) -->\n(.*?)<!-- /results -->\n", page, re.S)
@@ -192,10 +226,15 @@ def blocks(page: str) -> list[tuple[str, str, str]]:
 
 def resampled(block: str) -> str:
     """A block with what its bootstrap's resamples decide blanked: each interval's ends, the bins
-    where two intervals are disjoint and how many there are, and how many resamples."""
+    where a lead's interval excludes 0 and how many there are, and how many resamples."""
     block = re.sub(r"\[[^\]]*\]", "[…]", block)
     block = re.sub(r"\d+ resamples", "… resamples", block)
-    block = re.sub(r"^Bins \(right ends\) where .*$", "Bins …", block, flags=re.M)
+    block = re.sub(
+        r"^(.* per bin, with its \d+% bootstrap interval over seeds:).*$",
+        r"\1 …",
+        block,
+        flags=re.M,
+    )
     return re.sub(r"\| \d+, \d+ \(of \d+\) \|", "| … |", block)
 
 
@@ -383,7 +422,7 @@ def test_every_algorithm_of_a_task_has_its_row_and_ede_td3_is_set_against_each(
         p = turn.split(against)[1].split(" on the final return")[0].removeprefix(" across tasks): ")
         # Every EDE-TD3 run ends above every run of TD3 and SB3's agents but SAC in the EDE space.
         assert p == ("0 [0, 0]" if algo == "sb3-sac-ede" else "1 [1, 1]"), label
-        assert f"EDE-TD3 above {label} at " in turn
+        assert f"EDE-TD3 − {label} per bin, with its 95% bootstrap interval over seeds: " in turn
     # The pair's rows and the lines setting one against the other are as they are without the rest.
 
     def pairs(section: str) -> list[str]:
@@ -391,10 +430,10 @@ def test_every_algorithm_of_a_task_has_its_row_and_ede_td3_is_set_against_each(
             line
             for line in section.splitlines()
             if line.startswith(("| TD3 |", "| EDE-TD3 |", "P(EDE-TD3 > TD3) "))
-            or ": EDE-TD3 above TD3 at " in line
+            or line.startswith("EDE-TD3 − TD3 ")
         ]
 
-    assert len(pairs(turn)) == 10 and pairs(turn) == pairs(task_table(pair.stdout, TASK))
+    assert len(pairs(turn)) == 11 and pairs(turn) == pairs(task_table(pair.stdout, TASK))
     push = "ede/ReacherPush-v0"
     assert section(arms.stdout, push) == section(pair.stdout, push)
     # At a glance: the pair's table as it is, then one per other algorithm, each naming the task
@@ -491,7 +530,10 @@ def test_an_ablation_is_set_against_the_defaults_runs_of_the_same_seeds(tmp_path
         "11,000 ["
     )
     assert "### fast: ede/ReacherTurn-v0, TD3" not in done.stdout  # the variant ran no TD3
-    assert "fast above the default at 1K–20K; below at none." in section
+    assert (
+        "fast − the default per bin, with its 95% bootstrap interval over seeds: above 0 in 20 of "
+        "20 bins (1K–20K), below 0 in none." in section
+    )
 
 
 def test_a_source_written_by_experiment_export_names_its_file_and_commits(tmp_path: Path) -> None:
@@ -631,7 +673,7 @@ def test_a_task_alone_never_joins_a_family_of_the_papers_and_one_seed_claims_no_
     assert "reacher-v5 family, its own (beyond the paper)" in done.stdout
     assert (tmp_path / "figures" / "reacher-v5.png").is_file()
     assert not (tmp_path / "figures" / "reacher.png").exists()
-    assert "intervals are disjoint" not in done.stdout  # one seed each: its intervals are points
+    assert "per bin, with its" not in done.stdout  # one seed each: no interval of the lead
 
 
 def bad_input_cases() -> dict[str, tuple]:
@@ -1102,7 +1144,8 @@ def test_pages_fill_their_blocks_and_keep_the_authors_words(tmp_path: Path) -> N
     assert blocks == [(heading, section(printed.stdout, heading)) for heading, _ in blocks]
     # The runs' figure goes to the folder above them, as `--figures` defaults to for docs/results.
     assert (tmp_path / "pages" / "reacher.png").stat().st_size > 10_000
-    # The glance row: the task's own final returns, its bins and TD3's seeds that diverged.
+    # The glance row: the task's own final returns, its bins and TD3's seeds that declined and
+    # diverged.
     row = blocks[1][1].splitlines()[-1].split(" | ")
     task = section(printed.stdout, TASK)
     assert row[:3] == ["| ede/ReacherTurn-v0", "20,000 (2.0% of the paper's)", "0–3"]
@@ -1111,8 +1154,8 @@ def test_pages_fill_their_blocks_and_keep_the_authors_words(tmp_path: Path) -> N
     assert f"{row[5]} on the final return and {row[6]} on the area under the curve" in task
     above, below = (int(n) for n in row[7].removesuffix(" (of 20)").split(", "))
     assert above > 0 and below > 0  # EDE-TD3 starts below TD3 and ends above
-    diverged = re.findall(r"\| TD3 \| \d \|.*\| \*\*yes\*\* \|", task)
-    assert row[8] == f"{len(diverged)} of 4 |" and diverged
+    diverged = re.findall(r"\| TD3 \| \d \|.*\| \*\*yes\*\* \| \*\*yes\*\* \|", task)
+    assert row[8] == f"{len(diverged)}, {len(diverged)} (of 4) |" and diverged
 
     again = results(runs, tmp_path / "figures", page)
     assert again.returncode == 0 and again.stdout == "" and page.read_text() == text
