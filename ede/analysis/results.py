@@ -86,7 +86,7 @@ def arm(
     rng = fresh(report)  # the final return's, then the area's: one generator, two draws
     final_interval = bootstrap_mean(final, report.confidence, report.bootstrap_samples, rng)
     area_interval = bootstrap_mean(area, report.confidence, report.bootstrap_samples, rng)
-    late = [_divergence(c, report.confidence) for c in curves]
+    late = [_divergence(c, report) for c in curves]
     tails = [d.last for d in late if d is not None]
     return Arm(
         seeds=[c.seed for c in curves],
@@ -110,9 +110,9 @@ def arm(
     )
 
 
-def _divergence(curve: Curve, confidence: float) -> Divergence | None:
+def _divergence(curve: Curve, report: ReportConfig) -> Divergence | None:
     try:
-        return divergence(curve.steps, curve.returns, confidence)
+        return divergence(curve.steps, curve.returns, report.confidence, report.seed)
     except ValueError:  # too few evaluations to have a last quarter and a window before it
         return None
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from statistics import NormalDist
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -248,8 +247,8 @@ class Divergence:
 
     ``first`` is the untrained policy's return (the evaluation at step 0); ``best`` the highest
     mean of as many consecutive evaluations as the last quarter has, all before it, over the steps
-    ``best_span``; ``last`` the last quarter's mean; ``noise`` how far ``best - last`` may reach by
-    the evaluations' own noise alone (:func:`divergence`).
+    ``best_span``; ``last`` the last quarter's mean; ``noise`` how far ``best - last`` reaches on a
+    plateau by the run's own noise alone, at the report's confidence (:func:`divergence`).
     """
 
     first: float
@@ -272,20 +271,55 @@ def evaluation_noise(returns: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.diff(np.asarray(returns, dtype=float)) ** 2) / 2))
 
 
+def lag_one_correlation(returns: np.ndarray) -> float:
+    """The correlation of successive evaluations about their straight-line trend, in [0, 0.95]: a
+    policy that changes a little between evaluations keeps some of its luck (TD3's on Pusher:
+    0.5 to 0.8); the trend removed, a steady rise or fall does not count as luck kept."""
+    y = np.asarray(returns, dtype=float)
+    t = np.arange(len(y), dtype=float)
+    x = y - np.polyval(np.polyfit(t, y, 1), t) if len(y) > 2 else y - y.mean()
+    scale = float(np.dot(x, x))
+    return float(np.clip(np.dot(x[:-1], x[1:]) / scale, 0.0, 0.95)) if scale > 0 else 0.0
+
+
+def plateau_decline(
+    before: int, n: int, sigma: float, rho: float, confidence: float, seed: int, draws: int = 1000
+) -> float:
+    """How far a run on a plateau falls by its noise alone, by the rule of :func:`divergence`: the
+    ``confidence`` quantile of B − L over ``draws`` runs of ``before + n`` evaluations whose
+    noise is stationary with standard deviation ``sigma`` and lag-one correlation ``rho`` (an
+    AR(1) process). Simulated, since the best of many overlapping windows is not one mean."""
+    rng = np.random.default_rng(seed)
+    shocks = rng.standard_normal((draws, before + n)) * sigma * np.sqrt(1 - rho**2)
+    noise = np.empty_like(shocks)
+    noise[:, 0] = rng.standard_normal(draws) * sigma
+    for t in range(1, before + n):
+        noise[:, t] = rho * noise[:, t - 1] + shocks[:, t]
+    sums = np.cumsum(noise[:, :before], axis=1)
+    windows = (sums[:, n - 1 :] - np.pad(sums, ((0, 0), (1, 0)))[:, : before - n + 1]) / n
+    falls = windows.max(axis=1) - noise[:, before:].mean(axis=1)
+    return float(np.quantile(falls, confidence))
+
+
 def divergence(
-    steps: np.ndarray, returns: np.ndarray, confidence: float, drop_fraction: float = 0.5
+    steps: np.ndarray,
+    returns: np.ndarray,
+    confidence: float,
+    seed: int,
+    drop_fraction: float = 0.5,
 ) -> Divergence:
     """Did the run decline, or diverge, by its own evaluations (no bins)?
 
     The last quarter holds the ``n`` evaluations after ¾ of the last evaluated step; ``last`` is
     their mean L. ``best`` B is the highest mean of ``n`` consecutive evaluations all before the
     last quarter (a window as long as it, so like is set against like); ``first`` F the step-0
-    evaluation; σ the evaluation noise (:func:`evaluation_noise`). The run declined where
-    ``B - L > z·σ·sqrt(2/n)``, ``z`` the two-sided normal quantile of ``confidence`` (1.96 at 0.95):
-    more than the difference of two means of ``n`` evaluations reaches by noise alone. It diverged
-    where it declined and lost more than ``drop_fraction`` of what it had gained, ``B - L >
-    drop_fraction·(B - F)``; a run whose best is not above its untrained policy gained nothing and
-    cannot diverge. A dip that recovers within the last quarter lowers L by part of it.
+    evaluation. The run declined where ``B - L`` is more than a run on a plateau reaches by its
+    noise alone in ``confidence`` of the cases (:func:`plateau_decline`, with its last quarter's
+    lag-one correlation ρ, :func:`lag_one_correlation`, and the σ its successive differences give,
+    :func:`evaluation_noise`, over sqrt(1 − ρ); drawn from ``seed``). It diverged where it declined and lost
+    more than ``drop_fraction`` of what it had gained, ``B - L > drop_fraction·(B - F)``; a run
+    whose gain is within that noise never learned and cannot diverge. A dip that recovers
+    within the last quarter lowers L by part of it.
 
     Raises:
         ValueError: fewer than ``2n + 1`` evaluations, where a window as long as the last quarter
@@ -303,8 +337,10 @@ def divergence(
     windows = np.convolve(before, np.ones(n) / n, mode="valid")  # (len(before) - n + 1,)
     start = int(np.argmax(windows))
     best, last, first = float(windows[start]), float(returns[late].mean()), float(returns[0])
-    z = NormalDist().inv_cdf(0.5 + confidence / 2)
-    noise = z * evaluation_noise(returns) * np.sqrt(2 / n)
+    # Successive differences see σ·sqrt(2(1 − ρ)) of correlated noise: σ itself is larger.
+    rho = lag_one_correlation(returns[late])
+    sigma = evaluation_noise(returns) / np.sqrt(1 - rho)
+    noise = plateau_decline(len(before), n, sigma, rho, confidence, seed)
     declined = bool(best - last > noise)
     gained = best - first
     return Divergence(
@@ -312,9 +348,9 @@ def divergence(
         best,
         (float(steps[start]), float(steps[start + n - 1])),
         last,
-        float(noise),
+        noise,
         declined,
-        declined and bool(gained > 0 and best - last > drop_fraction * gained),
+        declined and bool(gained > noise and best - last > drop_fraction * gained),
     )
 
 

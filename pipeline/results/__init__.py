@@ -49,8 +49,9 @@ report draws them) and prints, per task, in Markdown:
 - each algorithm's mean over seeds of a seed's last quarter of evaluations, with its bootstrap
   interval (the asymptote, as far as the budget shows it);
 - per seed, whether it declined and whether it diverged (:func:`ede.analysis.stats.divergence`:
-  its last quarter's mean below its best as long window before by more than the evaluations'
-  noise allows, and by more than half of what it had gained);
+  its last quarter's mean below its best as long window before by more than a plateau with the
+  run's own noise, as correlated as its evaluations are, falls in 95% of simulated runs; and by
+  more than half of what it had gained, where that gain is more than noise);
 
 and, per family, over the paper's tasks (where they span two families and there are tasks beyond
 them), over the transfer tasks (the families' targets, where there are two or more: the

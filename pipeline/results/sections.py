@@ -227,7 +227,7 @@ def _divergence(by_algo: dict[str, Arm]) -> list[str]:
         + ".",
         "",
         "| algorithm | seed | untrained (step 0) | best quarter before the last (its span) "
-        "| last quarter | decline (best − last) | its noise (z·σ·√(2/n)) | declined | diverged |",
+        "| last quarter | decline (best − last) | noise alone reaches (on a plateau, at the confidence) | declined | diverged |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
 

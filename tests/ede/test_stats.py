@@ -202,42 +202,69 @@ def test_the_noise_is_recovered_from_successive_differences_through_a_learning_c
 
 def test_a_noisy_plateau_has_not_declined_and_a_fall_of_more_than_half_the_gain_diverged() -> None:
     plateau = np.minimum(-100 + STEPS / 1_000, -50)  # learns to -50 by 50K, then holds
-    verdict = divergence(STEPS, noisy(plateau), 0.95)
+    verdict = divergence(STEPS, noisy(plateau), 0.95, 0)
     assert not verdict.declined and not verdict.diverged and verdict.first < -95
     assert verdict.last == pytest.approx(-50, abs=1) and verdict.best == pytest.approx(-50, abs=1)
-    # The noise the decline is held to: 1.96·σ·sqrt(2/63), σ as measured.
-    assert verdict.noise == pytest.approx(1.96 * NOISE * np.sqrt(2 / 63), rel=0.2)
+    # The fall noise reaches on a plateau is more than one comparison of two means of 63 (the
+    # best of many windows is higher than one), 1.645·σ·sqrt(2/63): 1.5 times it here.
+    single = 1.645 * NOISE * np.sqrt(2 / 63)
+    assert 1.1 * single < verdict.noise < 2.5 * single
     falls = np.where(STEPS <= 100_000, plateau, -90)  # back to 10 above where it began
-    verdict = divergence(STEPS, noisy(falls), 0.95)
+    verdict = divergence(STEPS, noisy(falls), 0.95, 0)
     assert verdict.declined and verdict.diverged
     assert verdict.best_span[1] <= 100_000 and verdict.decline == pytest.approx(40, abs=2)
     # A fall by less than half of what was gained has declined, not diverged.
-    verdict = divergence(STEPS, noisy(np.where(STEPS <= 100_000, plateau, -65)), 0.95)
+    verdict = divergence(STEPS, noisy(np.where(STEPS <= 100_000, plateau, -65)), 0.95, 0)
     assert verdict.declined and not verdict.diverged
 
 
 def test_a_dip_that_recovers_within_the_last_quarter_has_not_diverged() -> None:
     dip = np.minimum(-100 + STEPS / 1_000, -50)
     dip[(STEPS > 200_000) & (STEPS <= 205_000)] = -100  # five evaluations at the start's level
-    verdict = divergence(STEPS, noisy(dip), 0.95)
+    verdict = divergence(STEPS, noisy(dip), 0.95, 0)
     assert not verdict.diverged and verdict.decline < 0.5 * (verdict.best - verdict.first)
 
 
-def test_plateaus_decline_by_chance_as_often_as_the_best_of_several_windows_allows() -> None:
-    # The best window before the last quarter is the highest of many overlapping ones, so on a
-    # plateau of white noise B − L exceeds its noise more often than a single comparison would
-    # (2.5%): measured on 1,000 draws of this curve, 11.2% at 251 evaluations (12.6% at 1,001; 2.4%
-    # at 51, where the rise's few steep steps inflate σ).
+def correlated(seed: int, rho: float) -> np.ndarray:
+    """Stationary noise of standard deviation NOISE whose successive values correlate by rho."""
+    rng = np.random.default_rng(seed)
+    noise = np.empty(len(STEPS))
+    noise[0] = rng.normal(0, NOISE)
+    for t in range(1, len(noise)):
+        noise[t] = rho * noise[t - 1] + rng.normal(0, NOISE * np.sqrt(1 - rho**2))
+    return noise
+
+
+@pytest.mark.parametrize(("rho", "rate"), [(0.0, 0.08), (0.7, 0.2)])
+def test_plateaus_decline_by_chance_about_as_often_as_the_confidence_allows(
+    rho: float, rate: float
+) -> None:
+    # A plateau's fall is held to what its own noise, as correlated as it is, reaches in 95% of
+    # simulated plateaus. Measured on 400 draws of this curve: 3.0% declined with white noise,
+    # 11% with successive evaluations correlated by 0.7 (TD3's on Pusher: 0.5 to 0.8; the
+    # correlation measured on the last quarter's 63 evaluations comes out low) — against 5%
+    # nominal; held to a white-noise threshold, the correlated plateaus would decline far more.
     plateau = np.minimum(-100 + STEPS / 1_000, -50)
-    verdicts = [divergence(STEPS, noisy(plateau, seed), 0.95) for seed in range(200)]
-    assert 0.04 < np.mean([v.declined for v in verdicts]) < 0.25
+    verdicts = [divergence(STEPS, plateau + correlated(seed, rho), 0.95, 0) for seed in range(200)]
+    assert np.mean([v.declined for v in verdicts]) < rate
     assert not any(v.diverged for v in verdicts)  # a plateau gained nothing to lose half of
+    if rho > 0:  # the threshold grows with the correlation
+        white = [divergence(STEPS, plateau + correlated(seed, 0.0), 0.95, 0) for seed in range(20)]
+        assert np.mean([v.noise for v in verdicts]) > 1.3 * np.mean([v.noise for v in white])
+
+
+def test_a_run_that_never_learned_cannot_diverge() -> None:
+    # Its best stretch is no higher than its untrained policy by more than noise: a fall below
+    # both is a decline, not the loss of what it had gained.
+    flat = np.where(STEPS <= 150_000, -100.0, -130.0)
+    verdict = divergence(STEPS, noisy(flat), 0.95, 0)
+    assert verdict.declined and not verdict.diverged
 
 
 def test_a_run_too_short_for_a_window_before_its_last_quarter_is_refused() -> None:
     with pytest.raises(ValueError, match="too few"):
-        divergence(STEPS[:2], STEPS[:2], 0.95)  # one in the last quarter, one before
-    assert divergence(STEPS[:3], STEPS[:3], 0.95).best_span == (1000.0, 1000.0)  # 2n + 1 will do
+        divergence(STEPS[:2], STEPS[:2], 0.95, 0)  # one in the last quarter, one before
+    assert divergence(STEPS[:3], STEPS[:3], 0.95, 0).best_span == (1000.0, 1000.0)  # 2n + 1 will do
 
 
 def test_one_method_better_on_every_run_has_probability_one_of_improvement() -> None:

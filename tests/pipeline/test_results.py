@@ -215,8 +215,12 @@ def test_the_committed_pusher_runs_decline_alike_at_every_bin_width() -> None:
         for width in (20_000, 25_000, 40_000, 50_000, 100_000)
     }
     assert all(each == verdicts[50_000] for each in verdicts.values())
-    # Every TD3 seed declined (by 4.0 to 6.5, its noise under 0.8), none by half its gain.
-    assert verdicts[50_000] == {"td3": [(True, False)] * 4, "ede-td3": [(False, False)] * 4}
+    # Every TD3 seed fell (by 4.0 to 6.5), three beyond what their own noise reaches (seed 1's
+    # 4.0 within its 6.1), none by half its gain; no EDE-TD3 seed fell.
+    assert verdicts[50_000] == {
+        "td3": [(True, False), (False, False), (True, False), (True, False)],
+        "ede-td3": [(False, False)] * 4,
+    }
 
 
 def blocks(page: str) -> list[tuple[str, str, str]]:
