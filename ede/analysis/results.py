@@ -4,10 +4,11 @@ the results page (``ede-pipeline results``) render, each in its own way.
 Per arm — an algorithm's runs on a task, or an ablation's variant's — the final return, the area
 under the curve and the steps to each threshold, the binned band, and per seed whether it
 declined or diverged and its last quarter (:func:`arm`); per task, EDE-TD3 set against each other
-algorithm with runs there (:func:`comparisons`): the probability that an EDE-TD3 run beats one of
-the other's (:func:`improvement_on_task`) and EDE-TD3's lead, per bin and on the final return and
-the area, each with its own interval (:func:`lead`); across tasks, rliable's aggregates of EDE-TD3 against TD3 and the performance profile
-(:func:`across_tasks`).
+algorithm with runs there, and each other algorithm in the EDE space against the same learner on
+raw actions (:func:`comparisons`): the probability that a run of the one beats one of the other's
+(:func:`improvement_on_task`) and the one's lead, per bin and on the final return and the area,
+each with its own interval (:func:`lead`); across tasks, rliable's aggregates of EDE-TD3 against
+TD3 and the performance profile (:func:`across_tasks`).
 
 Every interval is a percentile bootstrap over seeds at ``report.confidence`` with
 ``report.bootstrap_samples`` resamples (``params.yaml``'s ``report``). The one generator rule:
@@ -37,7 +38,7 @@ from ede.analysis.stats import (
     steps_to_threshold,
 )
 from ede.analysis.stats import across_tasks as rliable_across_tasks
-from ede.config import ALGO_LABELS, ALGOS, ReportConfig
+from ede.config import ALGO_LABELS, ALGOS, RAW_COUNTERPART, ReportConfig
 from ede.run.runs import Curve, area_under_curve
 
 RANDOM_EPISODES = 10  # episodes of uniform random actions behind a task's normalised 0
@@ -169,46 +170,54 @@ def improvement_on_task(
 
 
 OURS = "ede-td3"  # the algorithm every other is set against, task by task
+PAIRS: tuple[tuple[str, str], ...] = (
+    *((OURS, algo) for algo in ALGOS if algo != OURS),
+    *((algo, RAW_COUNTERPART[algo]) for algo in ALGOS if algo in RAW_COUNTERPART and algo != OURS),
+)
+"""The algorithms set against each other on a task, each pair's first against its second:
+EDE-TD3 against every other algorithm, TD3 first (:data:`ede.config.ALGOS`' order), then every
+other algorithm in the EDE space against the same learner on raw actions
+(:data:`ede.config.RAW_COUNTERPART`): does the space help it as it helps TD3."""
 
 
 @dataclass(frozen=True)
 class Comparison:
-    """EDE-TD3 set against one other algorithm on a task: the arm it is compared with, the
-    probability that an EDE-TD3 run beats one of the arm's (per score, ``SCORES``), and EDE-TD3's
-    lead over it (:func:`lead`)."""
+    """One algorithm set against another on a task (a pair of :data:`PAIRS`): the probability
+    that a run of the first beats one of the second's (per score, ``SCORES``), and the first's
+    lead over the second (:func:`lead`)."""
 
+    ours: str  # the algorithm set against the other
     against: str  # the other algorithm
-    improvement: dict[str, Interval]  # P(EDE-TD3 > the arm), per score
+    improvement: dict[str, Interval]  # P(ours > against), per score
     lead: Lead | None  # None where an arm has a single seed
 
     def bins(self) -> tuple[int, int, int] | None:
-        """The bins where EDE-TD3's lead's interval lies above 0, below 0, and of all; None where
-        an arm has a single seed."""
+        """The bins where the lead's interval lies above 0, below 0, and of all; None where an
+        arm has a single seed."""
         return None if self.lead is None else self.lead.bins()
 
 
 def comparisons(
     curves: Mapping[str, list[Curve]], width: float, report: ReportConfig
 ) -> list[Comparison]:
-    """EDE-TD3 set against each other algorithm with runs on a task (``curves``, by algorithm;
-    their bins ``width`` steps), in :data:`ede.config.ALGOS`' order, TD3 first; none where EDE-TD3
-    has no runs there."""
-    if not curves.get(OURS):
-        return []
+    """Each pair of :data:`PAIRS` with runs of both on a task (``curves``, by algorithm; their
+    bins ``width`` steps), in that order: EDE-TD3 against each other algorithm, TD3 first, then
+    each other algorithm in the EDE space against its raw counterpart."""
     return [
         Comparison(
-            algo,
+            ours,
+            against,
             improvement_on_task(
-                curves[OURS],
-                curves[algo],
+                curves[ours],
+                curves[against],
                 report.confidence,
                 report.bootstrap_samples,
                 report.seed,
             ),
-            lead(curves[OURS], curves[algo], width, report),
+            lead(curves[ours], curves[against], width, report),
         )
-        for algo in ALGOS
-        if algo != OURS and curves.get(algo)
+        for ours, against in PAIRS
+        if curves.get(ours) and curves.get(against)
     ]
 
 

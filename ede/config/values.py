@@ -25,6 +25,7 @@ __all__ = [
     "NAME_LENGTH",
     "NAME_RULE",
     "PAPER_ALGOS",
+    "RAW_COUNTERPART",
     "RESULT_NEUTRAL",
     "SB3_ALGOS",
     "SEED_MAX",
@@ -62,7 +63,15 @@ ALGO_LABELS: dict[str, str] = {  # the paper's two as the paper writes them
 }
 PAPER_ALGOS: tuple[Algo, ...] = ("td3", "ede-td3")
 """The pair the paper compares, and params.yaml's default ``runs.algos``."""
-EMBEDDED_ALGOS: frozenset[Algo] = frozenset({"ede-td3", "sb3-td3-ede", "sb3-sac-ede"})
+RAW_COUNTERPART: dict[Algo, Algo] = {
+    "ede-td3": "td3",
+    "sb3-td3-ede": "td3",
+    "sb3-sac-ede": "sb3-sac",
+}
+"""Each algorithm that acts in its family's EDE space, and the same learner on raw actions: what
+the space is measured against. SB3's TD3 update is ours (``tests/ede/test_td3_reference.py``), so
+TD3 is SB3's TD3's raw counterpart as it is EDE-TD3's."""
+EMBEDDED_ALGOS: frozenset[Algo] = frozenset(RAW_COUNTERPART)
 """The algorithms that act in their family's embedding (and so need it, and record its checksum)."""
 SB3_ALGOS: frozenset[Algo] = frozenset({"sb3-td3-ede", "sb3-sac-ede", "sb3-sac"})
 """The algorithms stable-baselines3 trains (:mod:`ede.run.sb3`): one run a process, never a group."""

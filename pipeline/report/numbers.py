@@ -1,7 +1,8 @@
 """The report's numbers, computed from the runs read (:mod:`.inputs`) by the results model
 (:mod:`ede.analysis.results`, as the results pages compute theirs) and the probes of Figures 6 and 7: each
-family's rows and bands (and EDE-TD3 against each other algorithm, where the params name
-algorithms beyond the paper's pair), the aggregates across tasks, the curves for ``dvc plots``, the DVC
+family's rows and bands (and EDE-TD3 against each other algorithm and each other algorithm in
+the EDE space against its raw counterpart, where the params name algorithms beyond the paper's
+pair), the aggregates across tasks, the curves for ``dvc plots``, the DVC
 metrics, and the clips of TD3 beside EDE-TD3."""
 
 from __future__ import annotations
@@ -40,8 +41,8 @@ Probed = TypeVar("Probed")  # what a probe of an embedding finds (Figures 6 and 
 
 @dataclass(frozen=True)
 class Family:
-    """A family's numbers: per task a row per algorithm and EDE-TD3 against each other, and what
-    its figures draw."""
+    """A family's numbers: per task a row per algorithm and the algorithms set against each other
+    (:func:`ede.analysis.results.comparisons`), and what its figures draw."""
 
     name: str
     tasks: list[str]
@@ -80,8 +81,9 @@ def width(params: Params, task: str) -> float:
 def families(params: Params, runs: Runs) -> list[Family]:
     """Each family's statistics, per task and algorithm (:func:`ede.analysis.results.arm`), and
     where the params name algorithms beyond the paper's pair, per task EDE-TD3 against each other
-    with runs there (:func:`ede.analysis.results.comparisons`; the pair's report is the paper's,
-    its claim the aggregates across tasks)."""
+    with runs there and each other algorithm in the EDE space against its raw counterpart
+    (:func:`ede.analysis.results.comparisons`; the pair's report is the paper's, its claim the
+    aggregates across tasks)."""
     config = params.report
     beyond = not set(params.runs.algos) <= set(PAPER_ALGOS)
     made = []

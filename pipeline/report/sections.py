@@ -10,7 +10,7 @@ from typing import Any
 
 from ede.analysis import figures
 from ede.analysis.probes import EffectSpace, Exploration
-from ede.analysis.results import OURS, SCORES, AcrossTasks, Comparison
+from ede.analysis.results import SCORES, AcrossTasks, Comparison
 from ede.config import ALGO_LABELS, Params, ReportConfig
 from ede.io.provenance import describe_software, software_versions
 from ede_pipeline import layout
@@ -32,8 +32,9 @@ def intro(page: Page, params: Params) -> None:
 
 def learning_curves(page: Page, params: Params, families: list[Family]) -> None:
     """Per family, its learning curves' figure, its diagnostics' where its runs kept them, and
-    per task its table, EDE-TD3 against each other algorithm (where the params name algorithms
-    beyond the paper's pair) and the seeds that fell back."""
+    per task its table, EDE-TD3 against each other algorithm and each other algorithm in the EDE
+    space against its raw counterpart (where the params name algorithms beyond the paper's pair)
+    and the seeds that fell back."""
     config = params.report
     page.add("<h2>Learning curves</h2>")
     for family in families:
@@ -90,24 +91,29 @@ def _table(rows: list[Row], thresholds: list[float]) -> str:
 
 
 def _against(compared: list[Comparison]) -> str:
-    """EDE-TD3 against each other algorithm with runs on a task: the probability that an EDE-TD3
-    run beats one of the other's on each score, with its interval, and the bins where the interval
-    of EDE-TD3's lead over it lies above 0, below 0, of all (— where either has one seed)."""
-    ours = html.escape(ALGO_LABELS[OURS])
-    head = (
-        f"<tr><th>{ours} against</th>"
-        + "".join(f"<th>P({ours} &gt; it), {label}</th>" for label in SCORES.values())
-        + f"<th>bins with {ours} − it above 0, below 0 (of all)</th></tr>"
-    )
-    body = []
-    for each in compared:
-        bins = "—" if (found := each.bins()) is None else "{}, {} (of {})".format(*found)
-        body.append(
-            f"<tr><td>{html.escape(ALGO_LABELS[each.against])}</td>"
-            + "".join(f"<td>{interval(each.improvement[score])}</td>" for score in SCORES)
-            + f"<td>{bins}</td></tr>"
+    """Each algorithm set against others on a task (EDE-TD3 against each other algorithm with
+    runs there, then each other algorithm in the EDE space against its raw counterpart), a table
+    each: the probability that a run of it beats one of the other's on each score, with its
+    interval, and the bins where the interval of its lead over the other lies above 0, below 0,
+    of all (— where either has one seed)."""
+    tables = []
+    for ours in dict.fromkeys(each.ours for each in compared):
+        label = html.escape(ALGO_LABELS[ours])
+        head = (
+            f"<tr><th>{label} against</th>"
+            + "".join(f"<th>P({label} &gt; it), {score}</th>" for score in SCORES.values())
+            + f"<th>bins with {label} − it above 0, below 0 (of all)</th></tr>"
         )
-    return f"<table>{head}{''.join(body)}</table>"
+        body = []
+        for each in (c for c in compared if c.ours == ours):
+            bins = "—" if (found := each.bins()) is None else "{}, {} (of {})".format(*found)
+            body.append(
+                f"<tr><td>{html.escape(ALGO_LABELS[each.against])}</td>"
+                + "".join(f"<td>{interval(each.improvement[s])}</td>" for s in SCORES)
+                + f"<td>{bins}</td></tr>"
+            )
+        tables.append(f"<table>{head}{''.join(body)}</table>")
+    return "".join(tables)
 
 
 def _fell_back(rows: list[Row]) -> str:

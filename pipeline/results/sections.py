@@ -10,6 +10,7 @@ import numpy as np
 from ede.analysis.probes import ZERO_EPISODES
 from ede.analysis.results import (
     OURS,
+    PAIRS,
     RANDOM_EPISODES,
     SCORES,
     AcrossTasks,
@@ -21,7 +22,7 @@ from ede.analysis.results import (
     lead,
 )
 from ede.analysis.stats import Band
-from ede.config import ALGO_LABELS, ALGOS, PAPER_ALGOS, Params
+from ede.config import ALGO_LABELS, PAPER_ALGOS, Params
 from ede.run.runs import Curve
 from ede_pipeline.published import TaskRuns, seed_list
 
@@ -40,15 +41,18 @@ class Section(NamedTuple):
 
 
 class Glance(NamedTuple):
-    """One task's row of a table at a glance: EDE-TD3 against one other algorithm there."""
+    """One task's row of a table at a glance: one algorithm against another there (a pair of
+    :data:`ede.analysis.results.PAIRS`)."""
 
     task: str
+    algos: tuple[str, ...]  # the task's algorithms with runs
+    ours: str  # the algorithm set against the other (EDE-TD3, in the paper's table)
     against: str  # the other algorithm (TD3, in the paper's table)
     budget: str
     seeds: str  # the seeds of the two
     final: dict[str, str]  # per algorithm label, the final return's interval
-    improvement: dict[str, str]  # P(EDE-TD3 > the other) per score (ede.analysis.results.SCORES)
-    bins: tuple[int, int, int] | None  # bins where EDE-TD3's lead is above 0, below 0, of all
+    improvement: dict[str, str]  # P(ours > against) per score (ede.analysis.results.SCORES)
+    bins: tuple[int, int, int] | None  # bins where ours' lead is above 0, below 0, of all
     diverged: str  # the other's seeds that declined and that diverged, of its seeds
 
 
@@ -132,10 +136,12 @@ def task_section(
     params,
 ) -> tuple[Section, dict[str, Band], list[Glance]]:
     """One task's tables: per algorithm final return, area under the curve and the steps to
-    reach each of its ``thresholds``; EDE-TD3 against each other algorithm (its lead, per bin and
-    overall, and the probability of improvement); per seed, whether it declined or diverged. And each algorithm's band, for
-    the family's figure, and its rows at a glance, one per algorithm EDE-TD3 is set against.
-    ``paper_budget`` is None beyond the paper."""
+    reach each of its ``thresholds``; EDE-TD3 against each other algorithm, then each other
+    algorithm in the EDE space against its raw counterpart (the one's lead, per bin and overall,
+    and the probability of improvement; :func:`ede.analysis.results.comparisons`); per seed,
+    whether it declined or diverged. And each algorithm's band, for the family's figure, and its
+    rows at a glance, one per pair set against each other. ``paper_budget`` is None beyond the
+    paper."""
     width = found.budget / bins
     arms = {
         ALGO_LABELS[a]: (runs, seed_list([c.seed for c in runs]))
@@ -159,7 +165,7 @@ def task_section(
     ]
     glance = []
     for compared in comparisons(found.curves, width, params.report):
-        lines += _ede_against(compared, width, params.report.confidence)
+        lines += _set_against(compared, width, params.report.confidence)
         glance.append(_glance(found, compared, stats, paper_budget))
     lines += _divergence(by_algo)
     bands = {algo: found.band for algo, found in by_algo.items() if found.band is not None}
@@ -179,10 +185,10 @@ def _origin(found: TaskRuns, family: str, source: str, paper_budget: int | None)
     )
 
 
-def _ede_against(compared: Comparison, width: float, confidence: float) -> list[str]:
-    """The lines setting EDE-TD3 against one other algorithm on a task: its lead, per bin and
-    overall, and the probability of improvement over its seeds."""
-    ours, theirs = ALGO_LABELS[OURS], ALGO_LABELS[compared.against]
+def _set_against(compared: Comparison, width: float, confidence: float) -> list[str]:
+    """The lines setting one algorithm against another on a task: its lead, per bin and overall,
+    and the probability of improvement over their seeds."""
+    ours, theirs = ALGO_LABELS[compared.ours], ALGO_LABELS[compared.against]
     return [
         *lead_lines(compared.lead, (ours, theirs), width, confidence),
         f"P({ours} > {theirs}) over this task's seeds (rliable, as the aggregates across tasks): "
@@ -195,16 +201,19 @@ def _ede_against(compared: Comparison, width: float, confidence: float) -> list[
 def _glance(
     found: TaskRuns, compared: Comparison, stats: dict[str, Arm], paper_budget: int | None
 ) -> Glance:
-    """A task's row at a glance in the table of EDE-TD3 against ``compared``'s algorithm."""
-    labels = (ALGO_LABELS[OURS], ALGO_LABELS[compared.against])
+    """A task's row at a glance in the table of ``compared``'s pair."""
+    pair = (compared.ours, compared.against)
+    labels = (ALGO_LABELS[compared.ours], ALGO_LABELS[compared.against])
     diverged = [d for d in stats[labels[1]].divergence if d is not None]
     budget = found.budget
     return Glance(
         found.task,
+        tuple(found.curves),
+        compared.ours,
         compared.against,
         f"{budget:,}"
         + (f" ({budget / paper_budget:.1%} of the paper's)" if paper_budget else " (its own)"),
-        seed_list(sorted({c.seed for a in (OURS, compared.against) for c in found.curves[a]})),
+        seed_list(sorted({c.seed for a in pair for c in found.curves[a]})),
         {label: str(stats[label].final) for label in labels},
         {score: str(interval) for score, interval in compared.improvement.items()},
         compared.bins(),
@@ -288,11 +297,13 @@ def across_section(title: str, found: AcrossTasks, params, waiting: str) -> Sect
 
 
 def at_a_glance(rows: list[Glance], confidence: float) -> Section:
-    """Every task with runs of EDE-TD3 and another algorithm, a table per other algorithm (TD3's
-    first, the paper's), one row a task: its budget and seeds, the two algorithms' final returns,
-    P(EDE-TD3 > the other) on each score, the bins where EDE-TD3's lead lies above and below 0
-    and the other's seeds that declined and diverged (each as its task's section has it); and under a table, the
-    tasks of the others without runs of its algorithm."""
+    """Every task with runs of both algorithms of a pair (:data:`ede.analysis.results.PAIRS`), a
+    table per pair in that order (EDE-TD3 against TD3 first, the paper's; then EDE-TD3 against
+    each other algorithm; then each other algorithm in the EDE space against its raw
+    counterpart), one row a task: its budget and seeds, the two algorithms' final returns, P(the
+    first > the second) on each score, the bins where the first's lead lies above and below 0 and
+    the second's seeds that declined and diverged (each as its task's section has it); and under
+    a table, the other tasks, by the algorithm of its pair they have no runs of."""
     heading = "The tasks at a glance"
     lines = [
         f"### {heading}",
@@ -301,29 +312,44 @@ def at_a_glance(rows: list[Glance], confidence: float) -> Section:
         "interval of EDE-TD3's lead (its mean minus the other's) lies above 0, or below, at the "
         "report's bootstrap seed (with two seeds or more of each; — with fewer).",
     ]
-    tasks = list(dict.fromkeys(row.task for row in rows))
-    for against in (a for a in ALGOS if any(row.against == a for row in rows)):
-        table = [row for row in rows if row.against == against]
-        lines += ["", *_glance_table(table, against)]
-        if without := [t for t in tasks if t not in {row.task for row in table}]:
-            lines += ["", f"No runs of {ALGO_LABELS[against]} on {', '.join(without)}."]
+    algos = {row.task: row.algos for row in rows}  # each task's algorithms with runs
+    shown = [p for p in PAIRS if any((row.ours, row.against) == p for row in rows)]
+    space = next((p for p in shown if p[0] != OURS), None)  # the first of the EDE space's tables
+    for pair in shown:
+        if pair == space:
+            lines += [
+                "",
+                "Each other algorithm in the EDE space against the same learner on raw actions: "
+                "a bin counts where the interval of its lead (its mean minus the learner's) lies "
+                "above 0, or below.",
+            ]
+        table = [row for row in rows if (row.ours, row.against) == pair]
+        lines += ["", *_glance_table(table, pair)]
+        drawn = {row.task for row in table}
+        lacking: dict[str, list[str]] = {}  # by the algorithms of the pair without runs there
+        for task in (t for t in algos if t not in drawn):
+            names = " or ".join(ALGO_LABELS[a] for a in pair if a not in algos[task])
+            lacking.setdefault(names, []).append(task)
+        for names, tasks in lacking.items():
+            lines += ["", f"No runs of {names} on {', '.join(tasks)}."]
     return Section(heading, "\n".join(lines) + "\n")
 
 
-def _glance_table(rows: list[Glance], against: str) -> list[str]:
-    """The table at a glance of EDE-TD3 against one other algorithm (:func:`at_a_glance`)."""
-    theirs, ede = ALGO_LABELS[against], ALGO_LABELS[OURS]
+def _glance_table(rows: list[Glance], pair: tuple[str, str]) -> list[str]:
+    """The table at a glance of a pair's first algorithm against its second
+    (:func:`at_a_glance`)."""
+    ours, theirs = (ALGO_LABELS[a] for a in pair)
     lines = [
-        f"| task | steps a run | seeds | final return, {theirs} | final return, {ede} | "
-        + "".join(f"P({ede} > {theirs}), {label} | " for label in SCORES.values())
-        + f"bins with {ede} − {theirs} above 0, below 0 (of all) | "
+        f"| task | steps a run | seeds | final return, {theirs} | final return, {ours} | "
+        + "".join(f"P({ours} > {theirs}), {label} | " for label in SCORES.values())
+        + f"bins with {ours} − {theirs} above 0, below 0 (of all) | "
         + f"{theirs} seeds declined, diverged (of all) |",
         "|---|---|---|---|---|---|---|---|" + "---|" * (len(SCORES) - 1),
     ]
     for row in rows:
         bins = "—" if row.bins is None else "{}, {} (of {})".format(*row.bins)
         lines.append(
-            f"| {row.task} | {row.budget} | {row.seeds} | {row.final[theirs]} | {row.final[ede]} | "
+            f"| {row.task} | {row.budget} | {row.seeds} | {row.final[theirs]} | {row.final[ours]} | "
             + "".join(f"{row.improvement[score]} | " for score in SCORES)
             + f"{bins} | {row.diverged} |"
         )

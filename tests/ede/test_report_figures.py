@@ -224,7 +224,7 @@ def test_every_algorithm_is_drawn_in_a_colour_of_its_own() -> None:
     assert cut_off(figure) == []
 
 
-def test_ede_td3_is_set_against_every_other_algorithm_of_a_task_td3_first() -> None:
+def test_ede_td3_against_every_other_algorithm_then_the_ede_space_against_raw_actions() -> None:
     steps = np.linspace(0.0, 10_000.0, 21)
 
     def runs(gain: float, seeds: int) -> list[Curve]:
@@ -241,12 +241,27 @@ def test_ede_td3_is_set_against_every_other_algorithm_of_a_task_td3_first() -> N
         "sb3-sac-ede": [],
     }
     found = comparisons(curves, 1_000.0, report)
-    assert [c.against for c in found] == ["td3", "sb3-td3-ede", "sb3-sac"]
-    level, below, above = found
+    assert [(c.ours, c.against) for c in found] == [
+        ("ede-td3", "td3"),
+        ("ede-td3", "sb3-td3-ede"),
+        ("ede-td3", "sb3-sac"),
+        ("sb3-td3-ede", "td3"),  # SB3's SAC in the EDE space has no runs to set against SAC's
+    ]
+    level, below, above, space = found
     assert level.improvement["final_return"].mean == 0.5
     assert below.improvement["final_return"].mean == 0.0
     assert above.improvement["auc"].mean == 1.0
     bins = below.bins()  # EDE-TD3's lead's interval above 0, below 0, of all
     assert bins is not None and bins[0] == 0 and bins[1] > 0
     assert above.lead is None and above.bins() is None
-    assert comparisons({**curves, "ede-td3": []}, 1_000.0, report) == []
+    assert space.improvement["final_return"].mean == 1.0  # SB3's TD3 in the EDE space above TD3
+    bins = space.bins()
+    assert bins is not None and bins[0] > 0 and bins[1] == 0
+    # A pair's numbers are its runs' alone, whatever else the task has: so without EDE-TD3's.
+    (alone,) = comparisons({**curves, "ede-td3": []}, 1_000.0, report)
+    assert (alone.ours, alone.against) == ("sb3-td3-ede", "td3")
+    assert alone.improvement == space.improvement
+    assert alone.lead is not None and space.lead is not None
+    assert (alone.lead.final, alone.lead.area) == (space.lead.final, space.lead.area)
+    assert np.array_equal(alone.lead.band.low, space.lead.band.low)
+    assert comparisons({"td3": curves["td3"], "sb3-sac-ede": runs(5.0, 3)}, 1_000.0, report) == []

@@ -538,6 +538,11 @@ def test_every_algorithm_the_params_name_has_its_row_and_ede_td3_is_set_against_
     ):
         assert compared[label].startswith(f"{label}</td><td>{p}</td><td>{p}</td>"), label
     assert page.count("<th>EDE-TD3 against</th>") == 1  # Pusher has no runs to set against
+    # Then SB3's TD3 in the EDE space against TD3 on raw actions; its SAC there has no runs.
+    space = table.split("<th>SB3 TD3 (EDE space) against</th>")[1].split("</table>")[0]
+    (row,) = space.split("<tr><td>")[1:]
+    assert row == "TD3</td><td>1 [1, 1]</td><td>1 [1, 1]</td><td>1, 0 (of 1)</td></tr>"
+    assert "<th>SB3 SAC (EDE space) against</th>" not in page
     # The aggregates across tasks stay EDE-TD3 against TD3, the profile of those two.
     assert "<th>P(EDE-TD3 &gt; TD3)</th>" in page and 'id="performance-profile"' in page
     # The paper's pair alone: its report as it was, no table setting one against the other.

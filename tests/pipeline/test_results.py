@@ -441,11 +441,11 @@ def test_every_algorithm_of_a_task_has_its_row_and_ede_td3_is_set_against_each(
     push = "ede/ReacherPush-v0"
     assert section(arms.stdout, push) == section(pair.stdout, push)
     # At a glance: the pair's table as it is, then one per other algorithm, each naming the task
-    # without its runs.
+    # without its runs (and after them the EDE space's against raw actions, as the next test has).
     glance = section(arms.stdout, "The tasks at a glance")
     alone = section(pair.stdout, "The tasks at a glance")
     assert glance.startswith(alone)
-    tables = glance.removeprefix(alone).strip("\n").split("\n\n")
+    tables = glance.removeprefix(alone).strip("\n").split("\n\n")[: 2 * len(ALGOS[2:])]
     assert [table.split(" | ")[3] for table in tables[::2]] == [
         f"final return, {ALGO_LABELS[a]}" for a in ALGOS[2:]
     ]
@@ -457,6 +457,93 @@ def test_every_algorithm_of_a_task_has_its_row_and_ede_td3_is_set_against_each(
     assert section(arms.stdout, "Across tasks: the reacher family") == section(
         pair.stdout, "Across tasks: the reacher family"
     )
+
+
+def test_each_algorithm_in_the_ede_space_is_set_against_the_same_learner_on_raw_actions(
+    tmp_path: Path,
+) -> None:
+    """After EDE-TD3 against each other algorithm, SB3's TD3 in the EDE space against TD3 and
+    SB3's SAC in the EDE space against SB3's SAC on raw actions: each pair's lines under its names,
+    with the sign its runs have, and a table at a glance each, after a line saying what they are;
+    a task with SB3's SAC in the EDE space and none on raw actions sets it against nothing, and
+    under each table at a glance the tasks without it are named by what they have no runs of."""
+    x = np.linspace(0, 1, 21)
+    # The EDE space hurts SB3's TD3 (below TD3 at every step after the first) and helps its SAC.
+    gains = {"td3": 100, "ede-td3": 150, "sb3-td3-ede": 20, "sb3-sac": 0, "sb3-sac-ede": 200}
+    runs, push, vertical = tmp_path / "runs", "ede/ReacherPush-v0", "ede/ReacherVertical-v0"
+    tasks = {  # ReacherTurn: every algorithm; ReacherPush: all but SB3's SAC; ReacherVertical: SAC's
+        TASK: list(gains),
+        push: [a for a in gains if a != "sb3-sac"],
+        vertical: ["sb3-sac", "sb3-sac-ede"],
+    }
+    for seed in range(3):
+        noise = np.random.default_rng(seed).normal(0, 2, len(x))
+        for task, algos in tasks.items():
+            for algo in algos:
+                write_run(runs, algo, seed, -200 + gains[algo] * x + noise, task=task)
+    done = results(runs, tmp_path / "figures")
+    assert done.returncode == 0, done.stderr
+    td3_space, sac_space, sac = (ALGO_LABELS[a] for a in ("sb3-td3-ede", "sb3-sac-ede", "sb3-sac"))
+
+    def compared(section: str) -> dict[str, str]:  # P(… > …) per pair, as its line has it
+        return {
+            line.split(" over")[0]: line.split("tasks): ")[1]
+            for line in section.splitlines()
+            if line.startswith("P(")
+        }
+
+    turn = task_table(done.stdout, TASK)
+    p_turn = compared(turn)
+    assert list(p_turn) == [
+        *(f"P(EDE-TD3 > {ALGO_LABELS[a]})" for a in ALGOS if a != "ede-td3"),
+        f"P({td3_space} > TD3)",
+        f"P({sac_space} > {sac})",
+    ]
+    every = "{0} on the final return and {0} on the area under the curve."
+    assert p_turn[f"P({td3_space} > TD3)"] == every.format("0 [0, 0]")
+    assert p_turn[f"P({sac_space} > {sac})"] == every.format("1 [1, 1]")
+    for ours, theirs, side in ((td3_space, "TD3", "below"), (sac_space, sac, "above")):
+        per_bin = f"{ours} − {theirs} per bin, with its 95% bootstrap interval over seeds: "
+        (line,) = [line for line in turn.splitlines() if line.startswith(per_bin)]
+        other = "above" if side == "below" else "below"
+        assert f"{side} 0 in 20 of 20 bins (1K–20K)" in line and f"{other} 0 in none" in line
+        assert f"{ours} − {theirs} overall: " in turn
+    p_push = compared(task_table(done.stdout, push))
+    assert list(p_push) == [
+        *(f"P(EDE-TD3 > {ALGO_LABELS[a]})" for a in ("td3", "sb3-td3-ede", "sb3-sac-ede")),
+        f"P({td3_space} > TD3)",
+    ]
+    assert f"{sac_space} − {sac}" not in task_table(done.stdout, push)
+    assert list(compared(task_table(done.stdout, vertical))) == [f"P({sac_space} > {sac})"]
+    # At a glance: after EDE-TD3's tables, a line and the EDE space's against raw actions; under
+    # each, the tasks without its pair, by what they have no runs of.
+    glance = section(done.stdout, "The tasks at a glance").rstrip("\n").split("\n\n")
+    assert [part for part in glance if part.startswith("No runs")] == [
+        f"No runs of EDE-TD3 or TD3 on {vertical}.",
+        f"No runs of EDE-TD3 or {td3_space} on {vertical}.",
+        f"No runs of EDE-TD3 on {vertical}.",
+        f"No runs of EDE-TD3 on {vertical}.",
+        f"No runs of {sac} on {push}.",
+        f"No runs of {td3_space} or TD3 on {vertical}.",
+        f"No runs of {sac} on {push}.",
+    ]
+    start = glance.index(
+        "Each other algorithm in the EDE space against the same learner on raw actions: a bin "
+        "counts where the interval of its lead (its mean minus the learner's) lies above 0, or "
+        "below."
+    )
+    td3_table, _, sac_table, _ = glance[start + 1 :]
+    assert f"| final return, TD3 | final return, {td3_space} | P({td3_space} > TD3), " in td3_table
+    assert f"| final return, {sac} | final return, {sac_space} | P({sac_space} > {sac}), " in (
+        sac_table
+    )
+    for table, p, drawn in (
+        (td3_table, "0 [0, 0]", [TASK, push]),
+        (sac_table, "1 [1, 1]", [vertical, TASK]),
+    ):
+        rows = table.splitlines()[2:]
+        assert [row.split(" | ")[0] for row in rows] == [f"| {t}" for t in drawn]
+        assert all(row.split(" | ")[5:7] == [p, p] for row in rows)
 
 
 def test_a_task_beyond_the_paper_is_its_own_family_with_its_thresholds(tmp_path: Path) -> None:
