@@ -46,6 +46,9 @@ report draws them) and prints, per task, in Markdown:
   on the final return and the area (with two seeds or more of each), and rliable's probability that
   an EDE-TD3 run beats one of the other's, over all the task's seeds, on the final return and on
   the area;
+- then the same of each other algorithm in the EDE space against the same learner on raw actions,
+  where both have runs there (:data:`ede.config.RAW_COUNTERPART`: SB3's TD3 against TD3, SB3's
+  SAC against SB3's SAC): does the space help it as it helps TD3;
 - each algorithm's mean over seeds of a seed's last quarter of evaluations, with its bootstrap
   interval (the asymptote, as far as the budget shows it);
 - per seed, whether it declined and whether it diverged (:func:`ede.analysis.stats.divergence`:
@@ -63,8 +66,9 @@ areas, with stratified bootstrap intervals), drawing the performance profile of 
 finished by an algorithm (an experiment still running) waits, named, rather than cutting every
 task's seeds to its count; tasks run with more seeds than others (ReacherVertical's 8) give the
 aggregates each task's lowest seeds, as many as the fewest, and the rest are named. The tasks at
-a glance: a table per algorithm EDE-TD3 is set against (TD3's first), naming the tasks without
-its runs.
+a glance: a table per pair set against each other (EDE-TD3 against TD3 first, then EDE-TD3
+against each other algorithm, then each in the EDE space against its raw counterpart), naming the
+tasks without runs of one of its pair, by what they lack.
 
 ``--ablations`` holds the fidelity ablations' runs the same way, one folder per variant
 (``<variant>/<task>/<algorithm>/seed<N>/``, ``source.json`` per task, and where kept the variant's
