@@ -106,7 +106,8 @@ def _families(
     figures: Path,
 ) -> list[Glance]:
     """Per family, each task's section and the family's figure, added to ``drawn``; the rows at
-    a glance of its tasks with runs of EDE-TD3 and another algorithm."""
+    a glance of its tasks with runs of both algorithms of a pair
+    (:data:`ede.analysis.results.PAIRS`)."""
     glance = []
     for family, found in families.items():
         source = params.families[family].source if family in params.families else found[0].task
