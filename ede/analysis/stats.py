@@ -282,6 +282,14 @@ def lag_one_correlation(returns: np.ndarray) -> float:
     return float(np.clip(np.dot(x[:-1], x[1:]) / scale, 0.0, 0.95)) if scale > 0 else 0.0
 
 
+def window_means(values: np.ndarray, n: int) -> np.ndarray:
+    """The means of every ``n`` consecutive values along the last axis: ``(..., T)`` to
+    ``(..., T - n + 1)``."""
+    sums = np.cumsum(np.asarray(values, dtype=float), axis=-1)
+    zero = np.zeros((*sums.shape[:-1], 1))
+    return (sums[..., n - 1 :] - np.concatenate([zero, sums[..., :-n]], axis=-1)) / n
+
+
 def plateau_decline(
     before: int, n: int, sigma: float, rho: float, confidence: float, seed: int, draws: int = 1000
 ) -> float:
@@ -295,9 +303,7 @@ def plateau_decline(
     noise[:, 0] = rng.standard_normal(draws) * sigma
     for t in range(1, before + n):
         noise[:, t] = rho * noise[:, t - 1] + shocks[:, t]
-    sums = np.cumsum(noise[:, :before], axis=1)
-    windows = (sums[:, n - 1 :] - np.pad(sums, ((0, 0), (1, 0)))[:, : before - n + 1]) / n
-    falls = windows.max(axis=1) - noise[:, before:].mean(axis=1)
+    falls = window_means(noise[:, :before], n).max(axis=1) - noise[:, before:].mean(axis=1)
     return float(np.quantile(falls, confidence))
 
 
@@ -334,7 +340,7 @@ def divergence(
             f"{len(steps)} evaluations, {n} in the last quarter: too few to set it against a "
             "window as long before it"
         )
-    windows = np.convolve(before, np.ones(n) / n, mode="valid")  # (len(before) - n + 1,)
+    windows = window_means(before, n)  # (len(before) - n + 1,)
     start = int(np.argmax(windows))
     best, last, first = float(windows[start]), float(returns[late].mean()), float(returns[0])
     # Successive differences see σ·sqrt(2(1 − ρ)) of correlated noise: σ itself is larger.
