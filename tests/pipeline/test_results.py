@@ -262,11 +262,12 @@ def test_the_committed_pages_redraw(tmp_path: Path) -> None:
 
     # The pages, copied, beside the committed runs folders, linked where they lie in docs/.
     docs = tmp_path / "docs"
-    (docs / "results" / "1e6").mkdir(parents=True)
+    for above in ("1e6", "any-agent"):
+        (docs / "results" / above).mkdir(parents=True)
     shutil.copy(REPO / "docs" / "results.md", docs)
     for page in (REPO / "docs" / "results").glob("*.md"):
         shutil.copy(page, docs / "results")
-    for folder in ("runs", "ablations", "1e6/runs", "clips"):
+    for folder in ("runs", "ablations", "1e6/runs", "any-agent/runs", "clips"):
         (docs / "results" / folder).symlink_to(REPO / "docs" / "results" / folder)
     done = results(tmp_path, tmp_path / "figures", docs / "results.md", docs / "results")
     assert done.returncode == 0, done.stderr
@@ -300,7 +301,7 @@ def test_the_committed_pages_redraw(tmp_path: Path) -> None:
     # Every task with published runs has its section on a page, its runs folder's as it lies, and
     # every task with published policies its clip.
     placed = {(runs, heading) for page in pages for runs, heading, _ in blocks(page.read_text())}
-    for folder in ("runs", "1e6/runs", "clips"):
+    for folder in ("runs", "1e6/runs", "any-agent/runs", "clips"):
         made = REPO / "docs" / "results" / folder
         for record in made.rglob("seed*/run.json"):
             task = json.loads(record.read_text())["task"]
