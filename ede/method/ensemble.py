@@ -152,7 +152,10 @@ def mlp(params: Params, x: torch.Tensor) -> torch.Tensor:
     (acting and evaluation). A stack (weights ``(M, *L, out, in)``, each member ``L`` networks,
     as the twin critics are): ``(M, *L, B, in) -> (M, *L, B, out)``, each network on its rows.
     Where each member is one network, its rows are split into two halves, so that every batched
-    product holds two matrices or more whatever M is (the module docstring says why).
+    product holds two matrices or more whatever M is (the module docstring says why). A stack's
+    layers run on transposed activations, ``W @ xᵀ``: measured at 400-300 on one thread of an AMD
+    EPYC, an update takes 12-15% less time than with ``x @ Wᵀ``, whose weight gradients come back
+    transposed and were copied into place.
     """
     layers = [(params[f"{2 * j}.weight"], params[f"{2 * j}.bias"]) for j in range(len(params) // 2)]
     if layers[0][0].dim() == 2:
@@ -169,16 +172,24 @@ def mlp(params: Params, x: torch.Tensor) -> torch.Tensor:
         if rows % 2:
             x = torch.cat([x, x.new_zeros(x.shape[0], 1, x.shape[2])], dim=1)
         x = x.reshape(2 * x.shape[0], -1, x.shape[2])  # (G, B, in) -> (2G, B/2, in)
+    # Transposed, (G, in, B): each layer is W @ xᵀ, so that autograd hands a weight's gradient
+    # back in the weight's own layout (a product's second operand gets its gradient transposed,
+    # and copying it into place cost as much as the product).
+    x = x.mT
     for j, (weight, bias) in enumerate(layers):
         weight, bias = weight.flatten(0, -3), bias.flatten(0, -2)  # (G, out, in), (G, out)
-        if halves:
-            weight, bias = weight.repeat_interleave(2, 0), bias.repeat_interleave(2, 0)
+        if halves:  # each network twice: a stack of one as a view, others copied
+            weight, bias = (
+                (weight.expand(2, -1, -1), bias.expand(2, -1))
+                if weight.shape[0] == 1
+                else (weight.repeat_interleave(2, 0), bias.repeat_interleave(2, 0))
+            )
         if weight.shape[1] == 1:  # one output: a product and a sum over the inputs
-            x = (x * weight).sum(-1, keepdim=True) + bias.unsqueeze(1)
+            x = (x * weight.mT).sum(-2, keepdim=True) + bias.unsqueeze(-1)
         else:
-            x = torch.baddbmm(bias.unsqueeze(1), x, weight.mT)
+            x = torch.baddbmm(bias.unsqueeze(-1), weight, x)
         x = torch.relu_(x) if j < len(layers) - 1 else x
-    return x.reshape(*lead, -1, x.shape[-1])[..., :rows, :]
+    return x.mT.reshape(*lead, -1, x.shape[-2])[..., :rows, :]
 
 
 Layers = list[tuple[torch.Tensor, torch.Tensor]]  # (weight, bias) per layer, as products take them
