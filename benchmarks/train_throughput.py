@@ -25,8 +25,9 @@ shapes of the products it ran (``2·b·m·k·n`` for a batch of b ``(m, k) @ (k,
 products and sums — is left out, well under 1% of the FLOPs), its time (the median of
 ``UPDATE_REPEATS`` blocks of updates, unprofiled), the GFLOP/s that makes, and the machine's fp32
 matrix-product peak, measured here: a 2048² ``torch.mm`` on one thread. Then the split of the
-update's time: the products (their own time under the profiler), the optimiser (its ``step``)
-and the rest (the update's time less both: elementwise work, allocation, Python and dispatch).
+update's time: the products (their own time under the profiler), the optimiser (its steps,
+timed by a clock around each in the unprofiled updates; the profiler would inflate SB3's ~100 small
+operations a step) and the rest (the update's time less both: elementwise work, allocation, Python and dispatch).
 
 **Side by side** (``ROUNDS``): every arm — SB3's TD3 (the reference), our ``--algos`` in each
 ``--precisions`` and ``--compile`` setting, and groups of ``--members`` seeds — trains a run of
@@ -310,31 +311,49 @@ def _flops(shapes: list[list[int]]) -> float:
     return 2.0 * float(np.prod(left)) * right[-1]
 
 
-def measure_update(update: Callable[[], None]) -> Update:
-    """``update`` (one update, warmed up) timed, then profiled for its products and optimiser."""
+class Clocked:
+    """An update and the seconds its optimiser steps took: each ``step`` of ``optimisers`` wrapped
+    in a clock."""
+
+    def __init__(self, update: Callable[[], object], optimisers: list[Any]) -> None:
+        self.update, self.seconds = update, 0.0
+        for optimiser in optimisers:
+            optimiser.step = self._clocked(optimiser.step)
+
+    def _clocked(self, step: Callable[..., Any]) -> Callable[..., Any]:
+        def clocked(*args: Any, **kwargs: Any) -> Any:
+            began = time.perf_counter()
+            result = step(*args, **kwargs)
+            self.seconds += time.perf_counter() - began
+            return result
+
+        return clocked
+
+
+def measure_update(clocked: Clocked) -> Update:
+    """An update (warmed up) timed with its optimiser steps, then profiled for its products."""
     from torch.profiler import ProfilerActivity, profile
 
-    blocks = []
+    blocks, clocked.seconds = [], 0.0
     for _ in range(UPDATE_REPEATS):
         began = time.perf_counter()
         for _ in range(UPDATES):
-            update()
+            clocked.update()
         blocks.append((time.perf_counter() - began) / UPDATES)
+    optimiser = clocked.seconds / (UPDATE_REPEATS * UPDATES)
     with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as profiled:
         for _ in range(UPDATES):
-            update()
-    events = profiled.events()
-    products = [e for e in events if e.name in PRODUCTS]
-    optimiser = [e for e in events if e.name.startswith("Optimizer.step#")]
+            clocked.update()
+    products = [e for e in profiled.events() if e.name in PRODUCTS]
     return Update(
         flops=sum(_flops(e.input_shapes) for e in products) / UPDATES,
         seconds=statistics.median(blocks),
         products=sum(e.self_cpu_time_total for e in products) / 1e6 / UPDATES,
-        optimiser=sum(e.cpu_time_total for e in optimiser) / 1e6 / UPDATES,
+        optimiser=optimiser,
     )
 
 
-def sb3_update(setting: Setting) -> Callable[[], None]:
+def sb3_update(setting: Setting) -> Clocked:
     """SB3's ``TD3.train`` of one gradient step, after its start steps filled its buffer."""
     import gymnasium
     from stable_baselines3 import TD3
@@ -350,12 +369,14 @@ def sb3_update(setting: Setting) -> Callable[[], None]:
         device=setting.device,
     )
     model.learn(total_timesteps=setting.start + 10)
-    return lambda: model.train(gradient_steps=1, batch_size=setting.batch_size)
+    return Clocked(
+        lambda: model.train(gradient_steps=1, batch_size=setting.batch_size),
+        [model.actor.optimizer, model.critic.optimizer],
+    )
 
 
-def ours_update(setting: Setting, algo: str) -> Callable[[], None]:
-    """Our agent's update (eager, fp32) on a buffer of random steps; each optimiser step inside a
-    profiler range named as torch's optimisers name theirs."""
+def ours_update(setting: Setting, algo: str) -> Clocked:
+    """Our agent's update (eager, fp32) on a buffer of random steps."""
     import gymnasium
 
     from ede.method.adapters import EmbeddingAdapter, IdentityAdapter
@@ -384,15 +405,7 @@ def ours_update(setting: Setting, algo: str) -> Callable[[], None]:
         )
         no = np.zeros(1, dtype=bool)
         buffer.add(one, obs, code, rng.integers(adapter.k, size=1), reward, next_obs, no, no)
-    for adam in (agent.critic_adam, agent.actor_adam):
-        step = adam.step
-
-        def labelled(*args: Any, step: Callable[..., None] = step) -> None:
-            with torch.profiler.record_function("Optimizer.step#ours"):
-                step(*args)
-
-        adam.step = labelled  # type: ignore[method-assign]
-    return lambda: agent.update(buffer)
+    return Clocked(lambda: agent.update(buffer), [agent.critic_adam, agent.actor_adam])
 
 
 def updates(args: argparse.Namespace, setting: Setting) -> None:
@@ -402,11 +415,11 @@ def updates(args: argparse.Namespace, setting: Setting) -> None:
         f"ours {'TD3' if algo == 'td3' else 'EDE-TD3'}": ours_update(setting, algo)
         for algo in args.algos
     }
-    for update in learners.values():
+    for clocked in learners.values():
         for _ in range(20):
-            update()
+            clocked.update()
     peak = peak_gflops(setting.device)
-    measured = {name: measure_update(update) for name, update in learners.items()}
+    measured = {name: measure_update(clocked) for name, clocked in learners.items()}
     print(
         f"One update ({'-'.join(map(str, setting.hidden))}, batch {setting.batch_size}, eager, "
         f"fp32; the actor every 2nd): fp32 matrix-product peak {peak:.0f} GFLOP/s "
@@ -426,7 +439,7 @@ def updates(args: argparse.Namespace, setting: Setting) -> None:
         )
     print(
         "MFLOP: matrix products per update, from their shapes; products: their own time under "
-        "the profiler; optimiser: Adam's steps; rest: the update's time less both (elementwise "
+        "the profiler; optimiser: Adam's steps, by a clock; rest: the update's time less both (elementwise "
         "work, allocation, Python and dispatch). At the peak, the products alone would take "
         + ", ".join(f"{u.flops / peak / 1e6:.2f} ms ({name})" for name, u in measured.items())
         + "."
