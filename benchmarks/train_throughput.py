@@ -452,7 +452,8 @@ def side_by_side(args: argparse.Namespace, setting: Setting, arms: list[Arm]) ->
     def run(arm: Arm, steps: int) -> float:
         if arm.algo == "sb3":
             return sb3(steps, setting)
-        return ours(steps, setting, arm.algo, arm.precision, arm.compile, arm.members)
+        algo: Algo = "td3" if arm.algo == "td3" else "ede-td3"
+        return ours(steps, setting, algo, arm.precision, arm.compile, arm.members)
 
     def steps(arm: Arm) -> int:
         return args.steps if arm.members == 1 else args.group_steps

@@ -194,7 +194,9 @@ class Agent:
         )
         masks = to_device(np.stack([due, actor_due]), self.device)
         # Eager, each optimiser's host side (ensemble.Adam.step); compiled, the tensors alone.
-        steps = None if self._compiled else ((self.updates, due), (self.updates // delay, actor_due))
+        steps = (
+            None if self._compiled else ((self.updates, due), (self.updates // delay, actor_due))
+        )
         with matmul_precision(self.config.precision):
             self._update(
                 batch,
