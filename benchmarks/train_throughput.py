@@ -42,8 +42,10 @@ processes one after another on one core). A row whose timed run compiled somethi
 not) is marked: its rate is understated.
 
 With the defaults (5 rounds of 2,500-step runs: SB3, TD3, EDE-TD3) a whole invocation takes about
-6 minutes on one core of our AMD EPYC. ``--tiny`` (16-16 networks, batch 8, 100 start steps, runs
-of 150 steps, one round) checks in seconds that it runs to the end (``tests/test_benchmarks.py``).
+3½ minutes on an idle core of our AVX-512 AMD EPYC; ``--compile none,default`` about twice that
+(half a minute of compiling per compiled arm, and two more arms). ``--tiny`` (16-16 networks,
+batch 8, 100 start steps, runs of 150 steps, one round) checks in half a minute that it runs to
+the end (``tests/test_benchmarks.py``).
 
 An earlier commit is measured by this script run in that commit's environment (its ``ede`` is
 imported, eager only): e.g. ``git worktree add /tmp/before HEAD~1``, ``make -C /tmp/before
