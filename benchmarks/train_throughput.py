@@ -1,61 +1,56 @@
-"""Training throughput of our TD3 (single runs, groups of seeds, eager and compiled) against SB3's.
+"""Training throughput of our TD3 and EDE-TD3 against stable-baselines3's TD3, side by side, and
+where one update's time goes against the machine's measured peak.
 
     python benchmarks/train_throughput.py [--hidden 400,300] [--batch-size 100] [--device cpu|cuda]
-                                          [--steps 5000] [--group-steps 3000] [--members 4,8]
-                                          [--compile none,default]
-    python benchmarks/train_throughput.py --precisions all|fp32,bf16-matmul,bf16
-                                          [--hidden ...] [--batch-size ...] [--device ...]
-                                          [--steps 5000] [--compile none,default]
+                                          [--steps 2500] [--rounds 5] [--algos td3,ede-td3]
+                                          [--compile none[,default]] [--precisions fp32[,...]|all]
+                                          [--members 4,8] [--group-steps N] [--tiny]
 
 Everything runs in one process with one torch thread, on gymnasium's ``Reacher-v5``, with the
 per-step schedule of stable-baselines3 (SB3): 1,000 uniform random start steps, then one update
 after every environment step (batch ``--batch-size``, ``--hidden`` networks, policy delay 2).
-A rate is environment steps per second *after the start steps* (each of those steps with its
-update; setup, start steps, evaluation and output writing are outside the clock), so runs of
-different lengths compare. Every row is timed after an untimed warm-up run of its own (1,300
-steps per run: imports, first calls, kernel choices; a compiled row compiles its update there,
-afresh for its own shapes). The reference, SB3's TD3 on the same device, is measured in the same
-run, and every figure is read as a ratio to it (or to our single run) — absolute rates depend on
-the machine and on what else runs on it. ``--hidden 400,300 --batch-size 100`` (the default) is
-the paper's TD3; ``--hidden 256,256 --batch-size 256`` is SB3's default.
+``--hidden 400,300 --batch-size 100`` (the default) is the paper's TD3; ``--hidden 256,256
+--batch-size 256`` is SB3's default.
 
-The default invocation prints one table, one row each for:
+It prints three things.
 
-* stable-baselines3's TD3: the reference (``x SB3`` 1.00);
-* our TD3, one run (``ede.run.training.train_run``, an agent of M = 1), in each ``--compile`` mode
-  (``td3.compile``: ``none`` eager; ``default`` the update compiled whole by ``torch.compile``;
-  ``reduce-overhead`` that plus CUDA graphs, ``--device cuda`` only);
-* our TD3, a group of M seeds 0..M-1 trained as one agent of M members
-  (``ede.run.training.train_group``, what ``ede-pipeline train --seeds`` does) for each M of
-  ``--members``, in each mode. ``steps/s`` is then the group's aggregate (M runs' steps), ``per
-  run`` that / M, and ``x single`` the aggregate over the single run's rate in the same mode: on
-  one core, what one process of M seeds buys against M single-run processes one after another.
-  Groups run ``--group-steps`` steps per run (M x that environment steps; by default the start
-  steps plus half of a single run's timed steps), fewer than single runs to keep the invocation
-  short; the rates count only steps after the start steps, so the lengths do not bias the ratios.
-
-With the defaults at the paper's size, a whole invocation takes about 12 minutes on one core of
-our 2.1 GHz Xeon (single runs at about 90-130 steps/s), most of it the groups of 8 (16,000 timed
-steps each) and compiling (about half a minute for each compiled row); ``--precisions all``
-about as long.
-
-An earlier commit is measured the same way by this script run in that commit's environment
-(``--compile none``; its ``ede`` is imported): e.g. ``git worktree add /tmp/before HEAD~1``,
-``make -C /tmp/before install``, then ``/tmp/before/.venv/bin/python
-benchmarks/train_throughput.py --compile none`` from this checkout.
-
-``--precisions`` measures instead our TD3 and our EDE-TD3 (with an embedding of Reacher-v5's
-actions; its weights do not matter for speed) in each ``td3.precision`` given and each
-``--compile`` mode, single runs against SB3's TD3, each row also as a ratio of EDE-TD3 to our TD3
-of the same precision and mode. (The targets set at 256-256, batch 256, eager: our TD3 >= 1.5x
-SB3, EDE-TD3 >= 0.9x our TD3.)
-
-Both modes first print the machine. What ``bf16-matmul`` and ``bf16`` compute and buy depends on
-the CPU, so this is the CPU model and its bf16-related flags, and for each precision measured the
+**The machine**: the CPU model, its bf16-related flags, and for each precision measured the
 error of a product against float64 (``ede.method.nets.product_error``) and the oneDNN kernel that
-computed it (from ``ONEDNN_VERBOSE``; none means torch's own BLAS path); with ``--device cuda``
-also the GPU. Read the ratios only for that machine. A row whose timed run still compiled
-something (it should not) is marked: its rate is understated.
+computed it (none means torch's own BLAS path); with ``--device cuda`` the GPU.
+
+**One update** (CPU only), ours (each of ``--algos``, eager, fp32) and SB3's ``TD3.train`` of one
+gradient step, each on a replay buffer of random steps: its matrix-product FLOPs, counted from the
+shapes of the products it ran (``2·b·m·k·n`` for a batch of b ``(m, k) @ (k, n)``, as
+``torch.profiler`` records them; the elementwise work — Adam, ReLUs, the one-output layers'
+products and sums — is left out, well under 1% of the FLOPs), its time (the median of
+``UPDATE_REPEATS`` blocks of updates, unprofiled), the GFLOP/s that makes, and the machine's fp32
+matrix-product peak, measured here: a 2048² ``torch.mm`` on one thread. Then the split of the
+update's time: the products (their own time under the profiler), the optimiser (its steps,
+timed by a clock around each in the unprofiled updates; the profiler would inflate SB3's ~100 small
+operations a step) and the rest (the update's time less both: elementwise work, allocation, Python and dispatch).
+
+**Side by side** (``ROUNDS``): every arm — SB3's TD3 (the reference), our ``--algos`` in each
+``--precisions`` and ``--compile`` setting, and groups of ``--members`` seeds — trains a run of
+``--steps`` steps once a round, the arms in a rotated order, over ``--rounds`` rounds after an
+untimed warm-up round (imports, first calls, kernel choices, compiling). A rate is environment
+steps per second after the start steps (each with its update), all members together for a group;
+each arm's ratio to SB3 is taken within a round, and the table gives the median ratio and its
+min–max over the rounds. So load that drifts during the script moves both sides of a ratio alike:
+read the ratios, not the rates. A group's ``x one run`` is its aggregate rate over our one run of
+the same algorithm and setting in the same round (what one process of M seeds buys against M
+processes one after another on one core). A row whose timed run compiled something (it should
+not) is marked: its rate is understated.
+
+With the defaults (5 rounds of 2,500-step runs: SB3, TD3, EDE-TD3) a whole invocation takes about
+3½ minutes on an idle core of our AVX-512 AMD EPYC; ``--compile none,default`` about twice that
+(half a minute of compiling per compiled arm, and two more arms). ``--tiny`` (16-16 networks,
+batch 8, 100 start steps, runs of 150 steps, one round) checks in half a minute that it runs to
+the end (``tests/test_benchmarks.py``).
+
+An earlier commit is measured by this script run in that commit's environment (its ``ede`` is
+imported, eager only): e.g. ``git worktree add /tmp/before HEAD~1``, ``make -C /tmp/before
+install``, then ``/tmp/before/.venv/bin/python benchmarks/train_throughput.py`` from this
+checkout.
 """
 
 from __future__ import annotations
@@ -63,6 +58,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -70,7 +66,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import get_args
+from typing import Any, get_args
 
 import numpy as np
 import torch
@@ -90,8 +86,9 @@ COMPILE_MODES = (
     if "compile" in TD3Config.model_fields
     else ["none"]
 )
-START = 1_000  # uniform random start steps, no updates
-WARMUP = START + 300  # steps per run of each row's untimed warm-up run
+PRODUCTS = ("aten::mm", "aten::addmm", "aten::bmm", "aten::baddbmm")  # what FLOPs count
+UPDATE_REPEATS, UPDATES = 7, 40  # blocks of updates timed, updates a block
+PEAK_SIZE = 2048  # the peak's torch.mm: PEAK_SIZE² by PEAK_SIZE²
 
 
 @dataclass(frozen=True)
@@ -99,12 +96,24 @@ class Setting:
     hidden: list[int]
     batch_size: int
     device: str
+    start: int = 1_000  # uniform random start steps, no updates
 
 
 @dataclass(frozen=True)
-class Timing:
-    rate: float  # environment steps per second after the start steps, all members together
-    compiled: int  # graphs compiled while timed (0 unless something recompiled)
+class Arm:
+    """One learner of the side-by-side table: SB3's TD3 (``algo`` "sb3") or ours."""
+
+    algo: str
+    precision: str = "fp32"
+    compile: str = "none"
+    members: int = 1
+
+    @property
+    def label(self) -> str:
+        if self.algo == "sb3":
+            return "stable-baselines3 TD3"
+        kind = "one run" if self.members == 1 else f"group of {self.members}"
+        return f"ours {'TD3' if self.algo == 'td3' else 'EDE-TD3'}, {kind}"
 
 
 def _sync(device: str) -> None:
@@ -129,7 +138,7 @@ def sb3(steps: int, setting: Setting) -> float:
         started = 0.0
 
         def _on_step(self) -> bool:
-            if self.num_timesteps == START:  # SB3 updates after steps > learning_starts
+            if self.num_timesteps == setting.start:  # SB3 updates after steps > learning_starts
                 _sync(setting.device)
                 self.started = time.perf_counter()
             return True
@@ -140,7 +149,7 @@ def sb3(steps: int, setting: Setting) -> float:
         env,
         learning_rate=1e-3,
         buffer_size=steps,
-        learning_starts=START,
+        learning_starts=setting.start,
         batch_size=setting.batch_size,
         tau=0.005,
         gamma=0.99,
@@ -156,7 +165,7 @@ def sb3(steps: int, setting: Setting) -> float:
     clock = Clock()
     model.learn(total_timesteps=steps, callback=clock)
     _sync(setting.device)
-    return (steps - START) / (time.perf_counter() - clock.started)
+    return (steps - setting.start) / (time.perf_counter() - clock.started)
 
 
 def _embedding(device: str) -> ActionEmbedding:
@@ -180,7 +189,7 @@ def ours(
         {
             "hidden": setting.hidden,
             "batch_size": setting.batch_size,
-            "start_steps": START,
+            "start_steps": setting.start,
             "buffer_size": steps,
             "eval_every": 10**9,
             "eval_episodes": 1,
@@ -201,31 +210,18 @@ def ours(
     def progress(count: int) -> None:  # called with 1 after each member's step and updates
         nonlocal done
         done += count
-        if done in (members * START, members * steps):
+        if done in (members * setting.start, members * steps):
             _sync(setting.device)
             times[done] = time.perf_counter()
 
     with tempfile.TemporaryDirectory() as tmp:
         outs = [Path(tmp) / f"seed{spec.seed}" for spec in specs]
         train_group(specs, outs, embedding, torch.device(setting.device), progress)
-    return members * (steps - START) / (times[members * steps] - times[members * START])
-
-
-def warm(
-    learner: Callable[..., float],
-    steps: int,
-    setting: Setting,
-    *args: object,
-    compiled: bool = False,
-) -> Timing:
-    """``learner`` timed after an untimed short run of its own; a compiled one compiles afresh
-    there (``torch._dynamo.reset``: no graphs of other shapes, no recompile limit reached)."""
-    if compiled:
-        torch._dynamo.reset()
-    learner(WARMUP, setting, *args)
-    graphs = _graphs()
-    rate = learner(steps, setting, *args)
-    return Timing(rate, _graphs() - graphs)
+    return (
+        members
+        * (steps - setting.start)
+        / (times[members * steps] - times[members * setting.start])
+    )
 
 
 def cpu_model() -> tuple[str, list[str]]:
@@ -283,98 +279,226 @@ def describe_machine(precisions: list[str], device: str = "cpu") -> None:
 def _shape(setting: Setting) -> str:
     return (
         f"{TASK}, {setting.device}, 1 torch thread, {'-'.join(map(str, setting.hidden))} "
-        f"networks, batch {setting.batch_size}, one update per step after {START:,} "
+        f"networks, batch {setting.batch_size}, one update per step after {setting.start:,} "
         f"uniform random start steps"
     )
 
 
-def _mark(timing: Timing) -> str:
-    if not timing.compiled:
-        return ""
-    return f"  (compiled {timing.compiled} graphs while timed: understated)"
+def peak_gflops(device: str) -> float:
+    """The machine's fp32 matrix-product peak on one thread: the best of a few 2048² ``torch.mm``."""
+    a, b = (torch.randn(PEAK_SIZE, PEAK_SIZE, device=device) for _ in range(2))
+    best = float("inf")
+    for _ in range(6):
+        _sync(device)
+        began = time.perf_counter()
+        torch.mm(a, b)
+        _sync(device)
+        best = min(best, time.perf_counter() - began)
+    return 2 * PEAK_SIZE**3 / best / 1e9
 
 
-def table(args: argparse.Namespace, setting: Setting) -> None:
-    """SB3, our single runs and our groups, in each compile mode: one table."""
-    describe_machine(["fp32"], setting.device)
-    reference = warm(sb3, args.steps, setting)
-    rows: list[tuple[str, str, int, Timing]] = []  # label, mode, M, timing
-    single: dict[str, float] = {}
-    for members in [1, *args.members]:
-        for mode in args.compile:
-            steps = args.steps if members == 1 else args.group_steps
-            timing = warm(
-                ours, steps, setting, "td3", "fp32", mode, members, compiled=mode != "none"
-            )
-            if members == 1:
-                single[mode] = timing.rate
-            rows.append(
-                ("ours TD3, one run" if members == 1 else "ours TD3, group", mode, members, timing)
-            )
+@dataclass(frozen=True)
+class Update:
+    """One update's cost: matrix-product FLOPs, seconds, and seconds in products and optimiser."""
+
+    flops: float
+    seconds: float
+    products: float
+    optimiser: float
+
+
+def _flops(shapes: list[list[int]]) -> float:
+    """2·b·m·k·n of a product's recorded input shapes (the bias first for addmm and baddbmm)."""
+    left, right = [shape for shape in shapes if len(shape) >= 2][-2:]
+    return 2.0 * float(np.prod(left)) * right[-1]
+
+
+class Clocked:
+    """An update and the seconds its optimiser steps took: each ``step`` of ``optimisers`` wrapped
+    in a clock."""
+
+    def __init__(self, update: Callable[[], object], optimisers: list[Any]) -> None:
+        self.update, self.seconds = update, 0.0
+        for optimiser in optimisers:
+            optimiser.step = self._clocked(optimiser.step)
+
+    def _clocked(self, step: Callable[..., Any]) -> Callable[..., Any]:
+        def clocked(*args: Any, **kwargs: Any) -> Any:
+            began = time.perf_counter()
+            result = step(*args, **kwargs)
+            self.seconds += time.perf_counter() - began
+            return result
+
+        return clocked
+
+
+def measure_update(clocked: Clocked) -> Update:
+    """An update (warmed up) timed with its optimiser steps, then profiled for its products."""
+    from torch.profiler import ProfilerActivity, profile
+
+    blocks, clocked.seconds = [], 0.0
+    for _ in range(UPDATE_REPEATS):
+        began = time.perf_counter()
+        for _ in range(UPDATES):
+            clocked.update()
+        blocks.append((time.perf_counter() - began) / UPDATES)
+    optimiser = clocked.seconds / (UPDATE_REPEATS * UPDATES)
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as profiled:
+        for _ in range(UPDATES):
+            clocked.update()
+    products = [e for e in profiled.events() if e.name in PRODUCTS]
+    return Update(
+        flops=sum(_flops(e.input_shapes) for e in products) / UPDATES,
+        seconds=statistics.median(blocks),
+        products=sum(e.self_cpu_time_total for e in products) / 1e6 / UPDATES,
+        optimiser=optimiser,
+    )
+
+
+def sb3_update(setting: Setting) -> Clocked:
+    """SB3's ``TD3.train`` of one gradient step, after its start steps filled its buffer."""
+    import gymnasium
+    from stable_baselines3 import TD3
+
+    model = TD3(
+        "MlpPolicy",
+        gymnasium.make(TASK),
+        learning_rate=1e-3,
+        learning_starts=setting.start,
+        batch_size=setting.batch_size,
+        policy_kwargs={"net_arch": setting.hidden},
+        seed=0,
+        device=setting.device,
+    )
+    model.learn(total_timesteps=setting.start + 10)
+    return Clocked(
+        lambda: model.train(gradient_steps=1, batch_size=setting.batch_size),
+        [model.actor.optimizer, model.critic.optimizer],
+    )
+
+
+def ours_update(setting: Setting, algo: str) -> Clocked:
+    """Our agent's update (eager, fp32) on a buffer of random steps."""
+    import gymnasium
+
+    from ede.method.adapters import EmbeddingAdapter, IdentityAdapter
+    from ede.method.agent import Agent
+    from ede.method.replay import ReplayBuffer
+
+    device = torch.device(setting.device)
+    env = gymnasium.make(TASK)
+    low, high = env.action_space.low, env.action_space.high  # type: ignore[attr-defined]
+    obs_size = int(np.prod(env.observation_space.shape))  # type: ignore[arg-type]
+    adapter: Any = (
+        IdentityAdapter(low, high, device)
+        if algo == "td3"
+        else EmbeddingAdapter(_embedding(setting.device))
+    )
+    config = TD3Config(hidden=setting.hidden, batch_size=setting.batch_size)
+    agent = Agent(obs_size, adapter, config, device)
+    buffer = ReplayBuffer(setting.start, obs_size, adapter.code_size, adapter.k, device)
+    rng, one = np.random.default_rng(0), np.ones(1, dtype=bool)
+    for _ in range(setting.start):
+        code = torch.as_tensor(rng.uniform(-1, 1, (1, adapter.code_size)), dtype=torch.float32)
+        obs, reward, next_obs = (
+            rng.normal(size=(1, obs_size)),
+            rng.normal(size=1),
+            rng.normal(size=(1, obs_size)),
+        )
+        no = np.zeros(1, dtype=bool)
+        buffer.add(one, obs, code, rng.integers(adapter.k, size=1), reward, next_obs, no, no)
+    return Clocked(lambda: agent.update(buffer), [agent.critic_adam, agent.actor_adam])
+
+
+def updates(args: argparse.Namespace, setting: Setting) -> None:
+    """One update of SB3's TD3 and of each of ours: FLOPs, time, GFLOP/s against the peak, and
+    where the time goes."""
+    learners = {"stable-baselines3 TD3": sb3_update(setting)} | {
+        f"ours {'TD3' if algo == 'td3' else 'EDE-TD3'}": ours_update(setting, algo)
+        for algo in args.algos
+    }
+    for clocked in learners.values():
+        for _ in range(20):
+            clocked.update()
+    peak = peak_gflops(setting.device)
+    measured = {name: measure_update(clocked) for name, clocked in learners.items()}
+    print(
+        f"One update ({'-'.join(map(str, setting.hidden))}, batch {setting.batch_size}, eager, "
+        f"fp32; the actor every 2nd): fp32 matrix-product peak {peak:.0f} GFLOP/s "
+        f"({PEAK_SIZE}² torch.mm, one thread)"
+    )
+    print(
+        f"{'':<22} {'MFLOP':>7} {'ms':>6} {'GFLOP/s':>8} {'of peak':>7}   "
+        f"{'products':>8} {'optimiser':>9} {'rest':>6}"
+    )
+    for name, u in measured.items():
+        rest = u.seconds - u.products - u.optimiser
+        shares = [100 * part / u.seconds for part in (u.products, u.optimiser, rest)]
+        print(
+            f"{name:<22} {u.flops / 1e6:7.2f} {u.seconds * 1e3:6.2f} {u.flops / u.seconds / 1e9:8.1f} "
+            f"{100 * u.flops / u.seconds / 1e9 / peak:6.0f}%   "
+            + " ".join(f"{share:8.0f}%" for share in shares)
+        )
+    print(
+        "MFLOP: matrix products per update, from their shapes; products: their own time under "
+        "the profiler; optimiser: Adam's steps, by a clock; rest: the update's time less both (elementwise "
+        "work, allocation, Python and dispatch). At the peak, the products alone would take "
+        + ", ".join(f"{u.flops / peak / 1e6:.2f} ms ({name})" for name, u in measured.items())
+        + "."
+    )
+
+
+def side_by_side(args: argparse.Namespace, setting: Setting, arms: list[Arm]) -> None:
+    """Every arm once a round, in a rotated order; ratios to SB3 within each round."""
+
+    def run(arm: Arm, steps: int) -> float:
+        if arm.algo == "sb3":
+            return sb3(steps, setting)
+        algo: Algo = "td3" if arm.algo == "td3" else "ede-td3"
+        return ours(steps, setting, algo, arm.precision, arm.compile, arm.members)
+
+    def steps(arm: Arm) -> int:
+        return args.steps if arm.members == 1 else args.group_steps
+
+    if any(arm.compile != "none" for arm in arms):
+        torch._dynamo.reset()
+    for arm in arms:  # the warm-up round: compiles, first calls, kernel choices
+        run(arm, min(setting.start + 300, steps(arm)))
+    rates: dict[Arm, list[float]] = {arm: [] for arm in arms}
+    compiled: dict[Arm, int] = dict.fromkeys(arms, 0)
+    for r in range(args.rounds):
+        for arm in arms[r % len(arms) :] + arms[: r % len(arms)]:
+            graphs = _graphs()
+            rates[arm].append(run(arm, steps(arm)))
+            compiled[arm] += _graphs() - graphs
+    reference = rates[arms[0]]
     print(_shape(setting))
     print(
-        f"Timed: the {args.steps - START:,} steps after the start steps of {args.steps:,}-step "
-        f"single runs; groups run {args.group_steps:,} steps per run (M x {args.group_steps:,} "
-        f"environment steps), timed over M x {args.group_steps - START:,}"
-        + (
-            " (fewer per run, to keep this short; the rates count only timed steps)"
-            if args.group_steps < args.steps
-            else ""
-        )
-        + f". Each row after an untimed {WARMUP:,}-step-per-run warm-up of its own."
+        f"Side by side: {args.rounds} rounds, each arm once a round in a rotated order, after an "
+        f"untimed warm-up round; runs of {args.steps:,} steps"
+        + (f" (groups {args.group_steps:,} a run)" if args.group_steps != args.steps else "")
+        + f", timed after the {setting.start:,} start steps. Ratios within a round: median (min–max)."
     )
     print(
-        f"{'':<22} {'compile':<16} {'M':>2} {'steps/s':>9} {'x SB3':>6} "
-        f"{'per run':>9} {'x single':>8}"
+        f"{'':<26} {'precision':<11} {'compile':<9} {'steps/s':>8} {'x SB3':>6} {'(min–max)':>12} "
+        f"{'x one run':>9}"
     )
-    print(f"{'stable-baselines3 TD3':<22} {'-':<16} {1:>2} {reference.rate:9.0f} {1:6.2f}")
-    for label, mode, members, timing in rows:
+    for arm in arms:
+        ratios = [rate / ref for rate, ref in zip(rates[arm], reference, strict=True)]
         line = (
-            f"{label:<22} {mode:<16} {members:>2} {timing.rate:9.0f} "
-            f"{timing.rate / reference.rate:6.2f}"
+            f"{arm.label:<26} {arm.precision if arm.algo != 'sb3' else '-':<11} "
+            f"{arm.compile if arm.algo != 'sb3' else '-':<9} {statistics.median(rates[arm]):8.0f} "
+            f"{statistics.median(ratios):6.2f} {f'({min(ratios):.2f}–{max(ratios):.2f})':>12}"
         )
-        if members > 1:
-            line += f" {timing.rate / members:9.0f} {timing.rate / single[mode]:8.2f}"
-        print(line + _mark(timing))
-    print(
-        "steps/s: all M runs together; per run: steps/s / M; x single: steps/s over the one "
-        "run's in the same compile mode"
-    )
-
-
-def precisions(args: argparse.Namespace, setting: Setting) -> None:
-    """SB3 against our TD3 and EDE-TD3, single runs, in each precision and compile mode."""
-    chosen = PRECISIONS if args.precisions == ["all"] else args.precisions
-    describe_machine(chosen, setting.device)
-    reference = warm(sb3, args.steps, setting)
-    rows = []
-    for precision in chosen:
-        for mode in args.compile:
-            td3 = warm(
-                ours, args.steps, setting, "td3", precision, mode, 1, compiled=mode != "none"
+        if arm.members > 1:
+            single = rates[Arm(arm.algo, arm.precision, arm.compile)]
+            line += (
+                f" {statistics.median(g / s for g, s in zip(rates[arm], single, strict=True)):9.2f}"
             )
-            ede = warm(
-                ours, args.steps, setting, "ede-td3", precision, mode, 1, compiled=mode != "none"
-            )
-            rows.append((precision, mode, td3, ede))
-    print(_shape(setting))
-    print(
-        f"Timed: the {args.steps - START:,} steps after the start steps of {args.steps:,}-step "
-        f"runs, each after an untimed {WARMUP:,}-step warm-up of its own."
-    )
-    print(
-        f"{'':<22} {'precision':<12} {'compile':<16} {'steps/s':>9} {'x SB3':>6} {'x our TD3':>9}"
-    )
-    print(f"{'stable-baselines3 TD3':<22} {'-':<12} {'-':<16} {reference.rate:9.0f} {1:6.2f}")
-    for precision, mode, td3, ede in rows:
-        print(
-            f"{'ours TD3':<22} {precision:<12} {mode:<16} {td3.rate:9.0f} "
-            f"{td3.rate / reference.rate:6.2f}{_mark(td3)}"
-        )
-        print(
-            f"{'ours EDE-TD3':<22} {precision:<12} {mode:<16} {ede.rate:9.0f} "
-            f"{ede.rate / reference.rate:6.2f} {ede.rate / td3.rate:9.2f}{_mark(ede)}"
-        )
+        if compiled[arm]:
+            line += f"  (compiled {compiled[arm]} graphs while timed: understated)"
+        print(line)
+    print("steps/s: the median over rounds, all members together for a group")
 
 
 def _list(kind: Callable[[str], object], choices: list[str] | None = None) -> Callable[[str], list]:
@@ -393,7 +517,7 @@ def _list(kind: Callable[[str], object], choices: list[str] | None = None) -> Ca
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__.splitlines()[0],
-        epilog="See the module docstring (top of this file) for what each row measures.",
+        epilog="See the module docstring (top of this file) for what each part measures.",
     )
     parser.add_argument(
         "--hidden",
@@ -404,42 +528,47 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=100, help="default 100: the paper's")
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     parser.add_argument(
-        "--steps",
-        type=int,
-        default=5_000,
-        help=f"steps of a single run, the first {START:,} untimed (default 5000)",
+        "--steps", type=int, default=2_500, help="steps of a run, the first 1,000 untimed"
     )
+    parser.add_argument("--rounds", type=int, default=5, help="timed rounds (default 5)")
     parser.add_argument(
-        "--group-steps",
-        type=int,
-        help=f"steps per run of a group, the first {START:,} untimed (default: "
-        f"{START:,} plus half of --steps' timed steps, 3000 at --steps 5000)",
-    )
-    parser.add_argument(
-        "--members",
-        type=_list(int),
-        default=[4, 8],
-        help="group sizes, comma-separated (default 4,8)",
+        "--algos",
+        type=_list(str, ["td3", "ede-td3"]),
+        default=["td3", "ede-td3"],
+        help="ours, comma-separated (default td3,ede-td3)",
     )
     parser.add_argument(
         "--compile",
         type=_list(str, COMPILE_MODES),
-        default=["none", "default"],
+        default=["none"],
         help="td3.compile modes, comma-separated: none, default, reduce-overhead "
-        "(CUDA only); default none,default",
+        "(CUDA only); default none",
     )
     parser.add_argument(
         "--precisions",
         type=_list(str, [*PRECISIONS, "all"]),
-        help="measure our TD3 and EDE-TD3 in these td3.precision values "
-        f"({', '.join(PRECISIONS)} or all) instead of the groups table "
-        "(--members and --group-steps then unused)",
+        default=["fp32"],
+        help=f"td3.precision values ({', '.join(PRECISIONS)} or all; default fp32)",
+    )
+    parser.add_argument(
+        "--members",
+        type=_list(int),
+        default=[],
+        help="group sizes of 2 or more, comma-separated (default none: one run alone)",
+    )
+    parser.add_argument(
+        "--group-steps", type=int, help="steps per run of a group (default --steps)"
+    )
+    parser.add_argument(
+        "--tiny", action="store_true", help="16-16 networks, batch 8, runs of 150 steps, one round"
     )
     args = parser.parse_args()
-    if args.group_steps is None:
-        args.group_steps = START + (args.steps - START) // 2
-    if args.steps <= START or args.group_steps <= START:
-        parser.error(f"--steps and --group-steps must exceed the {START:,} start steps")
+    start = 1_000
+    if args.tiny:
+        args.hidden, args.batch_size, args.steps, args.rounds, start = [16, 16], 8, 150, 1, 100
+    args.group_steps = args.group_steps or args.steps
+    if min(args.steps, args.group_steps) <= start:
+        parser.error(f"--steps and --group-steps must exceed the {start:,} start steps")
     if any(m < 2 for m in args.members):
         parser.error("--members: group sizes of 2 or more (the single run is always measured)")
     if args.device == "cuda" and not torch.cuda.is_available():
@@ -447,11 +576,19 @@ def main() -> None:
     if "reduce-overhead" in args.compile and args.device != "cuda":
         parser.error("--compile reduce-overhead: CUDA graphs, --device cuda only")
     torch.set_num_threads(1)
-    setting = Setting(args.hidden, args.batch_size, args.device)
-    if args.precisions:
-        precisions(args, setting)
-    else:
-        table(args, setting)
+    setting = Setting(args.hidden, args.batch_size, args.device, start)
+    precisions = PRECISIONS if args.precisions == ["all"] else args.precisions
+    describe_machine(precisions, setting.device)
+    if setting.device == "cpu":
+        updates(args, setting)
+    arms = [Arm("sb3")] + [
+        Arm(algo, precision, mode, members)
+        for members in [1, *args.members]
+        for algo in args.algos
+        for precision in precisions
+        for mode in args.compile
+    ]
+    side_by_side(args, setting, arms)
 
 
 if __name__ == "__main__":

@@ -40,6 +40,34 @@ def test_gpu_throughput_runs_on_cpu_in_its_tiny_form() -> None:
         assert row[6:] == ["-", "-"], row  # no CUDA graph, no GPU to be busy on CPU
 
 
+def test_train_throughput_runs_side_by_side_in_its_tiny_form() -> None:
+    command = [sys.executable, str(REPO / "benchmarks/train_throughput.py"), "--tiny"]
+    done = subprocess.run(command, capture_output=True, text=True, check=False, timeout=600)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    learners = ["stable-baselines3 TD3", "ours TD3", "ours EDE-TD3"]
+    # One update of each: FLOPs, time, GFLOP/s, share of the measured peak, and the split.
+    peak = float(next(line for line in lines if "peak" in line).split("peak ")[1].split()[0])
+    assert peak > 0
+    for name in learners:
+        row = next(line for line in lines if line.startswith(f"{name} ")).split()[-7:]
+        mflop, ms, gflops = (float(x) for x in row[:3])
+        assert mflop > 0 and ms > 0 and gflops == pytest.approx(mflop / ms, abs=0.1), row
+        assert abs(int(row[3].rstrip("%")) - 100 * gflops / peak) <= 1, row
+        products, optimiser, rest = (float(x.rstrip("%")) for x in row[4:])
+        assert products > 0 and optimiser > 0 and abs(products + optimiser + rest - 100) <= 2, row
+    # Side by side: each arm's ratio to SB3 within its rounds (one round here).
+    rows = {
+        line.split(",")[0] if line.startswith("ours") else "stable-baselines3 TD3": line.split()
+        for line in lines
+        if "(" in line and "–" in line and line.startswith(("stable", "ours"))
+    }
+    assert rows["stable-baselines3 TD3"][-2:] == ["1.00", "(1.00–1.00)"]
+    for name in ("ours TD3", "ours EDE-TD3"):
+        ratio, spread = float(rows[name][-2]), rows[name][-1]
+        assert ratio > 0 and spread == f"({ratio:.2f}–{ratio:.2f})", rows[name]
+
+
 def test_clip_sensitivity_plays_a_published_clip_again(tmp_path: Path) -> None:
     import shutil
 

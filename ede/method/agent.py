@@ -96,9 +96,10 @@ class Agent:
         # actor steps. A module's buffer, as the networks are (ensemble.Stack says why).
         self._sums = torch.nn.Module()
         self._sums.register_buffer("losses", torch.zeros(4, self.members, device=device))
+        self._compiled = config.compile != "none"
         self._update = (
             self._update_eager
-            if config.compile == "none"
+            if not self._compiled
             else torch.compile(
                 self._update_eager,
                 fullgraph=True,
@@ -192,6 +193,10 @@ class Agent:
             ]
         )
         masks = to_device(np.stack([due, actor_due]), self.device)
+        # Eager, each optimiser's host side (ensemble.Adam.step); compiled, the tensors alone.
+        steps = (
+            None if self._compiled else ((self.updates, due), (self.updates // delay, actor_due))
+        )
         with matmul_precision(self.config.precision):
             self._update(
                 batch,
@@ -201,6 +206,7 @@ class Agent:
                 bool(actor_due.any()),
                 not due.all(),
                 not actor_due.all(),
+                steps,
             )
 
     def _update_eager(
@@ -212,23 +218,26 @@ class Agent:
         actor: bool,
         critic_masked: bool,
         actor_masked: bool,
+        steps: tuple[ensemble.Steps, ensemble.Steps] | None = None,
     ) -> None:
         """The update as one function of tensors (no host synchronisation): what
         ``td3.compile`` compiles. ``masks``: ``(2, M)`` bool, the members due a critic step and
         an actor step; ``corrections``: ``(2, 2, M)``, each optimiser's :meth:`Adam.corrections`;
         the flags say, from the host, whether any actor step is due and whether either mask
-        leaves a member out."""
+        leaves a member out; ``steps``: eager, each optimiser's counts and mask on the host
+        (:meth:`ensemble.Adam.step`), None where compiled."""
         td3, due, actor_due = self.td3, masks[0], masks[1]
+        critic_steps, actor_steps = (None, None) if steps is None else steps
         y = td3.target(self.actor_target.params, self.critic_target.params, batch, noise)
         grad, losses = ensemble.grad(td3.critic_loss, self.critic, batch, y)
-        self.critic_adam.step(grad, corrections[0], due if critic_masked else None)
+        self.critic_adam.step(grad, corrections[0], due if critic_masked else None, critic_steps)
         self.loss_sums[0] += torch.where(due, losses, 0.0)
         self.loss_sums[1] += due
         if not actor:
             return
         grad, losses = ensemble.grad(td3.actor_loss, self.actor, self.critic.params, batch.obs)
         mask = actor_due if actor_masked else None
-        self.actor_adam.step(grad, corrections[1], mask)
+        self.actor_adam.step(grad, corrections[1], mask, actor_steps)
         self.loss_sums[2] += torch.where(actor_due, losses, 0.0)
         self.loss_sums[3] += actor_due
         self.critic_target.polyak(self.critic, self.config.tau, mask)

@@ -24,8 +24,13 @@ pytestmark = pytest.mark.slow
 MEASURED: dict[str, Any] = {
     "rtol": 1e-6,
     "atol": 1e-7,
-}  # weights within 3e-8, loss sums within 2e-6 of ~17
+}  # moments within 1e-7, loss sums within 2e-6 of ~17
 TOLERANCE: dict[str, Any] = {"rtol": 1e-5, "atol": 1e-6}
+# A weight: Adam steps it by lr·g/(|g| + ε) for a gradient g below its ε (1e-8), so a rounding
+# difference of 5e-11 in such a gradient moves the weight by lr·5e-11/ε = 5e-6. Measured (the
+# stack's products on transposed activations, AMD EPYC): one weight of 2048, member 1's
+# critic.2.weight, 4.6e-6 apart, every other weight within 2e-7, its moments within 1e-8.
+WEIGHTS: dict[str, Any] = {"rtol": 1e-5, "atol": 5e-5}
 
 
 def labelled(where: str) -> Callable[[str], str]:
@@ -43,10 +48,11 @@ def test_the_compiled_update_is_one_graph_and_computes_what_eager_computes() -> 
             if key.startswith("generator."):  # the same draws, outside the compiled function
                 assert torch.equal(value, theirs[key]), key
             else:
+                weight = key.split(".")[0] in ("actor", "critic", "actor_target", "critic_target")
                 torch.testing.assert_close(
                     theirs[key],
                     value,
-                    **TOLERANCE,
+                    **(WEIGHTS if weight else TOLERANCE),
                     msg=labelled(f"member {member} {key}"),
                 )
         assert int(theirs["updates"]) == UPDATES - (UPDATES // 3) * member

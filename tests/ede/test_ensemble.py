@@ -3,6 +3,7 @@ and the stack's layout round-trips."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -58,13 +59,24 @@ def test_views_and_flatten_round_trip_and_rows_are_whole_vectors() -> None:
     assert weight.flatten(0, 1)._base is not None
 
 
-def test_a_member_not_due_keeps_its_weights_and_moments_bit_for_bit() -> None:
+def adam_step(
+    adam: ensemble.Adam, grad: torch.Tensor, steps: list[int], due: list[bool], fused: bool
+) -> None:
+    """One step of ``adam`` as the agent takes it: eager, torch's fused kernel on the due members'
+    rows (``fused``), or the arithmetic the compiled update runs."""
+    counts, mask = np.array(steps), np.array(due)
+    masked = None if mask.all() else torch.as_tensor(mask)
+    adam.step(grad, adam.corrections(counts, CPU), masked, (counts, mask) if fused else None)
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_a_member_not_due_keeps_its_weights_and_moments_bit_for_bit(fused: bool) -> None:
     stack = ensemble.Stack(members(3), CPU)
     adam = ensemble.Adam(stack, lr=1e-2)
     grad = torch.randn(stack.flat.shape, generator=torch.Generator().manual_seed(0))
-    adam.step(grad, adam.corrections([1, 1, 1], CPU))
+    adam_step(adam, grad, [1, 1, 1], [True] * 3, fused)
     before = [t[1].clone() for t in (stack.flat, adam.exp_avg, adam.exp_avg_sq)]
-    adam.step(grad, adam.corrections([2, 1, 2], CPU), torch.tensor([True, False, True]))
+    adam_step(adam, grad, [2, 1, 2], [True, False, True], fused)
     assert all(
         torch.equal(b, t[1])
         for b, t in zip(before, (stack.flat, adam.exp_avg, adam.exp_avg_sq), strict=True)
@@ -72,7 +84,22 @@ def test_a_member_not_due_keeps_its_weights_and_moments_bit_for_bit() -> None:
     assert not torch.equal(stack.flat[0], stack.flat[1])  # the others did step
 
 
-def test_adam_is_torchs_adam_for_one_member() -> None:
+def test_a_members_adam_steps_are_the_same_bits_alone_and_in_a_stack() -> None:
+    """The fused kernel on member 2's row, among three members at other step counts and alone."""
+    torch.set_num_threads(1)
+    together, alone = ensemble.Stack(members(3), CPU), ensemble.Stack(members(3)[2:], CPU)
+    adams = ensemble.Adam(together, lr=1e-3), ensemble.Adam(alone, lr=1e-3)
+    generator = torch.Generator().manual_seed(2)
+    for t in range(1, 4):
+        grad = torch.randn(together.flat.shape, generator=generator)
+        adam_step(adams[0], grad, [t + 5, t, t], [True, t != 2, True], fused=True)
+        adam_step(adams[1], grad[2:], [t], [True], fused=True)
+    assert torch.equal(together.flat[2], alone.flat[0])
+    assert torch.equal(adams[0].exp_avg_sq[2], adams[1].exp_avg_sq[0])
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_adam_is_torchs_adam_for_one_member(fused: bool) -> None:
     torch.set_num_threads(1)
     params = members(1)[0]
     stack = ensemble.Stack([params], CPU)
@@ -85,10 +112,10 @@ def test_adam_is_torchs_adam_for_one_member() -> None:
         for k, v in theirs.items():
             v.grad = grads[k].clone()
         optimizer.step()
-        adam.step(stack.flatten({k: g[None] for k, g in grads.items()}), adam.corrections([t], CPU))
-    # The same arithmetic in the same order, but other kernels (a per-member tensor against
-    # torch's Python scalars, addcdiv against a product then a quotient): equal bit for bit on
-    # AMD EPYC (AVX2 kernels); a tolerance, since other CPUs' vector kernels may round apart.
+        adam_step(adam, stack.flatten({k: g[None] for k, g in grads.items()}), [t], [True], fused)
+    # The same arithmetic in the same order, but other kernels (torch's fused kernel on the whole
+    # row, or a per-member tensor against torch's Python scalars, addcdiv against a product then
+    # a quotient), which may round apart in the last bit: a tolerance.
     for k, v in theirs.items():
         torch.testing.assert_close(stack.member(0)[k], v.detach(), rtol=1e-6, atol=1e-9)
 
