@@ -214,9 +214,9 @@ def parse_seeds(text: str) -> list[int]:
     return seeds
 
 
-# float32 copies a group keeps of each network: weights, target, gradient, Adam's two moments
-# and the two tensors its step works in (ede.method.ensemble.Adam).
-NETWORK_COPIES = 7
+# float32 copies a group keeps of each network: weights, target, gradient and Adam's two moments
+# (ede.method.ensemble.Adam: its fused step works in place).
+NETWORK_COPIES = 5
 
 # float32 values an update keeps per row of its batch and per unit of a network (the inputs,
 # hidden and output widths of the actor and both critics): a forward's activations and their
