@@ -11,10 +11,13 @@
 FROM docker.io/library/debian:bookworm-slim
 
 # Debian's python3 (3.11 on bookworm) in a venv; git for DVC; Mesa's software EGL and OSMesa so
-# MuJoCo renders headless with no GPU and no display (MUJOCO_GL=egl, or osmesa).
+# MuJoCo renders headless with no GPU and no display (MUJOCO_GL=egl, or osmesa); g++ and Python's
+# headers for torch.compile's CPU kernels, so that td3.compile's default (auto) compiles a long
+# run's update here, about 1.25 times faster; it keeps what it compiled in TORCHINDUCTOR_CACHE_DIR,
+# a folder to mount to keep it between jobs on one machine (docs/performance.md).
 RUN apt-get update \
     && apt-get install -y --no-install-recommends \
-        ca-certificates git python3 python3-venv \
+        ca-certificates git python3 python3-venv g++ python3-dev \
         libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri libosmesa6 \
     && apt-get clean && rm -rf /var/lib/apt/lists/* \
     && git config --system --add safe.directory '*'
@@ -26,7 +29,8 @@ ENV VIRTUAL_ENV=/opt/venv \
     PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
     MUJOCO_GL=egl \
-    PYOPENGL_PLATFORM=egl
+    PYOPENGL_PLATFORM=egl \
+    TORCHINDUCTOR_CACHE_DIR=/tmp/torchinductor
 
 # Debian's pip; setuptools and wheel come at their locked versions with the rest of the lock.
 RUN python3 -m venv "$VIRTUAL_ENV"

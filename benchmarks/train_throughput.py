@@ -3,7 +3,7 @@ where one update's time goes against the machine's measured peak.
 
     python benchmarks/train_throughput.py [--hidden 400,300] [--batch-size 100] [--device cpu|cuda]
                                           [--steps 2500] [--rounds 5] [--algos td3,ede-td3]
-                                          [--compile none[,default]] [--precisions fp32[,...]|all]
+                                          [--compile auto[,none,default]] [--precisions fp32[,...]|all]
                                           [--members 4,8] [--group-steps N] [--tiny]
 
 Everything runs in one process with one torch thread, on gymnasium's ``Reacher-v5``, with the
@@ -41,14 +41,20 @@ the same algorithm and setting in the same round (what one process of M seeds bu
 processes one after another on one core). A row whose timed run compiled something (it should
 not) is marked: its rate is understated.
 
+``--compile auto`` (the default) measures what a user's default, ``td3.compile: auto``, does for a
+run long enough to repay compiling (``ede.run.group.COMPILE_FROM_UPDATES`` updates; a paper run):
+compiled where a C++ compiler is found, eager elsewhere — the script prints which; the
+2,500-step runs timed here would otherwise stay eager. ``--compile auto,none`` adds the eager
+update beside it.
+
 With the defaults (5 rounds of 2,500-step runs: SB3, TD3, EDE-TD3) a whole invocation takes about
-3½ minutes on an idle core of our AVX-512 AMD EPYC; ``--compile none,default`` about twice that
-(half a minute of compiling per compiled arm, and two more arms). ``--tiny`` (16-16 networks,
+5 minutes on an idle core of our AVX-512 AMD EPYC (half a minute of compiling per compiled arm,
+a few seconds where Inductor's on-disk cache holds it); ``--compile auto,none`` about half as long again. ``--tiny`` (16-16 networks,
 batch 8, 100 start steps, runs of 150 steps, one round) checks in half a minute that it runs to
 the end (``tests/test_benchmarks.py``).
 
 An earlier commit is measured by this script run in that commit's environment (its ``ede`` is
-imported, eager only): e.g. ``git worktree add /tmp/before HEAD~1``, ``make -C /tmp/before
+imported; ``--compile none`` where it has no ``auto``): e.g. ``git worktree add /tmp/before HEAD~1``, ``make -C /tmp/before
 install``, then ``/tmp/before/.venv/bin/python benchmarks/train_throughput.py`` from this
 checkout.
 """
@@ -202,6 +208,11 @@ def ours(
             **({} if compile == "none" else {"compile": compile}),
         }
     )
+    if compile == "auto":  # as a run long enough to repay compiling (a paper run) takes it
+        from ede.run.group import COMPILE_FROM_UPDATES, compile_mode
+
+        mode = compile_mode(compile, COMPILE_FROM_UPDATES, torch.device(setting.device))
+        config = config.model_copy(update={"compile": mode})
     embedding = _embedding(setting.device) if algo == "ede-td3" else None
     specs = [RunSpec(TASK, algo, seed, steps, config, EdeTD3Config()) for seed in range(members)]
     times: dict[int, float] = {}
@@ -462,6 +473,16 @@ def side_by_side(args: argparse.Namespace, setting: Setting, arms: list[Arm]) ->
 
     if any(arm.compile != "none" for arm in arms):
         torch._dynamo.reset()
+    if any(arm.compile == "auto" for arm in arms):
+        from ede.run.group import COMPILE_FROM_UPDATES, compile_mode, compiler_missing
+
+        device = torch.device(setting.device)
+        mode = compile_mode("auto", COMPILE_FROM_UPDATES, device)
+        print(
+            f"td3.compile auto (the default) runs as a run of {COMPILE_FROM_UPDATES:,} updates or "
+            f"more takes it here: {mode}"
+            + (f" ({compiler_missing(device)} not found)" if mode == "none" else "")
+        )
     for arm in arms:  # the warm-up round: compiles, first calls, kernel choices
         run(arm, min(setting.start + 300, steps(arm)))
     rates: dict[Arm, list[float]] = {arm: [] for arm in arms}
@@ -540,9 +561,10 @@ def main() -> None:
     parser.add_argument(
         "--compile",
         type=_list(str, COMPILE_MODES),
-        default=["none"],
-        help="td3.compile modes, comma-separated: none, default, reduce-overhead "
-        "(CUDA only); default none",
+        default=["auto" if "auto" in COMPILE_MODES else "none"],
+        help="td3.compile modes, comma-separated: auto (as a run long enough to repay "
+        "compiling takes it: compiled where a compiler is), none, default, reduce-overhead "
+        "(CUDA only); default auto; an earlier commit without td3.compile: none",
     )
     parser.add_argument(
         "--precisions",

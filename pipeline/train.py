@@ -20,7 +20,7 @@ from ede.method.td3 import Critic
 from ede.run.artifacts import ArtifactError, load_action_embedding, params_mismatches
 from ede.run.checkpoint import CheckpointError, CheckpointWriteError
 from ede.run.embedded import EmbeddedActions
-from ede.run.group import env_workers
+from ede.run.group import compiler_missing, env_workers
 from ede.run.runs import RUN_KIND
 from ede.run.sb3 import train_sb3
 from ede.run.spec import RunSpec
@@ -102,6 +102,12 @@ def train(
         device = pick_device("cpu" if algo in SB3_ALGOS else config.device)
     except ValueError as error:
         raise BadInput(str(error)) from None
+    if config.compile in ("default", "reduce-overhead") and algo not in SB3_ALGOS:
+        if missing := compiler_missing(device):
+            raise BadInput(
+                f"td3.compile: {config.compile} needs {missing}, which this machine lacks; set "
+                "td3.compile to auto (compiled where it can be) or none"
+            )
     together = 1 if algo in SB3_ALGOS else len(seed_list)
     check_group_memory(params, task, algo, seeds, together, device)
     embedding: ActionEmbedding | None = None

@@ -134,6 +134,15 @@ import gymnasium as gym, numpy as np
 env = gym.make("ede_envs:ede/ReacherTurn-v0", render_mode="rgb_array"); env.reset(seed=0)
 frame = env.render(); assert frame.ndim == 3 and frame.std() > 0, frame.shape
 print("headless render (MUJOCO_GL=egl):", frame.shape)'
+pm "${run[@]}" --entrypoint python localhost/ede -c '
+import torch
+from ede.run.group import compile_mode, compiler_missing, COMPILE_FROM_UPDATES
+cpu = torch.device("cpu")
+assert compiler_missing(cpu) is None, compiler_missing(cpu)
+assert compile_mode("auto", COMPILE_FROM_UPDATES, cpu) == "default"
+x = torch.randn(64)
+assert torch.allclose(torch.compile(lambda v: torch.relu(v) * 2 + 1)(x), torch.relu(x) * 2 + 1)
+print("torch.compile on the CPU: g++ and Python.h present, a kernel compiled and run")'
 pm "${run[@]}" localhost/ede train --task ede/ReacherVertical-v0 --algo td3 --seed 0
 pm "${run[@]}" localhost/ede render data/runs/ede/ReacherVertical-v0/td3/seed0 --out data/clip.mp4
 [[ $(stat -c %s "$work/podman/repo/data/clip.mp4") -gt 10000 ]] || fail "render wrote no video"

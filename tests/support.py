@@ -213,11 +213,11 @@ def add_step(
 SEEDS, UPDATES = [3, 4], 12  # updated_agent's members, and its updates
 
 
-def updated_agent(mode: str, device: str = "cpu") -> tuple[Any, Any]:
-    """An ``ede.method.agent.Agent`` of two members (seeds ``SEEDS``) at small sizes after ``UPDATES``
-    updates from its replay buffer of random steps, member 1 sitting every third out, its update
-    compiled as ``td3.compile: mode`` says, and the buffer: the compiled update's tests compare
-    these."""
+def updated_agent(mode: str, device: str = "cpu", seeds: list[int] = SEEDS) -> tuple[Any, Any]:
+    """An ``ede.method.agent.Agent`` of a member per seed (two: ``SEEDS``) at small sizes after
+    ``UPDATES`` updates from its replay buffer of random steps, member 1 sitting every third out,
+    its update compiled as ``td3.compile: mode`` says, and the buffer: the compiled update's tests
+    compare these. Member 0's steps and updates are the same whatever the number of members."""
     import numpy as np
     import torch
 
@@ -229,10 +229,10 @@ def updated_agent(mode: str, device: str = "cpu") -> tuple[Any, Any]:
     obs, act = 5, 2
     config = TD3Config.model_validate({"hidden": [32, 32], "batch_size": 16, "compile": mode})
     where = torch.device(device)
-    agent = Agent(obs, IdentityAdapter(-np.ones(act), np.ones(act), where), config, where, SEEDS)
-    buffer = ReplayBuffer(200, obs, act, 1, where, members=len(SEEDS))
+    agent = Agent(obs, IdentityAdapter(-np.ones(act), np.ones(act), where), config, where, seeds)
+    buffer = ReplayBuffer(200, obs, act, 1, where, members=len(seeds))
     rng = np.random.default_rng(0)
-    for member in range(len(SEEDS)):
+    for member in range(len(seeds)):
         for t in range(100):
             add_step(
                 buffer,
@@ -246,7 +246,7 @@ def updated_agent(mode: str, device: str = "cpu") -> tuple[Any, Any]:
                 False,
             )
     for u in range(UPDATES):
-        agent.update(buffer, np.array([True, u % 3 != 1]))  # member 1 sits some out
+        agent.update(buffer, np.array([True, u % 3 != 1])[: len(seeds)])  # member 1 sits some out
     return agent, buffer
 
 

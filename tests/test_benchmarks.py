@@ -41,7 +41,10 @@ def test_gpu_throughput_runs_on_cpu_in_its_tiny_form() -> None:
 
 
 def test_train_throughput_runs_side_by_side_in_its_tiny_form() -> None:
-    command = [sys.executable, str(REPO / "benchmarks/train_throughput.py"), "--tiny"]
+    # eager: the default, td3.compile auto, would compile each arm first (a minute on CI's cold cache)
+    command = [
+        sys.executable, str(REPO / "benchmarks/train_throughput.py"), "--tiny", "--compile", "none"
+    ]  # fmt: skip
     done = subprocess.run(command, capture_output=True, text=True, check=False, timeout=600)
     assert done.returncode == 0, done.stderr
     lines = done.stdout.splitlines()

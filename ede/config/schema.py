@@ -200,11 +200,13 @@ class TD3Config(Section):
         '(docs/scaling.md, "Groups")',
         json_schema_extra=RESULT_NEUTRAL,
     )
-    compile: Literal["none", "default", "reduce-overhead"] = Field(
-        "none",
+    compile: Literal["auto", "none", "default", "reduce-overhead"] = Field(
+        "auto",
         description="how the update runs: eager (none), compiled whole with "
         "torch.compile (default), or compiled and captured as a CUDA graph on a GPU "
-        '(reduce-overhead); leaves results alone beyond rounding (README, "Stage 4: train")',
+        "(reduce-overhead); auto: default for a run of 25,000 updates or more where a C++ "
+        "compiler (CPU) or Triton (GPU) is present, else none; leaves results alone beyond "
+        'rounding (docs/performance.md, "compiled updates")',
         json_schema_extra=RESULT_NEUTRAL,
     )
 

@@ -67,7 +67,13 @@ class Agent:
         config: TD3Config,
         device: torch.device,
         seeds: Sequence[int] = (0,),
+        fallback: Callable[[str], None] | None = None,
     ) -> None:
+        """``config.compile`` says how updates run; "auto" is a run's choice, made from its
+        length and the machine (:func:`ede.run.group.compile_mode`), and an agent given it runs
+        eager. ``fallback``: where given, an update that fails compiled runs eager instead,
+        from then on, and ``fallback`` is told why in one line (a failed compile leaves the
+        update's inputs untouched)."""
         self.adapter, self.config, self.device = adapter, config, device
         self.members = len(seeds)
         self.streams = [Streams(seed, device) for seed in seeds]
@@ -96,7 +102,7 @@ class Agent:
         # actor steps. A module's buffer, as the networks are (ensemble.Stack says why).
         self._sums = torch.nn.Module()
         self._sums.register_buffer("losses", torch.zeros(4, self.members, device=device))
-        self._compiled = config.compile != "none"
+        self._compiled = config.compile not in ("none", "auto")
         self._update = (
             self._update_eager
             if not self._compiled
@@ -106,6 +112,12 @@ class Agent:
                 mode=None if config.compile == "default" else config.compile,
             )
         )
+        self._fallback = fallback
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the updates run compiled (``td3.compile``; False after a fallback)."""
+        return self._compiled
 
     @property
     def loss_sums(self) -> torch.Tensor:
@@ -193,21 +205,24 @@ class Agent:
             ]
         )
         masks = to_device(np.stack([due, actor_due]), self.device)
+        flags = (bool(actor_due.any()), not due.all(), not actor_due.all())
         # Eager, each optimiser's host side (ensemble.Adam.step); compiled, the tensors alone.
-        steps = (
-            None if self._compiled else ((self.updates, due), (self.updates // delay, actor_due))
-        )
+        steps = ((self.updates, due), (self.updates // delay, actor_due))
         with matmul_precision(self.config.precision):
-            self._update(
-                batch,
-                noise,
-                masks,
-                corrections,
-                bool(actor_due.any()),
-                not due.all(),
-                not actor_due.all(),
-                steps,
-            )
+            if not self._compiled:
+                self._update_eager(batch, noise, masks, corrections, *flags, steps)
+                return
+            try:
+                self._update(batch, noise, masks, corrections, *flags, None)
+            except Exception as error:  # compiling failed: no compiler, or a broken one
+                if self._fallback is None:
+                    raise
+                first = next(iter(str(error).strip().splitlines()), type(error).__name__)
+                self._fallback(
+                    f"td3.compile auto: compiling the update failed ({first}); it runs eager"
+                )
+                self._compiled, self._update = False, self._update_eager
+                self._update_eager(batch, noise, masks, corrections, *flags, steps)
 
     def _update_eager(
         self,

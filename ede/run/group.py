@@ -12,7 +12,12 @@ makes due, :meth:`Group.evaluate` evaluates them (:func:`ede.run.evaluation.eval
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import shutil
+import sys
+import sysconfig
+from collections.abc import Callable
 from pathlib import Path
 
 import gymnasium
@@ -31,7 +36,14 @@ from ede.run.spec import RunSpec
 from ede.run.vector import Episode, MemberEnvs
 from ede.tasks import make
 
-__all__ = ["Group", "Member", "env_workers"]
+__all__ = [
+    "COMPILE_FROM_UPDATES",
+    "Group",
+    "Member",
+    "compile_mode",
+    "compiler_missing",
+    "env_workers",
+]
 
 
 def _adapter(
@@ -152,8 +164,15 @@ class Group:
     evaluation environments as two vector environments (:class:`ede.run.vector.MemberEnvs`)."""
 
     def __init__(
-        self, specs: list[RunSpec], embedding: ActionEmbedding | None, device: torch.device
+        self,
+        specs: list[RunSpec],
+        embedding: ActionEmbedding | None,
+        device: torch.device,
+        notice: Callable[[str], None] = print,
     ) -> None:
+        """``notice``: told, in one line, where ``td3.compile: auto`` leaves a run's updates
+        eager that would have paid to compile (:func:`compile_mode`), or falls back to eager
+        where compiling fails."""
         spec, self.device = specs[0], device
         probe = make(spec.task)
         space, obs_shape = probe.action_space, probe.observation_space.shape
@@ -161,7 +180,22 @@ class Group:
         obs_size = int(np.prod(obs_shape))
         probe.close()
         self.adapter = _adapter(spec, space, embedding, device)
-        self.agent = Agent(obs_size, self.adapter, spec.td3, device, [s.seed for s in specs])
+        updates = spec.budget - min(spec.td3.start_steps, spec.budget)
+        mode = compile_mode(spec.td3.compile, updates, device)
+        if spec.td3.compile == "auto" and mode == "none" and updates >= COMPILE_FROM_UPDATES:
+            notice(
+                f"td3.compile auto: {compiler_missing(device)} not found, so the updates run "
+                "eager, about 1.25 times slower (docs/performance.md)"
+            )
+        td3 = spec.td3.model_copy(update={"compile": mode})
+        self.agent = Agent(
+            obs_size,
+            self.adapter,
+            td3,
+            device,
+            [s.seed for s in specs],
+            fallback=notice if spec.td3.compile == "auto" else None,
+        )
         capacity = min(spec.td3.buffer_size, spec.budget)
         self.buffer = ReplayBuffer(
             capacity, obs_size, self.adapter.code_size, self.adapter.k, device, len(specs)
@@ -277,3 +311,38 @@ def env_workers(setting: str, members: int, device: torch.device) -> bool:
     if setting != "auto":
         return setting == "yes"
     return device.type == "cuda" and members > 1 and (os.cpu_count() or 1) >= 4
+
+
+# ``td3.compile: auto`` compiles the update of a run of at least this many updates. Compiling
+# costs about 40 s at the start with Inductor's on-disk cache empty (about 6 s with it filled by
+# an earlier run of the same shapes on the machine) and saves about 1.2 ms an update at the
+# paper's sizes on our CPUs, so it pays from some 33,000 updates cold and 5,000 warm: a sweep's
+# first run fills the cache for the rest (docs/performance.md).
+COMPILE_FROM_UPDATES = 25_000
+
+
+def compile_mode(setting: str, updates: int, device: torch.device) -> str:
+    """How a run of ``updates`` updates runs them: ``td3.compile`` as set, or for "auto"
+    "default" (``torch.compile``) where it pays and can — from :data:`COMPILE_FROM_UPDATES`
+    updates on, with what compiling needs here (:func:`compiler_missing`) — and "none" (eager)
+    elsewhere."""
+    if setting != "auto":
+        return setting
+    if updates < COMPILE_FROM_UPDATES or compiler_missing(device):
+        return "none"
+    return "default"
+
+
+def compiler_missing(device: torch.device) -> str | None:
+    """What ``torch.compile`` needs to compile the update on ``device`` and cannot find, in
+    words; None where it is there. On a GPU, Triton (torch's CUDA builds carry it); on the CPU,
+    the C++ compiler Inductor calls (``$CXX``, else g++; clang++ on macOS) and Python's C headers,
+    which its kernels include (Debian's python3-dev)."""
+    if device.type == "cuda":
+        return None if importlib.util.find_spec("triton") else "Triton"
+    name = os.environ.get("CXX") or ("clang++" if sys.platform == "darwin" else "g++")
+    if not shutil.which(name):
+        return f"a C++ compiler ({name}, or $CXX)"
+    if not (Path(sysconfig.get_paths()["include"]) / "Python.h").is_file():
+        return "Python's C headers (Python.h; Debian's python3-dev)"
+    return None

@@ -172,11 +172,13 @@ def write_finished(
     metrics: dict[str, Any],
     device: torch.device,
     software: Mapping[str, str] | None = None,
+    compiled: bool | None = None,
 ) -> None:
     """``run.json``, with the SHA-256 of each result file there (:data:`CHECKSUMMED`;
     ``metrics.json``'s as it is about to be written), then ``metrics.json``: from then on the run
     is finished. ``software``: versions to record beside :func:`software_versions`'
-    (stable-baselines3's, for its runs)."""
+    (stable-baselines3's, for its runs); ``compiled``: whether the last session's updates ran
+    compiled (``td3.compile``), recorded as ``update``: "compiled" or "eager"."""
     text = json.dumps(metrics, indent=2, allow_nan=False) + "\n"
     checksums = {
         name: sha256(out / name)
@@ -191,6 +193,7 @@ def write_finished(
             "software": {**software_versions(), **(software or {})},
             "code": code_version(),
             "machine": machine(device),
+            **({} if compiled is None else {"update": "compiled" if compiled else "eager"}),
             "sha256": checksums,
         },
     )

@@ -114,7 +114,7 @@ def train_group(
     alike = all(replace(s, seed=0) == replace(spec, seed=0) for s in specs)
     if not alike or len({s.seed for s in specs}) != len(specs):
         raise ValueError("a group's runs must differ in their seeds only")
-    group = Group(specs, embedding, device)
+    group = Group(specs, embedding, device, notice)
     try:
         sessions = [
             _Session.start(group, j, out, bad_checkpoint, notice) for j, out in enumerate(outs)
@@ -229,7 +229,7 @@ class _Session:
             self.steps_at_start if self.resumed else None,
         )
         save_policy(out / POLICY, self.group.agent, self.index, spec, self.group.adapter)
-        write_finished(out, spec, metrics, self.group.device)
+        write_finished(out, spec, metrics, self.group.device, compiled=self.group.agent.compiled)
         path = out / "checkpoint"
         if not keep_checkpoint:
             shutil.rmtree(path, ignore_errors=True)

@@ -11,13 +11,23 @@ two members (a masked one among them) every weight, moment and diagnostic sum ag
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
 import torch
 
-from tests.support import SEEDS, UPDATES, updated_agent
+from ede.config import EdeTD3Config, TD3Config
+from ede.run import group
+from ede.run.group import COMPILE_FROM_UPDATES, compile_mode, compiler_missing
+from ede.run.spec import RunSpec
+from ede.run.training import train_run
+from tests.support import REPO, SEEDS, UPDATES, updated_agent
 
 pytestmark = pytest.mark.slow
 
@@ -58,6 +68,19 @@ def test_the_compiled_update_is_one_graph_and_computes_what_eager_computes() -> 
         assert int(theirs["updates"]) == UPDATES - (UPDATES // 3) * member
 
 
+def test_a_compiled_member_computes_alone_what_it_computes_in_a_group() -> None:
+    """The CPU contract holds compiled too: a member alone and beside a member that sits some
+    updates out ends with the same weights, moments and sums, bit for bit (Inductor's loops over
+    a member's row do not depend on how many rows there are; measured too at the paper's sizes,
+    one member against three)."""
+    torch.set_num_threads(1)
+    (group, _), (alone, _) = updated_agent("default"), updated_agent("default", seeds=SEEDS[:1])
+    assert group.compiled and alone.compiled
+    mine, theirs = alone.state_dict(0), group.state_dict(0)
+    for key, value in mine.items():
+        assert torch.equal(value, theirs[key]), key
+
+
 def test_the_compiled_update_writes_only_static_inputs_so_a_cuda_graph_can_capture_it(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -94,3 +117,81 @@ def test_the_compiled_update_writes_only_static_inputs_so_a_cuda_graph_can_captu
     for mutated, static in graphs:
         assert mutated, "the update writes its state in place"
         assert set(mutated) <= set(static), f"mutated inputs {mutated}, static {static}"
+
+
+# `td3.compile: auto`, the default ----------------------------------------------------------------
+
+
+def test_auto_compiles_a_run_long_enough_to_repay_it_where_a_compiler_is(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    cpu = torch.device("cpu")
+    monkeypatch.setenv("CXX", sys.executable)  # a program that exists stands for the compiler
+    assert compiler_missing(cpu) is None
+    assert compile_mode("auto", COMPILE_FROM_UPDATES, cpu) == "default"
+    assert compile_mode("auto", COMPILE_FROM_UPDATES - 1, cpu) == "none"
+    monkeypatch.setenv("CXX", "/nonexistent/c++")
+    assert compiler_missing(cpu) == "a C++ compiler (/nonexistent/c++, or $CXX)"
+    assert compile_mode("auto", 10**6, cpu) == "none"
+    for setting in ("none", "default", "reduce-overhead"):  # a setting is taken as it is
+        assert compile_mode(setting, 10, cpu) == setting
+
+
+FALLBACK = """
+import json, sys, torch
+from ede.method import agent
+from tests.support import updated_agent
+told, made = [], agent.Agent.__init__
+agent.Agent.__init__ = lambda self, *a, **k: made(self, *a, **k, fallback=told.append)
+compiled, _ = updated_agent("default")
+agent.Agent.__init__ = made
+eager, _ = updated_agent("none")
+same = all(
+    torch.equal(value, eager.state_dict(m)[key])
+    for m in range(2) for key, value in compiled.state_dict(m).items()
+)
+print(json.dumps({"told": told, "compiled": compiled.compiled, "same": same}))
+"""
+
+
+def test_an_update_that_fails_to_compile_runs_eager_after_one_line(tmp_path: Path) -> None:
+    """A compiler that is there but fails (``/bin/false`` as Inductor's ``$CXX``): under
+    ``auto`` the agent says so in one line and its updates are the eager ones, bit for bit —
+    the failed compile touched nothing. A process of its own: Inductor reads ``$CXX`` once."""
+    done = subprocess.run(
+        [sys.executable, "-c", FALLBACK],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        env={**os.environ, "CXX": "/bin/false", "TORCHINDUCTOR_CACHE_DIR": str(tmp_path)},
+        check=True,
+    )
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    assert len(result["told"]) == 1, result
+    assert result["told"][0].startswith("td3.compile auto: compiling the update failed (")
+    assert "\n" not in result["told"][0] and result["told"][0].endswith("); it runs eager")
+    assert result["compiled"] is False and result["same"] is True
+
+
+def test_a_run_under_auto_compiles_when_long_enough_and_records_how_it_updated(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    config = TD3Config(hidden=[16, 16], batch_size=8, start_steps=100, eval_every=200)
+    spec = RunSpec("ede/Point-v0", "td3", 0, 300, config, EdeTD3Config())
+    told: list[str] = []
+    train_run(spec, tmp_path / "short", notice=told.append)  # 200 updates: eager
+    monkeypatch.setattr(group, "COMPILE_FROM_UPDATES", 200)
+    torch._dynamo.reset()
+    train_run(spec, tmp_path / "long", notice=told.append)
+    updates = {
+        run: json.loads((tmp_path / run / "run.json").read_text())["update"]
+        for run in ("short", "long")
+    }
+    assert updates == {"short": "eager", "long": "compiled"} and told == []
+    monkeypatch.setenv("CXX", "/nonexistent/c++")  # no compiler: eager, said in one line
+    train_run(spec, tmp_path / "none", notice=told.append)
+    assert json.loads((tmp_path / "none" / "run.json").read_text())["update"] == "eager"
+    assert told == [
+        "td3.compile auto: a C++ compiler (/nonexistent/c++, or $CXX) not found, so the updates "
+        "run eager, about 1.25 times slower (docs/performance.md)"
+    ]

@@ -124,6 +124,7 @@ def test_both_algorithms_clearly_beat_a_random_policy(in_workdir: Path, algo: st
     assert made["code"]["commit"] == head and isinstance(made["code"]["modified"], bool)
     assert made["machine"]["cpu"] == machine()["cpu"]
     assert made["machine"]["instruction_sets"] == machine()["instruction_sets"]
+    assert made["update"] == "eager"  # td3.compile auto: 2,500 updates do not repay compiling
     assert "threads" not in made["params"]["td3"] and made["params"]["td3"]["tau"] == 0.005
     assert metrics["steps_per_second"] > 0
     policy = json.loads((out / "policy/policy.json").read_text())
@@ -300,6 +301,29 @@ def test_bad_train_input_is_one_line_exit_2_and_writes_nothing(
 ) -> None:
     out = in_workdir / "bad-run"
     bad(run("train", *args, "--out", str(out)), message)
+    assert not out.exists()
+
+
+def test_a_compiled_update_asked_for_where_no_compiler_is_is_refused_in_one_line(
+    in_workdir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    params = in_workdir / "params.yaml"
+    text = params.read_text()
+    assert "  compile: auto" in text
+    params.write_text(text.replace("  compile: auto", "  compile: default"))
+    monkeypatch.setenv("CXX", "/nonexistent/c++")
+    out = in_workdir / "no-compiler"
+    try:
+        result = run(
+            "train", "--task", "ede/Point-v0", "--algo", "td3", "--seed", "0", "--out", str(out)
+        )
+    finally:
+        params.write_text(text)
+    bad(
+        result,
+        "td3.compile: default needs a C++ compiler (/nonexistent/c++, or $CXX), which this "
+        "machine lacks; set td3.compile to auto (compiled where it can be) or none",
+    )
     assert not out.exists()
 
 
