@@ -13,7 +13,7 @@ FROM docker.io/library/debian:bookworm-slim
 # Debian's python3 (3.11 on bookworm) in a venv; git for DVC; Mesa's software EGL and OSMesa so
 # MuJoCo renders headless with no GPU and no display (MUJOCO_GL=egl, or osmesa); g++ and Python's
 # headers for torch.compile's CPU kernels, so that td3.compile's default (auto) compiles a long
-# run's update here, about 1.25 times faster; it keeps what it compiled in TORCHINDUCTOR_CACHE_DIR,
+# run's update here, faster; it keeps what it compiled in TORCHINDUCTOR_CACHE_DIR,
 # a folder to mount to keep it between jobs on one machine (docs/performance.md).
 RUN apt-get update \
     && apt-get install -y --no-install-recommends \

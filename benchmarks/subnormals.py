@@ -58,7 +58,11 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     config = TD3Config(
-        hidden=[400, 300], batch_size=100, update_schedule="step", buffer_size=args.steps
+        hidden=[400, 300],
+        batch_size=100,
+        update_schedule="step",
+        buffer_size=args.steps,
+        compile="none",  # the eager update's slow path is what this measures
     )
     group = Group(
         [RunSpec(args.task, "td3", 0, args.steps, config, EdeTD3Config())],

@@ -102,6 +102,7 @@ def ours_config() -> TD3Config:
         eval_episodes=EVAL_EPISODES,
         checkpoint_every=5_000,
         update_schedule="step",
+        compile="none",  # eager, as the published comparison ran
     )  # SB3 updates after every step (train_freq=1)
 
 

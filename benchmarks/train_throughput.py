@@ -203,9 +203,9 @@ def ours(
             "precision": precision,
             "device": setting.device,
             "update_schedule": "step",  # as SB3: train_freq=1
-            # (no compile key when eager: the script then also runs on commits from
-            # before td3.compile, to measure them the same way)
-            **({} if compile == "none" else {"compile": compile}),
+            # (no compile key for eager on a commit from before td3.compile, so that the
+            # script measures it the same way)
+            **({"compile": compile} if "compile" in TD3Config.model_fields else {}),
         }
     )
     if compile == "auto":  # as a run long enough to repay compiling (a paper run) takes it

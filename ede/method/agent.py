@@ -113,6 +113,7 @@ class Agent:
             )
         )
         self._fallback = fallback
+        self._ran: set[tuple[bool, bool, bool]] = set()  # the flags of the graphs that ran
 
     @property
     def compiled(self) -> bool:
@@ -214,15 +215,17 @@ class Agent:
                 return
             try:
                 self._update(batch, noise, masks, corrections, *flags, None)
-            except Exception as error:  # compiling failed: no compiler, or a broken one
-                if self._fallback is None:
+            except Exception as error:
+                # Only a call that compiled a graph (the first of its flags) may fall back: a
+                # compile fails before anything runs; a graph that ran and failed may not have.
+                if self._fallback is None or flags in self._ran:
                     raise
-                first = next(iter(str(error).strip().splitlines()), type(error).__name__)
                 self._fallback(
-                    f"td3.compile auto: compiling the update failed ({first}); it runs eager"
+                    f"td3.compile auto: compiling the update failed ({_cause(error)}); it runs eager"
                 )
                 self._compiled, self._update = False, self._update_eager
                 self._update_eager(batch, noise, masks, corrections, *flags, steps)
+            self._ran.add(flags)
 
     def _update_eager(
         self,
@@ -328,3 +331,13 @@ class Agent:
         self.loss_sums[:, member] = state["loss_sums"].to(self.device)
         for purpose in Streams.SAVED:
             getattr(self.streams[member], purpose).set_state(state[f"generator.{purpose}"])
+
+
+def _cause(error: BaseException) -> str:
+    """An error's first line that says something: its own, or its cause's where its own only
+    announces another (Dynamo's "backend='inductor' raised:")."""
+    for e in (error, error.__cause__):
+        lines = [line.strip() for line in str(e or "").splitlines() if line.strip()]
+        if lines and not lines[0].endswith("raised:"):
+            return lines[0]
+    return type(error).__name__

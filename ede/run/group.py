@@ -185,7 +185,7 @@ class Group:
         if spec.td3.compile == "auto" and mode == "none" and updates >= COMPILE_FROM_UPDATES:
             notice(
                 f"td3.compile auto: {compiler_missing(device)} not found, so the updates run "
-                "eager, about 1.25 times slower (docs/performance.md)"
+                "eager, slower (docs/performance.md)"
             )
         td3 = spec.td3.model_copy(update={"compile": mode})
         self.agent = Agent(
@@ -335,14 +335,19 @@ def compile_mode(setting: str, updates: int, device: torch.device) -> str:
 
 def compiler_missing(device: torch.device) -> str | None:
     """What ``torch.compile`` needs to compile the update on ``device`` and cannot find, in
-    words; None where it is there. On a GPU, Triton (torch's CUDA builds carry it); on the CPU,
-    the C++ compiler Inductor calls (``$CXX``, else g++; clang++ on macOS) and Python's C headers,
-    which its kernels include (Debian's python3-dev)."""
+    words; None where it is there. On the CPU, the C++ compiler Inductor calls (``$CXX``, else
+    g++; clang++ on macOS); on a GPU, Triton (torch's CUDA builds carry it) and the C compiler it
+    builds its launchers with (``$CC``, else gcc); on both, Python's C headers, which those
+    include (Debian's python3-dev)."""
     if device.type == "cuda":
-        return None if importlib.util.find_spec("triton") else "Triton"
-    name = os.environ.get("CXX") or ("clang++" if sys.platform == "darwin" else "g++")
+        if not importlib.util.find_spec("triton"):
+            return "Triton"
+        name, what = os.environ.get("CC") or "gcc", "a C compiler ({}, or $CC)"
+    else:
+        name = os.environ.get("CXX") or ("clang++" if sys.platform == "darwin" else "g++")
+        what = "a C++ compiler ({}, or $CXX)"
     if not shutil.which(name):
-        return f"a C++ compiler ({name}, or $CXX)"
+        return what.format(name)
     if not (Path(sysconfig.get_paths()["include"]) / "Python.h").is_file():
         return "Python's C headers (Python.h; Debian's python3-dev)"
     return None
