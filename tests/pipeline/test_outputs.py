@@ -611,7 +611,8 @@ def test_a_file_output_whose_writer_was_killed_before_marking_it_is_still_its_ow
 # each read in ede/, pipeline/ and envs/), and every written one is then held to the rule below.
 ENV_WRITES = {"EDE_PROGRESS"}
 ENV_READS = {"RAY_TLS_SERVER_CERT", "RAY_TLS_SERVER_KEY", "RAY_TLS_CA_CERT", "SHELL", "PATH",
-             "PYTHONPATH"}  # fmt: skip
+             "PYTHONPATH",
+             "CC", "CXX"}  # the compilers torch.compile runs (ede.run.group.compiler_missing)  # fmt: skip
 ENV_NOT_PATHS = {"EDE_COMMIT", "EDE_PARENT", "MUJOCO_GL", "RAY_ADDRESS", "RAY_USE_TLS"}
 # Reads whose name is a loop's variable, not a constant: the names it takes, by its module.
 ENV_LOOPS = {
