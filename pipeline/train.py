@@ -226,8 +226,10 @@ NETWORK_COPIES = 5
 
 # float32 values an update keeps per row of its batch and per unit of a network (the inputs,
 # hidden and output widths of the actor and both critics): a forward's activations and their
-# gradients. Measured (2026-12-07, CPU, hidden [400, 300], 8 members, batch 2,000 and 8,000): the
-# peak RSS grows by 2,500 floats a member's row beyond the replay rows, against 4,384 counted here.
+# gradients. Measured (2026-12-07, CPU, hidden [400, 300], 4 members, batch 100 and 4,000, as
+# tests/pipeline/test_train.py does): the tensors' peak grows by 2,600 floats a member's row,
+# against 4,282 counted here; glibc's heap, which keeps some of what an update frees, made the
+# peak resident size grow by 3,100 to 5,300 from run to run (USABLE_SHARE leaves room for it).
 ACTIVATION_COPIES = 2
 
 # Host memory each environment of a member holds (a member has two: training and evaluation,
