@@ -18,7 +18,8 @@ It prints three things.
 error of a product against float64 (``ede.method.nets.product_error``) and the oneDNN kernel that
 computed it (none means torch's own BLAS path); with ``--device cuda`` the GPU.
 
-**One update** (CPU only), ours (each of ``--algos``, eager, fp32) and SB3's ``TD3.train`` of one
+**One update** (CPU only), ours (each of ``--algos``, fp32, eager and — where ``--compile``
+compiles here, as ``auto`` does with a C++ compiler — compiled) and SB3's ``TD3.train`` of one
 gradient step, each on a replay buffer of random steps: its matrix-product FLOPs, counted from the
 shapes of the products it ran (``2·b·m·k·n`` for a batch of b ``(m, k) @ (k, n)``, as
 ``torch.profiler`` records them; the elementwise work — Adam, ReLUs, the one-output layers'
@@ -27,7 +28,9 @@ products and sums — is left out, well under 1% of the FLOPs), its time (the me
 matrix-product peak, measured here: a 2048² ``torch.mm`` on one thread. Then the split of the
 update's time: the products (their own time under the profiler), the optimiser (its steps,
 timed by a clock around each in the unprofiled updates; the profiler would inflate SB3's ~100 small
-operations a step) and the rest (the update's time less both: elementwise work, allocation, Python and dispatch).
+operations a step; compiled, Adam is fused into the update's kernels, in the rest) and the rest
+(the update's time less both: elementwise work, allocation, Python and dispatch; compiled, the
+fused kernels and the compiled code's guard check and wrapper).
 
 **Side by side** (``ROUNDS``): every arm — SB3's TD3 (the reference), our ``--algos`` in each
 ``--precisions`` and ``--compile`` setting, and groups of ``--members`` seeds — trains a run of
@@ -186,6 +189,15 @@ def _embedding(device: str) -> ActionEmbedding:
     ).to(device)
 
 
+def _resolved(compile: str, device: str) -> str:
+    """``td3.compile`` as a run long enough to repay compiling (a paper run) takes it here."""
+    if compile != "auto":
+        return compile
+    from ede.run.group import COMPILE_FROM_UPDATES, compile_mode
+
+    return compile_mode(compile, COMPILE_FROM_UPDATES, torch.device(device))
+
+
 def ours(
     steps: int, setting: Setting, algo: Algo, precision: str, compile: str, members: int
 ) -> float:
@@ -208,11 +220,8 @@ def ours(
             **({"compile": compile} if "compile" in TD3Config.model_fields else {}),
         }
     )
-    if compile == "auto":  # as a run long enough to repay compiling (a paper run) takes it
-        from ede.run.group import COMPILE_FROM_UPDATES, compile_mode
-
-        mode = compile_mode(compile, COMPILE_FROM_UPDATES, torch.device(setting.device))
-        config = config.model_copy(update={"compile": mode})
+    if compile == "auto":
+        config = config.model_copy(update={"compile": _resolved(compile, setting.device)})
     embedding = _embedding(setting.device) if algo == "ede-td3" else None
     specs = [RunSpec(TASK, algo, seed, steps, config, EdeTD3Config()) for seed in range(members)]
     times: dict[int, float] = {}
@@ -310,17 +319,20 @@ def peak_gflops(device: str) -> float:
 
 @dataclass(frozen=True)
 class Update:
-    """One update's cost: matrix-product FLOPs, seconds, and seconds in products and optimiser."""
+    """One update's cost: matrix-product FLOPs, seconds, and seconds in products and optimiser
+    (None where it is fused into a compiled update)."""
 
     flops: float
     seconds: float
     products: float
-    optimiser: float
+    optimiser: float | None
 
 
-def _flops(shapes: list[list[int]]) -> float:
-    """2·b·m·k·n of a product's recorded input shapes (the bias first for addmm and baddbmm)."""
-    left, right = [shape for shape in shapes if len(shape) >= 2][-2:]
+def _flops(name: str, shapes: list[list[int]]) -> float:
+    """2·b·m·k·n of product ``name``'s recorded input shapes: its two factors, after the bias for
+    addmm and baddbmm (a compiled update's products also record their ``out``, last)."""
+    first = 1 if name in ("aten::addmm", "aten::baddbmm") else 0
+    left, right = shapes[first : first + 2]
     return 2.0 * float(np.prod(left)) * right[-1]
 
 
@@ -343,8 +355,9 @@ class Clocked:
         return clocked
 
 
-def measure_update(clocked: Clocked) -> Update:
-    """An update (warmed up) timed with its optimiser steps, then profiled for its products."""
+def measure_update(clocked: Clocked, compiled: bool = False) -> Update:
+    """An update (warmed up) timed with its optimiser steps (none clocked where ``compiled``),
+    then profiled for its products."""
     from torch.profiler import ProfilerActivity, profile
 
     blocks, clocked.seconds = [], 0.0
@@ -359,10 +372,10 @@ def measure_update(clocked: Clocked) -> Update:
             clocked.update()
     products = [e for e in profiled.events() if e.name in PRODUCTS]
     return Update(
-        flops=sum(_flops(e.input_shapes) for e in products) / UPDATES,
+        flops=sum(_flops(e.name, e.input_shapes) for e in products) / UPDATES,
         seconds=statistics.median(blocks),
         products=sum(e.self_cpu_time_total for e in products) / 1e6 / UPDATES,
-        optimiser=optimiser,
+        optimiser=None if compiled else optimiser,
     )
 
 
@@ -388,8 +401,9 @@ def sb3_update(setting: Setting) -> Clocked:
     )
 
 
-def ours_update(setting: Setting, algo: str) -> Clocked:
-    """Our agent's update (eager, fp32) on a buffer of random steps."""
+def ours_update(setting: Setting, algo: str, compile: str = "none") -> Clocked:
+    """Our agent's update (fp32, ``td3.compile`` ``compile``) on a buffer of random steps; eager,
+    its Adam steps clocked (compiled, they are fused into the update: not clocked)."""
     import gymnasium
 
     from ede.method.adapters import EmbeddingAdapter, IdentityAdapter
@@ -405,7 +419,13 @@ def ours_update(setting: Setting, algo: str) -> Clocked:
         if algo == "td3"
         else EmbeddingAdapter(_embedding(setting.device))
     )
-    config = TD3Config(hidden=setting.hidden, batch_size=setting.batch_size)
+    config = TD3Config.model_validate(  # no compile key for eager, as ours() (an earlier commit)
+        {
+            "hidden": setting.hidden,
+            "batch_size": setting.batch_size,
+            **({"compile": compile} if compile != "none" else {}),
+        }
+    )
     agent = Agent(obs_size, adapter, config, device)
     buffer = ReplayBuffer(setting.start, obs_size, adapter.code_size, adapter.k, device)
     rng, one = np.random.default_rng(0), np.ones(1, dtype=bool)
@@ -418,42 +438,56 @@ def ours_update(setting: Setting, algo: str) -> Clocked:
         )
         no = np.zeros(1, dtype=bool)
         buffer.add(one, obs, code, rng.integers(adapter.k, size=1), reward, next_obs, no, no)
-    return Clocked(lambda: agent.update(buffer), [agent.critic_adam, agent.actor_adam])
+    optimisers = [agent.critic_adam, agent.actor_adam] if compile == "none" else []
+    return Clocked(lambda: agent.update(buffer), optimisers)
 
 
 def updates(args: argparse.Namespace, setting: Setting) -> None:
-    """One update of SB3's TD3 and of each of ours: FLOPs, time, GFLOP/s against the peak, and
-    where the time goes."""
+    """One update of SB3's TD3 and of each of ours (eager, and compiled where ``--compile``
+    compiles here): FLOPs, time, GFLOP/s against the peak, and where the time goes."""
+    compiled = sorted({_resolved(mode, setting.device) for mode in args.compile} - {"none"})
     learners = {"stable-baselines3 TD3": sb3_update(setting)} | {
-        f"ours {'TD3' if algo == 'td3' else 'EDE-TD3'}": ours_update(setting, algo)
+        f"ours {'TD3' if algo == 'td3' else 'EDE-TD3'}{'' if mode == 'none' else ', compiled'}": (
+            ours_update(setting, algo, mode)
+        )
         for algo in args.algos
+        for mode in ["none", *compiled]
     }
-    for clocked in learners.values():
+    for clocked in learners.values():  # first calls, kernel choices, compiling
         for _ in range(20):
             clocked.update()
     peak = peak_gflops(setting.device)
-    measured = {name: measure_update(clocked) for name, clocked in learners.items()}
+    measured = {
+        name: measure_update(clocked, compiled=name.endswith(", compiled"))
+        for name, clocked in learners.items()
+    }
     print(
-        f"One update ({'-'.join(map(str, setting.hidden))}, batch {setting.batch_size}, eager, "
+        f"One update ({'-'.join(map(str, setting.hidden))}, batch {setting.batch_size}, "
         f"fp32; the actor every 2nd): fp32 matrix-product peak {peak:.0f} GFLOP/s "
         f"({PEAK_SIZE}² torch.mm, one thread)"
     )
     print(
-        f"{'':<22} {'MFLOP':>7} {'ms':>6} {'GFLOP/s':>8} {'of peak':>7}   "
+        f"{'':<32} {'MFLOP':>7} {'ms':>6} {'GFLOP/s':>8} {'of peak':>7}   "
         f"{'products':>8} {'optimiser':>9} {'rest':>6}"
     )
     for name, u in measured.items():
-        rest = u.seconds - u.products - u.optimiser
-        shares = [100 * part / u.seconds for part in (u.products, u.optimiser, rest)]
+        rest = u.seconds - u.products - (u.optimiser or 0.0)
+        shares = [
+            None if part is None else 100 * part / u.seconds
+            for part in (u.products, u.optimiser, rest)
+        ]
         print(
-            f"{name:<22} {u.flops / 1e6:7.2f} {u.seconds * 1e3:6.2f} {u.flops / u.seconds / 1e9:8.1f} "
+            f"{name:<32} {u.flops / 1e6:7.2f} {u.seconds * 1e3:6.2f} {u.flops / u.seconds / 1e9:8.1f} "
             f"{100 * u.flops / u.seconds / 1e9 / peak:6.0f}%   "
-            + " ".join(f"{share:8.0f}%" for share in shares)
+            + " ".join(
+                f"{share:8.0f}%" if share is not None else f"{'fused':>9}" for share in shares
+            )
         )
     print(
         "MFLOP: matrix products per update, from their shapes; products: their own time under "
-        "the profiler; optimiser: Adam's steps, by a clock; rest: the update's time less both (elementwise "
-        "work, allocation, Python and dispatch). At the peak, the products alone would take "
+        "the profiler; optimiser: Adam's steps, by a clock (compiled: fused, in the rest); rest: the "
+        "update's time less both (elementwise work, allocation, Python and dispatch; compiled: "
+        "the fused kernels, the compiled code's guards and wrapper). At the peak, the products alone would take "
         + ", ".join(f"{u.flops / peak / 1e6:.2f} ms ({name})" for name, u in measured.items())
         + "."
     )
@@ -474,14 +508,17 @@ def side_by_side(args: argparse.Namespace, setting: Setting, arms: list[Arm]) ->
     if any(arm.compile != "none" for arm in arms):
         torch._dynamo.reset()
     if any(arm.compile == "auto" for arm in arms):
-        from ede.run.group import COMPILE_FROM_UPDATES, compile_mode, compiler_missing
+        from ede.run.group import COMPILE_FROM_UPDATES, compiler_missing
 
-        device = torch.device(setting.device)
-        mode = compile_mode("auto", COMPILE_FROM_UPDATES, device)
+        mode = _resolved("auto", setting.device)
         print(
             f"td3.compile auto (the default) runs as a run of {COMPILE_FROM_UPDATES:,} updates or "
             f"more takes it here: {mode}"
-            + (f" ({compiler_missing(device)} not found)" if mode == "none" else "")
+            + (
+                f" ({compiler_missing(torch.device(setting.device))} not found)"
+                if mode == "none"
+                else ""
+            )
         )
     for arm in arms:  # the warm-up round: compiles, first calls, kernel choices
         run(arm, min(setting.start + 300, steps(arm)))

@@ -82,6 +82,39 @@ def test_train_throughput_runs_side_by_side_in_its_tiny_form() -> None:
         assert ratio > 0 and spread == f"({ratio:.2f}–{ratio:.2f})", rows[name]
 
 
+def test_train_throughputs_compiled_update_runs_the_eager_ones_products(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The one-update table's compiled row (where ``--compile`` compiles here): the same matrix
+    products as the eager update, counted from the profiled shapes, and Adam fused into it, so
+    not clocked."""
+    import importlib.util
+
+    import torch
+
+    spec = importlib.util.spec_from_file_location(
+        "train_throughput", REPO / "benchmarks/train_throughput.py"
+    )
+    assert spec is not None and spec.loader is not None
+    bench = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, bench)  # its dataclasses look themselves up
+    spec.loader.exec_module(bench)
+    setting = bench.Setting([16, 16], 8, "cpu", start=100)
+    try:
+        measured = {}
+        for mode in ("none", "default"):
+            clocked = bench.ours_update(setting, "ede-td3", mode)
+            for _ in range(4):  # compiled: both graphs (with and without the actor's step)
+                clocked.update()
+            measured[mode] = bench.measure_update(clocked, compiled=mode != "none")
+    finally:
+        torch._dynamo.reset()
+    eager, compiled = measured["none"], measured["default"]
+    assert compiled.flops == eager.flops > 0, (compiled, eager)
+    assert eager.optimiser is not None and eager.optimiser > 0 and compiled.optimiser is None
+    assert 0 < compiled.products < compiled.seconds, compiled
+
+
 def test_clip_sensitivity_plays_a_published_clip_again(tmp_path: Path) -> None:
     import shutil
 
