@@ -7,6 +7,7 @@ computes is what it computes alone (tests/ede/test_group.py holds it bit for bit
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -199,11 +200,14 @@ class Agent:
         delay = self.config.policy_delay
         actor_due = due & ((self.updates + 1) % delay == 0)
         self.updates += due
-        corrections = torch.stack(
-            [
-                self.critic_adam.corrections(self.updates, self.device),
-                self.actor_adam.corrections(self.updates // delay, self.device),
-            ]
+        corrections = to_device(  # one copy for both optimisers
+            np.stack(
+                [
+                    self.critic_adam.corrections(self.updates),
+                    self.actor_adam.corrections(self.updates // delay),
+                ]
+            ),
+            self.device,
         )
         masks = to_device(np.stack([due, actor_due]), self.device)
         flags = (bool(actor_due.any()), not due.all(), not actor_due.all())
@@ -283,7 +287,12 @@ class Agent:
         """The members whose losses since their last :meth:`take_diagnostics` are not finite
         (one host synchronisation), each with the quantity: the critic's loss, or the actor's
         (minus its Q value)."""
-        finite = torch.isfinite(self.loss_sums[[0, 2]]).tolist()  # (2, M)
+        sums = self.loss_sums
+        # Checked after every update: the common case in one operator call, as the sum of
+        # everything is finite wherever every term is (a sum that overflows is looked at closely).
+        if math.isfinite(sums.sum().item()):
+            return {}
+        finite = torch.isfinite(sums[0::2]).tolist()  # (2, M): the critic's and the actor's
         names = ("the critic's loss", "the actor's loss (its Q value)")
         return {
             m: names[0] if not finite[0][m] else names[1]

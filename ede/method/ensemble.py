@@ -40,8 +40,6 @@ import torch
 import torch.nn.functional as F
 from torch.optim.adam import adam
 
-from ede.method.nets import to_device
-
 __all__ = [
     "Adam",
     "Layers",
@@ -290,14 +288,15 @@ class Adam(torch.nn.Module):
             for m in range(stack.flat.shape[0])
         ]
 
-    def corrections(self, steps: Sequence[int] | np.ndarray, device: torch.device) -> torch.Tensor:
-        """``(2, M, 1)``: each member's step size lr / (1 − β₁ᵗ) and √(1 − β₂ᵗ), for its t-th
-        step (members at t = 0 take t = 1: they are not due and the values are unused)."""
+    def corrections(self, steps: Sequence[int] | np.ndarray) -> np.ndarray:
+        """``(2, M, 1)`` float32, on the host: each member's step size lr / (1 − β₁ᵗ) and
+        √(1 − β₂ᵗ), for its t-th step (members at t = 0 take t = 1: they are not due and the
+        values are unused)."""
         beta1, beta2 = self.betas
         rows = [
             (self.lr / (1 - beta1 ** max(t, 1)), math.sqrt(1 - beta2 ** max(t, 1))) for t in steps
         ]
-        return to_device(np.array(rows, dtype=np.float32).T[..., None], device)
+        return np.array(rows, dtype=np.float32).T[..., None]
 
     @torch.no_grad()
     def step(

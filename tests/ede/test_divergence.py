@@ -125,3 +125,19 @@ def test_every_json_written_is_valid_json(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="not JSON compliant"):
         write_json(tmp_path / "x.json", {"final_return": float("nan")})
     assert not (tmp_path / "x.json").exists()
+
+
+def test_non_finite_names_each_member_whose_loss_is_not_finite_and_no_other() -> None:
+    from ede.method.adapters import IdentityAdapter
+    from ede.method.agent import Agent
+
+    config = TD3Config.model_validate(SMALL)
+    agent = Agent(
+        3, IdentityAdapter(np.array([-1.0]), np.array([1.0]), CPU), config, CPU, (0, 1, 2)
+    )
+    big = torch.finfo(torch.float32).max
+    agent.loss_sums[0] = torch.tensor([big, big, 1.0])  # finite terms whose sum overflows
+    assert agent.non_finite() == {}
+    agent.loss_sums[2, 1] = float("nan")
+    agent.loss_sums[0, 2] = float("-inf")
+    assert agent.non_finite() == {1: "the actor's loss (its Q value)", 2: "the critic's loss"}

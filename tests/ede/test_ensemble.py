@@ -66,7 +66,9 @@ def adam_step(
     rows (``fused``), or the arithmetic the compiled update runs."""
     counts, mask = np.array(steps), np.array(due)
     masked = None if mask.all() else torch.as_tensor(mask)
-    adam.step(grad, adam.corrections(counts, CPU), masked, (counts, mask) if fused else None)
+    adam.step(
+        grad, torch.from_numpy(adam.corrections(counts)), masked, (counts, mask) if fused else None
+    )
 
 
 @pytest.mark.parametrize("fused", [True, False])
