@@ -13,6 +13,8 @@ import pytest
 import torch
 
 from ede.config import EdeTD3Config, TD3Config
+from ede.method.adapters import IdentityAdapter
+from ede.method.agent import Agent
 from ede.run.spec import RunSpec
 from ede.run.training import Diverged, train_group, train_run
 from ede.tasks import make
@@ -128,9 +130,6 @@ def test_every_json_written_is_valid_json(tmp_path: Path) -> None:
 
 
 def test_non_finite_names_each_member_whose_loss_is_not_finite_and_no_other() -> None:
-    from ede.method.adapters import IdentityAdapter
-    from ede.method.agent import Agent
-
     config = TD3Config.model_validate(SMALL)
     agent = Agent(
         3, IdentityAdapter(np.array([-1.0]), np.array([1.0]), CPU), config, CPU, (0, 1, 2)
